@@ -1,0 +1,97 @@
+"""Analytic shapes with known signed distance, for tests (world mm, LPS)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from volreg.volume import LabelVolume
+
+
+class Ellipsoid:
+    """Solid ellipsoid with semi-axes ``axes`` (mm) centred at ``centre``."""
+
+    def __init__(self, axes, centre):
+        self.axes = np.asarray(axes, float)
+        self.centre = np.asarray(centre, float)
+
+    def signed_distance(self, x: np.ndarray) -> np.ndarray:
+        """Exact signed distance (mm, positive outside), by bisection on the
+        Lagrange multiplier of the nearest-point problem (Eberly's method)."""
+        p = np.abs(np.asarray(x, float) - self.centre)
+        a2 = self.axes**2
+        lo = np.full(len(p), -a2.min())
+        hi = np.full(len(p), np.linalg.norm(p, axis=1) * self.axes.max() + 1.0)
+        for _ in range(200):
+            t = 0.5 * (lo + hi)
+            f = np.sum((self.axes * p / (t[:, None] + a2)) ** 2, axis=1) - 1.0
+            pos = f > 0
+            lo = np.where(pos, t, lo)
+            hi = np.where(pos, hi, t)
+        t = 0.5 * (lo + hi)
+        nearest = a2 * p / (t[:, None] + a2)
+        dist = np.linalg.norm(p - nearest, axis=1)
+        inside = np.sum((p / self.axes) ** 2, axis=1) < 1.0
+        return np.where(inside, -dist, dist)
+
+    def surface_points(self, n: int, rng: np.random.Generator):
+        """``n`` points on the surface and their outward unit normals."""
+        u = rng.normal(size=(n, 3))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        pts = u * self.axes
+        nrm = pts / self.axes**2
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        return pts + self.centre, nrm
+
+
+class Torus:
+    """Solid torus about the axis ``z`` (major radius R, minor radius r, mm)."""
+
+    def __init__(self, major, minor, centre):
+        self.major, self.minor = float(major), float(minor)
+        self.centre = np.asarray(centre, float)
+
+    def signed_distance(self, x):
+        p = np.asarray(x, float) - self.centre
+        q = np.hypot(p[:, 0], p[:, 1]) - self.major
+        return np.hypot(q, p[:, 2]) - self.minor
+
+    def surface_points(self, n, rng):
+        u, v = rng.uniform(0, 2 * np.pi, (2, n))
+        nrm = np.stack([np.cos(u) * np.cos(v), np.sin(u) * np.cos(v), np.sin(v)], axis=1)
+        ring = np.stack([np.cos(u), np.sin(u), np.zeros(n)], axis=1) * self.major
+        return ring + self.minor * nrm + self.centre, nrm
+
+
+class Disc2D:
+    """2-D ellipse (semi-axes ``axes``) for outline tests."""
+
+    def __init__(self, axes, centre):
+        self.axes = np.asarray(axes, float)
+        self.centre = np.asarray(centre, float)
+
+    signed_distance = Ellipsoid.signed_distance
+
+    def surface_points(self, n, rng):
+        t = rng.uniform(0, 2 * np.pi, n)
+        u = np.stack([np.cos(t), np.sin(t)], axis=1)
+        pts = u * self.axes
+        nrm = pts / self.axes**2
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        return pts + self.centre, nrm
+
+
+def rotation(angle_deg: float, axis=(0.3, 0.5, 0.8)) -> np.ndarray:
+    """Rotation matrix about ``axis`` (Rodrigues)."""
+    a = np.asarray(axis, float)
+    a /= np.linalg.norm(a)
+    t = np.deg2rad(angle_deg)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
+
+
+def label_volume(shape, spacing, direction, origin, sdf, label=1, dtype=np.uint8) -> LabelVolume:
+    """A label volume holding ``label`` where ``sdf < 0`` at voxel centres."""
+    geom = LabelVolume(np.zeros(shape, dtype=dtype), origin, spacing, direction)
+    pts = geom.grid_points().reshape(-1, len(shape))
+    inside = sdf(pts) < 0
+    return geom.with_array((inside.reshape(shape) * label).astype(dtype))

@@ -1,0 +1,583 @@
+"""Tests for volreg.io: label/scalar images, meshes, atomic output."""
+
+from __future__ import annotations
+
+import gzip
+import os
+import re
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pytest
+import pyvista as pv
+import SimpleITK as sitk
+
+from volreg import LabelVolume
+from volreg.io import (
+    VolregIOError,
+    atomic_output,
+    check_writable,
+    read_image,
+    read_labels,
+    read_mesh,
+    write_labels,
+    write_mesh,
+    write_scalar,
+)
+
+# NIfTI stores origin, spacing and the qform quaternion as float32: relative
+# error ~6e-8, i.e. well under 1e-5 mm for coordinates of a few hundred mm.
+GEOM_ATOL_MM = 1e-5
+
+LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def _rotation(axis, degrees: float) -> np.ndarray:
+    """Rodrigues rotation matrix about ``axis`` by ``degrees``."""
+    a = np.asarray(axis, dtype=float)
+    a /= np.linalg.norm(a)
+    t = np.deg2rad(degrees)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * (k @ k)
+
+
+# (direction, spacing mm, origin mm)
+ORIENTATIONS = {
+    "identity": (np.eye(3), (1.0, 1.5, 2.0), (-10.0, 20.5, 3.25)),
+    "flipped_xy": (np.diag([-1.0, -1.0, 1.0]), (1.0, 1.0, 1.0), (90.0, 126.0, -72.0)),
+    "left_handed": (np.diag([1.0, -1.0, 1.0]), (0.5, 0.7, 1.2), (0.0, 0.0, 0.0)),
+    "oblique_20deg": (_rotation((1.0, 2.0, 3.0), 20.0), (0.8, 0.8, 2.0), (-101.3, 12.7, 55.1)),
+}
+SUFFIXES = [".nii.gz", ".nii", ".nrrd", ".mha"]
+DTYPES = [np.uint8, np.int16, np.uint16, np.int32]
+
+
+def _volume(dtype, orientation: str, shape=(7, 6, 5), seed: int = 0) -> LabelVolume:
+    rng = np.random.default_rng(seed)
+    array = rng.integers(0, 5, size=shape).astype(dtype)
+    info = np.iinfo(dtype)
+    array.flat[0] = info.max  # extremes prove the dtype survives
+    array.flat[-1] = info.min
+    direction, spacing, origin = ORIENTATIONS[orientation]
+    return LabelVolume(array, origin, spacing, direction)
+
+
+def _assert_same(a: LabelVolume, b: LabelVolume) -> None:
+    assert b.array.dtype == a.array.dtype
+    assert b.shape == a.shape
+    np.testing.assert_array_equal(b.array, a.array)
+    np.testing.assert_allclose(b.origin, a.origin, atol=GEOM_ATOL_MM)
+    np.testing.assert_allclose(b.spacing, a.spacing, atol=GEOM_ATOL_MM)
+    np.testing.assert_allclose(b.direction, a.direction, atol=GEOM_ATOL_MM)
+
+
+def _raises(path: Path, match: str):
+    """Expect a one-line VolregIOError naming ``path`` and matching ``match``."""
+
+    class _Ctx:
+        def __enter__(self):
+            self._cm = pytest.raises(VolregIOError, match=match)
+            self.info = self._cm.__enter__()
+            return self.info
+
+        def __exit__(self, *exc):
+            handled = self._cm.__exit__(*exc)
+            msg = str(self.info.value)
+            assert str(path) in msg, msg
+            assert "\n" not in msg, msg
+            return handled
+
+    return _Ctx()
+
+
+# --------------------------------------------------------------------------- round trips
+
+
+@pytest.mark.parametrize("orientation", list(ORIENTATIONS))
+@pytest.mark.parametrize("dtype", DTYPES, ids=lambda d: np.dtype(d).name)
+@pytest.mark.parametrize("suffix", SUFFIXES)
+def test_label_round_trip(tmp_path, suffix, dtype, orientation):
+    vol = _volume(dtype, orientation)
+    path = tmp_path / f"label_1{suffix}"
+    write_labels(vol, path)
+    back = read_labels(path)
+    _assert_same(vol, back)
+    assert back.array.flags.c_contiguous
+
+
+@pytest.mark.parametrize("suffix", SUFFIXES)
+def test_label_round_trip_2d(tmp_path, suffix):
+    rng = np.random.default_rng(1)
+    array = rng.integers(0, 4, size=(9, 6)).astype(np.uint8)
+    theta = np.deg2rad(30.0)
+    direction = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    vol = LabelVolume(array, (3.5, -2.0), (0.5, 1.25), direction)
+    path = tmp_path / f"slice{suffix}"
+    write_labels(vol, path)
+    back = read_labels(path)
+    assert back.ndim == 2
+    _assert_same(vol, back)
+
+
+def test_bool_labels_written_as_uint8(tmp_path):
+    mask = np.zeros((4, 5, 6), dtype=bool)
+    mask[1:3, 2:4, 3:5] = True
+    vol = LabelVolume(mask, (0, 0, 0), (1, 1, 1), np.eye(3))
+    write_labels(vol, tmp_path / "mask.nrrd")
+    back = read_labels(tmp_path / "mask.nrrd")
+    assert back.array.dtype == np.uint8
+    np.testing.assert_array_equal(back.array, mask.astype(np.uint8))
+
+
+@pytest.mark.parametrize("orientation", list(ORIENTATIONS))
+def test_nifti_qform_equals_sform_and_is_ras(tmp_path, orientation):
+    vol = _volume(np.int16, orientation)
+    path = tmp_path / "seg.nii.gz"
+    write_labels(vol, path)
+    img = nib.load(path)
+    qform, qcode = img.get_qform(coded=True)
+    sform, scode = img.get_sform(coded=True)
+    assert qcode > 0 and scode > 0
+    np.testing.assert_allclose(qform, sform, atol=GEOM_ATOL_MM)
+    # nibabel's affine is RAS; volreg's is LPS: they differ by negating x and y.
+    np.testing.assert_allclose(img.affine, LPS_TO_RAS @ vol.affine, atol=GEOM_ATOL_MM)
+    # and nibabel's array is in the same (i, j, k) order as ours.
+    np.testing.assert_array_equal(np.asarray(img.dataobj), vol.array)
+
+
+def test_index_to_world_matches_simpleitk(tmp_path):
+    vol = _volume(np.uint8, "oblique_20deg")
+    path = tmp_path / "geom.nrrd"
+    write_labels(vol, path)
+    back = read_labels(path)
+    img = sitk.ReadImage(str(path))
+    indices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [6, 5, 4], [2.5, 3.25, 0.5]])
+    ours = back.index_to_world(indices)
+    theirs = np.array([img.TransformContinuousIndexToPhysicalPoint(tuple(map(float, ix))) for ix in indices])
+    np.testing.assert_allclose(ours, theirs, atol=1e-9)
+    # Voxel [i, j, k] of our array is SimpleITK's pixel at index (i, j, k).
+    for ix in [(0, 0, 0), (6, 5, 4), (3, 1, 2)]:
+        assert back.array[ix] == img.GetPixel(ix)
+
+
+def test_nifti_world_point_against_nibabel(tmp_path):
+    vol = _volume(np.uint8, "oblique_20deg")
+    path = tmp_path / "geom.nii.gz"
+    write_labels(vol, path)
+    back = read_labels(path)
+    idx = np.array([[0, 0, 0], [6, 5, 4], [1.5, 2.0, 3.5]])
+    ras = nib.affines.apply_affine(nib.load(path).affine, idx)
+    lps = ras * np.array([-1.0, -1.0, 1.0])
+    np.testing.assert_allclose(back.index_to_world(idx), lps, atol=GEOM_ATOL_MM)
+
+
+@pytest.mark.parametrize("suffix", [".nii.gz", ".mha"])
+def test_scalar_round_trip(tmp_path, suffix):
+    like = _volume(np.uint8, "oblique_20deg")
+    values = np.random.default_rng(2).normal(size=like.shape) * 10
+    path = tmp_path / f"dist{suffix}"
+    write_scalar(values, like, path)
+    array, origin, spacing, direction = read_image(path)
+    assert array.dtype == np.float32
+    np.testing.assert_array_equal(array, values.astype(np.float32))
+    np.testing.assert_allclose(origin, like.origin, atol=GEOM_ATOL_MM)
+    np.testing.assert_allclose(spacing, like.spacing, atol=GEOM_ATOL_MM)
+    np.testing.assert_allclose(direction, like.direction, atol=GEOM_ATOL_MM)
+
+
+def test_read_image_of_labels_is_float(tmp_path):
+    vol = _volume(np.int16, "identity")
+    write_labels(vol, tmp_path / "l.nrrd")
+    array, *_ = read_image(tmp_path / "l.nrrd")
+    assert array.dtype == np.float32
+    np.testing.assert_array_equal(array, vol.array.astype(np.float32))
+
+
+def test_write_scalar_rejects_wrong_shape(tmp_path):
+    like = _volume(np.uint8, "identity")
+    with pytest.raises(VolregIOError, match="Expected `array` of shape"):
+        write_scalar(np.zeros((2, 2, 2)), like, tmp_path / "x.nii.gz")
+    assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- float and 4-D inputs
+
+
+def _nifti(path: Path, data: np.ndarray, affine=None) -> Path:
+    nib.save(nib.Nifti1Image(data, np.eye(4) if affine is None else affine), path)
+    return path
+
+
+def test_float_integral_labels_accepted(tmp_path):
+    data = np.random.default_rng(3).choice([0.0, 3.0, 7.0, 200.0], size=(5, 4, 3)).astype(np.float32)
+    vol = read_labels(_nifti(tmp_path / "f.nii.gz", data))
+    assert vol.array.dtype == np.uint8
+    np.testing.assert_array_equal(vol.array, data.astype(np.uint8))
+    data[0, 0, 0] = -1.0
+    vol = read_labels(_nifti(tmp_path / "g.nii.gz", data))
+    assert vol.array.dtype == np.int16
+    np.testing.assert_array_equal(vol.array, data.astype(np.int16))
+
+
+def test_4d_with_single_volume_is_squeezed(tmp_path):
+    data = np.random.default_rng(4).integers(0, 3, size=(5, 4, 3, 1)).astype(np.int16)
+    vol = read_labels(_nifti(tmp_path / "one.nii.gz", data))
+    assert vol.shape == (5, 4, 3)
+    np.testing.assert_array_equal(vol.array, data[..., 0])
+
+
+def test_4d_with_single_volume_nrrd_is_squeezed(tmp_path):
+    data = np.random.default_rng(4).integers(0, 3, size=(5, 4, 3, 1)).astype(np.uint8)
+    img = sitk.GetImageFromArray(data.T.copy(), isVector=False)
+    img.SetSpacing((0.5, 0.6, 0.7, 1.0))
+    path = tmp_path / "one.nrrd"
+    sitk.WriteImage(img, str(path))
+    vol = read_labels(path)
+    assert vol.shape == (5, 4, 3)
+    np.testing.assert_allclose(vol.spacing, (0.5, 0.6, 0.7))
+    np.testing.assert_array_equal(vol.array, data[..., 0])
+
+
+# --------------------------------------------------------------------------- bad inputs
+
+
+def test_missing_file(tmp_path):
+    path = tmp_path / "nope.nii.gz"
+    with _raises(path, "does not exist"):
+        read_labels(path)
+    with _raises(path, "does not exist"):
+        read_image(path)
+
+
+def test_random_bytes_nii_gz(tmp_path):
+    path = tmp_path / "noise.nii.gz"
+    path.write_bytes(np.random.default_rng(5).bytes(4096))
+    with _raises(path, "not a readable NIfTI"):
+        read_labels(path)
+
+
+def test_text_file_named_nii(tmp_path):
+    path = tmp_path / "notes.nii"
+    path.write_text("this is not an image\n" * 30)
+    with _raises(path, "not a readable NIfTI"):
+        read_labels(path)
+
+
+@pytest.mark.parametrize("suffix", [".nrrd", ".mha"])
+def test_random_bytes_other_formats(tmp_path, suffix):
+    path = tmp_path / f"noise{suffix}"
+    path.write_bytes(np.random.default_rng(6).bytes(4096))
+    with _raises(path, "could not be read as an image"):
+        read_labels(path)
+
+
+def test_truncated_nii_gz(tmp_path):
+    # SimpleITK itself reads such a file without complaint, zero-filling the tail.
+    vol = _volume(np.int16, "identity", shape=(30, 20, 10))
+    path = tmp_path / "cut.nii.gz"
+    write_labels(vol, path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with _raises(path, "truncated"):
+        read_labels(path)
+
+
+def test_truncated_nii(tmp_path):
+    vol = _volume(np.int16, "identity", shape=(30, 20, 10))
+    path = tmp_path / "cut.nii"
+    write_labels(vol, path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with _raises(path, "truncated"):
+        read_labels(path)
+
+
+def test_corrupt_gzip_crc(tmp_path):
+    vol = _volume(np.uint8, "identity", shape=(30, 20, 10))
+    raw = tmp_path / "ok.nii"
+    write_labels(vol, raw)
+    blob = bytearray(gzip.compress(raw.read_bytes()))
+    blob[-6] ^= 0xFF  # flip a CRC byte
+    path = tmp_path / "crc.nii.gz"
+    path.write_bytes(bytes(blob))
+    with _raises(path, "corrupt gzip"):
+        read_labels(path)
+
+
+@pytest.mark.parametrize("suffix", [".nrrd", ".mha"])
+def test_truncated_other_formats(tmp_path, suffix):
+    vol = _volume(np.int16, "identity", shape=(30, 20, 10))
+    path = tmp_path / f"cut{suffix}"
+    write_labels(vol, path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with _raises(path, "could not be read as an image"):
+        read_labels(path)
+
+
+def test_4d_with_three_volumes(tmp_path):
+    path = _nifti(tmp_path / "four.nii.gz", np.zeros((5, 4, 3, 3), dtype=np.int16))
+    with _raises(path, r"4-D with size \(5, 4, 3, 3\)"):
+        read_labels(path)
+
+
+def test_vector_image(tmp_path):
+    img = nib.Nifti1Image(np.zeros((5, 4, 3, 1, 3), dtype=np.float32), np.eye(4))
+    img.header.set_intent("vector")
+    path = tmp_path / "vec.nii.gz"
+    nib.save(img, path)
+    with _raises(path, "3 components per voxel"):
+        read_labels(path)
+
+
+def test_float_with_nan(tmp_path):
+    data = np.ones((5, 4, 3), dtype=np.float32)
+    data[1, 2, 0] = np.nan
+    data[0, 0, 0] = np.inf
+    path = _nifti(tmp_path / "nan.nii.gz", data)
+    with _raises(path, "1 NaN and 1 Inf"):
+        read_labels(path)
+
+
+def test_float_non_integral(tmp_path):
+    data = np.ones((5, 4, 3), dtype=np.float64)
+    data[1, 2, 0] = 2.5
+    path = _nifti(tmp_path / "half.nii.gz", data)
+    with _raises(path, r"non-integral values \(e\.g\. 2\.5\)"):
+        read_labels(path)
+
+
+def test_qform_sform_disagree(tmp_path):
+    img = nib.Nifti1Image(np.zeros((5, 4, 3), dtype=np.uint8), None)
+    qform = np.diag([2.0, 2.0, 2.0, 1.0])
+    sform = qform.copy()
+    sform[:3, 3] = (5.0, 0.0, 0.0)  # 5 mm shift
+    img.set_qform(qform, code=1)
+    img.set_sform(sform, code=2)
+    path = tmp_path / "conflict.nii.gz"
+    nib.save(img, path)
+    with _raises(path, "qform .* and sform .* disagree by up to 5 mm"):
+        read_labels(path)
+
+
+@pytest.mark.parametrize("which", ["qform", "sform"])
+def test_only_one_of_qform_sform(tmp_path, which):
+    img = nib.Nifti1Image(np.arange(60, dtype=np.int16).reshape(5, 4, 3), None)
+    ras = np.array([[0.0, 0, 2, -10], [-1.5, 0, 0, 20], [0, 1, 0, 30], [0, 0, 0, 1]])
+    getattr(img, f"set_{which}")(ras, code=1)
+    getattr(img, f"set_{'sform' if which == 'qform' else 'qform'}")(None, code=0)
+    img.header.set_zooms((1.5, 1.0, 2.0))  # pixdim consistent with the affine
+    path = tmp_path / f"{which}.nii.gz"
+    nib.save(img, path)
+    vol = read_labels(path)
+    np.testing.assert_allclose(vol.affine, LPS_TO_RAS @ ras, atol=GEOM_ATOL_MM)
+
+
+def test_sform_pixdim_mismatch(tmp_path):
+    # ITK takes voxel sizes from pixdim, nibabel from the sform: refuse rather than guess.
+    img = nib.Nifti1Image(np.zeros((5, 4, 3), dtype=np.int16), None)
+    img.set_sform(np.diag([2.0, 3.0, 4.0, 1.0]), code=1)
+    img.set_qform(None, code=0)
+    img.header.set_zooms((1.0, 1.0, 1.0))
+    path = tmp_path / "pixdim.nii.gz"
+    nib.save(img, path)
+    with _raises(path, "pixdim disagrees with the sform/qform"):
+        read_labels(path)
+
+
+def test_read_image_keeps_nan_in_nifti(tmp_path):
+    # SimpleITK's NIfTI reader turns NaN/Inf into 0; read_image must not.
+    data = np.random.default_rng(8).normal(size=(5, 4, 3)).astype(np.float32)
+    data[1, 2, 0] = np.nan
+    data[0, 0, 0] = -np.inf
+    path = _nifti(tmp_path / "nan.nii.gz", data)
+    array, *_ = read_image(path)
+    assert array.dtype == np.float32
+    np.testing.assert_array_equal(array, data)
+
+
+def test_unsupported_suffix(tmp_path):
+    path = tmp_path / "labels.png"
+    path.write_bytes(b"\x89PNG")
+    with _raises(path, "unsupported suffix"):
+        read_labels(path)
+    with _raises(tmp_path / "out.nhdr", "unsupported suffix"):
+        write_labels(_volume(np.uint8, "identity"), tmp_path / "out.nhdr")
+
+
+# --------------------------------------------------------------------------- atomic output
+
+
+def test_existing_output_refused_and_untouched(tmp_path):
+    path = tmp_path / "label_1.nii.gz"
+    path.write_bytes(b"precious")
+    expected = f"Output `{path}` exists; pass --force to overwrite."
+    with pytest.raises(VolregIOError, match=re.escape(expected)):
+        with atomic_output(path):
+            raise AssertionError("body must not run")  # pragma: no cover
+    with pytest.raises(VolregIOError, match=re.escape(expected)):
+        write_labels(_volume(np.uint8, "identity"), path)
+    assert path.read_bytes() == b"precious"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["label_1.nii.gz"]
+
+    write_labels(_volume(np.uint8, "identity"), path, force=True)
+    _assert_same(_volume(np.uint8, "identity"), read_labels(path))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["label_1.nii.gz"]
+
+
+def test_exception_inside_context_leaves_nothing(tmp_path):
+    path = tmp_path / "label_1.nii.gz"
+    with pytest.raises(RuntimeError, match="boom"):
+        with atomic_output(path) as tmp:
+            assert tmp.parent == tmp_path
+            assert tmp.name.startswith(".tmp-") and tmp.name.endswith("-label_1.nii.gz")
+            tmp.write_bytes(b"partial")
+            raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_output_success_and_permissions(tmp_path):
+    path = tmp_path / "out.txt"
+    with atomic_output(path) as tmp:
+        tmp.write_text("done")
+        assert not path.exists()
+    assert path.read_text() == "done"
+    assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_check_writable(tmp_path):
+    existing = tmp_path / "a.nii.gz"
+    existing.write_bytes(b"x")
+    fresh = tmp_path / "b.vtk"
+    check_writable([fresh], force=False)
+    check_writable([existing, fresh], force=True)
+    with pytest.raises(VolregIOError, match=re.escape(f"Output `{existing}` exists; pass --force")):
+        check_writable([fresh, existing], force=False)
+    with pytest.raises(VolregIOError, match="does not exist"):
+        check_writable([tmp_path / "missing_dir" / "c.nii.gz"], force=True)
+    with pytest.raises(VolregIOError, match="more than once"):
+        check_writable([fresh, fresh], force=False)
+    with pytest.raises(VolregIOError, match="is a directory"):
+        check_writable([tmp_path], force=True)
+
+
+# --------------------------------------------------------------------------- meshes
+
+
+def _octahedron():
+    v = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=float)
+    tri = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+    scale = np.array([12.5, 7.25, 3.125])  # mm; exactly representable in float32
+    return v * scale + np.array([-30.0, 40.5, 2.0]), tri, v.copy()
+
+
+def _corner_sets(vertices, triangles):
+    """Orientation-preserving canonical form of a triangle soup, independent of vertex order."""
+    corners = vertices[triangles]  # (F, 3, 3)
+    canon = []
+    for tri in corners:
+        rolls = [np.roll(tri, -r, axis=0) for r in range(3)]
+        canon.append(min(rolls, key=lambda t: tuple(t.ravel())).ravel())
+    canon = np.array(canon)
+    return canon[np.lexsort(canon.T[::-1])]
+
+
+@pytest.mark.parametrize("suffix", [".vtk", ".vtp", ".ply", ".obj"])
+def test_mesh_round_trip(tmp_path, suffix):
+    v, tri, normals = _octahedron()
+    path = tmp_path / f"surf{suffix}"
+    write_mesh(v, tri, path, normals=normals)
+    v2, tri2, n2 = read_mesh(path)
+    np.testing.assert_allclose(v2, v, atol=1e-6)
+    np.testing.assert_array_equal(tri2, tri)
+    assert n2 is not None
+    np.testing.assert_allclose(n2, normals, atol=1e-6)
+
+
+def test_mesh_round_trip_stl(tmp_path):
+    v, tri, _ = _octahedron()
+    path = tmp_path / "surf.stl"
+    write_mesh(v, tri, path)
+    v2, tri2, n2 = read_mesh(path)
+    assert n2 is None
+    assert v2.shape == v.shape and tri2.shape == tri.shape
+    np.testing.assert_allclose(_corner_sets(v2, tri2), _corner_sets(v, tri), atol=1e-6)
+
+
+@pytest.mark.parametrize("suffix", [".vtk", ".vtp"])
+def test_mesh_point_data(tmp_path, suffix):
+    v, tri, _ = _octahedron()
+    labels = np.arange(len(v), dtype=np.int32)
+    path = tmp_path / f"surf{suffix}"
+    write_mesh(v, tri, path, point_data={"label": labels})
+    np.testing.assert_array_equal(pv.read(path).point_data["label"], labels)
+    assert read_mesh(path)[2] is None
+
+
+@pytest.mark.parametrize("suffix", [".vtk", ".vtp"])
+def test_segments_2d(tmp_path, suffix):
+    square = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 1.5], [0.0, 1.5]])
+    segments = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+    outward = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) / np.sqrt(2)
+    path = tmp_path / f"outline{suffix}"
+    write_mesh(square, segments, path, normals=outward)
+    mesh = pv.read(path)
+    assert mesh.n_lines == 4 and mesh.n_cells == 4 and mesh.faces.size == 0
+    np.testing.assert_allclose(mesh.points, np.column_stack([square, np.zeros(4)]))
+    np.testing.assert_array_equal(mesh.lines.reshape(-1, 3)[:, 1:], segments)
+    with _raises(path, "no triangles"):
+        read_mesh(path)
+
+
+def test_quads_are_triangulated(tmp_path):
+    path = tmp_path / "cube.vtk"
+    pv.Cube().save(path)
+    v, tri, _ = read_mesh(path)
+    assert tri.shape == (12, 3)
+    assert tri.max() < len(v)
+
+
+def test_mesh_bad_inputs(tmp_path):
+    v, tri, normals = _octahedron()
+    with _raises(tmp_path / "s.stl", "cannot hold line segments"):
+        write_mesh(v, tri[:, :2], tmp_path / "s.stl")
+    with _raises(tmp_path / "s.stl", "cannot hold vertex normals"):
+        write_mesh(v, tri, tmp_path / "s.stl", normals=normals)
+    with _raises(tmp_path / "s.ply", "cannot hold `point_data`"):
+        write_mesh(v, tri, tmp_path / "s.ply", point_data={"a": np.zeros(len(v))})
+    with pytest.raises(VolregIOError, match=r"Expected `cells` to index vertices in \[0, 6\)"):
+        write_mesh(v, tri + 1, tmp_path / "s.vtk")
+    with pytest.raises(VolregIOError, match=r"Expected `vertices` of shape \(N, 3\) or \(N, 2\)"):
+        write_mesh(v[:, :1], tri, tmp_path / "s.vtk")
+    bad = v.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(VolregIOError, match="Expected finite `vertices`"):
+        write_mesh(bad, tri, tmp_path / "s.vtk")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_read_mesh_errors(tmp_path):
+    missing = tmp_path / "none.vtk"
+    with _raises(missing, "does not exist"):
+        read_mesh(missing)
+
+    empty = tmp_path / "empty.vtk"
+    pv.PolyData().save(empty)
+    with _raises(empty, "empty"):
+        read_mesh(empty)
+
+    v, tri, _ = _octahedron()
+    v[2] = np.nan
+    nan_path = tmp_path / "nan.vtk"
+    pv.PolyData(v, faces=np.column_stack([np.full(len(tri), 3), tri]).ravel()).save(nan_path)
+    with _raises(nan_path, "NaN/Inf"):
+        read_mesh(nan_path)
+
+    garbage = tmp_path / "garbage.ply"
+    garbage.write_bytes(np.random.default_rng(7).bytes(512))
+    with _raises(garbage, "could not be read"):
+        read_mesh(garbage)

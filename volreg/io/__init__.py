@@ -1,0 +1,23 @@
+"""File formats: label volumes, scalar images and meshes.
+
+The only modules in volreg that import SimpleITK, nibabel or pyvista for
+files.  Readers validate and raise :class:`VolregIOError` (a ``ValueError``)
+with one line naming the file and the problem; writers are atomic and refuse
+to overwrite unless ``force=True``.
+"""
+
+from ._atomic import VolregIOError, atomic_output, check_writable
+from .images import read_image, read_labels, write_labels, write_scalar
+from .meshes import read_mesh, write_mesh
+
+__all__ = [
+    "VolregIOError",
+    "atomic_output",
+    "check_writable",
+    "read_image",
+    "read_labels",
+    "read_mesh",
+    "write_labels",
+    "write_mesh",
+    "write_scalar",
+]

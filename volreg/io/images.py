@@ -1,0 +1,425 @@
+"""Label volumes and scalar images: NIfTI, NRRD and MetaImage via SimpleITK.
+
+Arrays are returned in ITK index order ``[i, j, k]`` (SimpleITK's
+``GetArrayFromImage`` gives ``[k, j, i]``; we transpose), and geometry is
+SimpleITK's: origin, spacing and direction in ITK physical space (LPS, mm).
+For NIfTI files, whose affines are RAS, this means ``LPS = diag(-1, -1, 1) @ RAS``
+(SimpleITK does the conversion).
+
+Readers validate aggressively, because a silently wrong label volume is worse
+than a refusal: every problem raises :class:`VolregIOError` with one line
+naming the file and what was expected.
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+import re
+import warnings
+import zlib
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import SimpleITK as sitk
+
+from ..volume import GeometryError, LabelVolume
+from ._atomic import VolregIOError, atomic_output
+
+__all__ = ["read_labels", "write_labels", "write_scalar", "read_image"]
+
+#: Suffixes the readers accept (lower case).
+READ_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
+#: Suffixes the writers accept: single-file formats only, so a write can be atomic.
+WRITE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha")
+
+# qform and sform affines may differ by float32 rounding; more than this (mm,
+# per affine entry) means the header describes two different geometries.
+_QS_TOL_MM = 1e-3
+
+# Tolerance for the direction block of a squeezed 4-D image (unitless).
+_DIR_TOL = 1e-6
+
+
+def _suffix(path: Path) -> str:
+    name = path.name.lower()
+    if name.endswith(".nii.gz"):
+        return ".nii.gz"
+    return path.suffix.lower()
+
+
+def _check_input(path: Path, what: str) -> str:
+    """Check that ``path`` is an existing file with a supported suffix; return the suffix."""
+    if not path.exists():
+        raise VolregIOError(f"{what} `{path}` does not exist.")
+    if not path.is_file():
+        raise VolregIOError(f"{what} `{path}` is not a regular file.")
+    suffix = _suffix(path)
+    if suffix not in READ_SUFFIXES:
+        raise VolregIOError(
+            f"{what} `{path}` has unsupported suffix {suffix!r}; expected one of {', '.join(READ_SUFFIXES)}."
+        )
+    return suffix
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    line = text.splitlines()[0].strip() if text else ""
+    return line or type(exc).__name__
+
+
+def _sitk_reason(exc: BaseException) -> str:
+    """Condense SimpleITK's multi-line exception text to its most specific line."""
+    lines = str(exc).splitlines()[1:]  # the first line is "Exception thrown in ...: file.cxx:NN:"
+    prefix = re.compile(r"^\s*(sitk::ERROR:|ITK ERROR: \w+\(0x[0-9a-fA-F]+\):|\[\w+\] \w+:)\s*")
+    candidates = []
+    for line in lines:
+        line = prefix.sub("", line).strip()
+        # MetaIO appends the C errno ("Reason: No such file or directory"), which is misleading.
+        if not line or line.startswith("Reason:") or line.rstrip(":") in {"trouble", ""}:
+            continue
+        candidates.append(line)
+    if not candidates:
+        return _first_line(exc)
+    reason = candidates[-1]
+    if "Unable to determine ImageIO reader" in reason:
+        return "unrecognised file format"
+    return reason.rstrip(".")
+
+
+def _check_nifti(path: Path, suffix: str, what: str) -> nib.Nifti1Image:
+    """Checks SimpleITK does not do for NIfTI: truncated data and qform/sform conflicts.
+
+    Returns the (lazily loaded) nibabel image for the checks after reading.
+    """
+    try:
+        with warnings.catch_warnings():
+            # nibabel warns about odd but legal headers; we only need the fields below.
+            warnings.simplefilter("ignore")
+            img = nib.load(str(path))
+            header = img.header
+            offset = int(header.get_data_offset())
+            shape = tuple(int(n) for n in header.get_data_shape())
+            itemsize = np.dtype(header.get_data_dtype()).itemsize
+            qform, qcode = img.get_qform(coded=True)
+            sform, scode = img.get_sform(coded=True)
+    except Exception as exc:  # nibabel raises many types for garbage input
+        raise VolregIOError(f"{what} `{path}` is not a readable NIfTI file: {_first_line(exc)}.") from exc
+
+    needed = offset + int(np.prod(shape, dtype=np.int64)) * itemsize
+    if suffix == ".nii.gz":
+        # SimpleITK silently zero-fills a truncated gzip stream, so decompress it
+        # fully ourselves (this also verifies the gzip CRC).
+        have = 0
+        try:
+            with gzip.open(path, "rb") as fh:
+                while chunk := fh.read(1 << 22):
+                    have += len(chunk)
+        except EOFError as exc:
+            raise VolregIOError(
+                f"{what} `{path}` is truncated: its gzip stream ends early ({have} of {needed} bytes decompressed)."
+            ) from exc
+        except (OSError, zlib.error) as exc:
+            raise VolregIOError(f"{what} `{path}` is a corrupt gzip file: {_first_line(exc)}.") from exc
+    else:
+        have = os.path.getsize(path)
+    if have < needed:
+        raise VolregIOError(
+            f"{what} `{path}` is truncated: header needs {needed} bytes (shape {shape}, "
+            f"{itemsize}-byte voxels), file holds {have}."
+        )
+
+    if qform is not None and sform is not None:
+        diff = float(np.max(np.abs(np.asarray(qform) - np.asarray(sform))))
+        if diff > _QS_TOL_MM:
+            raise VolregIOError(
+                f"{what} `{path}` has qform (code {int(qcode)}) and sform (code {int(scode)}) that disagree "
+                f"by up to {diff:.4g} mm; expected one geometry (fix the header or clear one of them)."
+            )
+    return img
+
+
+def _nifti_after_sitk(
+    nimg: nib.Nifti1Image,
+    array: np.ndarray,
+    origin: np.ndarray,
+    spacing: np.ndarray,
+    direction: np.ndarray,
+    path: Path,
+    what: str,
+) -> np.ndarray:
+    """Cross-check SimpleITK's reading of a NIfTI file against nibabel's.
+
+    * SimpleITK (niftilib) silently replaces NaN and Inf voxels by 0 in float
+      NIfTI files, so float data are taken from nibabel instead (same
+      ``[i, j, k]`` order, same shape once trailing size-1 axes are dropped).
+    * ITK takes voxel sizes from ``pixdim`` even when the sform says
+      otherwise, and cannot represent a sheared affine; so SimpleITK's
+      geometry, converted to RAS, must equal the header's coded affine.
+
+    Returns the array to use.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        header = nimg.header
+        if np.dtype(header.get_data_dtype()).kind == "f":
+            try:
+                data = np.asarray(nimg.dataobj)
+            except Exception as exc:  # already checked for truncation; be safe anyway
+                raise VolregIOError(f"{what} `{path}` could not be read: {_first_line(exc)}.") from exc
+            array = np.ascontiguousarray(data.reshape(array.shape).astype(array.dtype, copy=False))
+        coded = int(header["sform_code"]) > 0 or int(header["qform_code"]) > 0
+        header_affine = np.asarray(nimg.affine, dtype=float)
+    if coded:
+        d = len(origin)
+        flip = np.array([-1.0, -1.0, 1.0])[:d]
+        ours = flip[:, None] * (direction * spacing[None, :])  # RAS columns per index axis
+        diff = max(
+            float(np.max(np.abs(ours - header_affine[:d, :d]))),
+            float(np.max(np.abs(flip * origin - header_affine[:d, 3]))),
+        )
+        if diff > _QS_TOL_MM:
+            raise VolregIOError(
+                f"{what} `{path}` has a header affine that SimpleITK cannot reproduce (off by up to {diff:.4g} mm): "
+                "pixdim disagrees with the sform/qform, or the affine is sheared; expected a consistent header."
+            )
+    return array
+
+
+def _read_sitk(path: str | os.PathLike[str], what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Read and validate a scalar 2-D/3-D image; return ``(array[i,j,k], origin, spacing, direction)``."""
+    p = Path(path)
+    suffix = _check_input(p, what)
+    nimg = _check_nifti(p, suffix, what) if suffix in (".nii", ".nii.gz") else None
+
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(p))
+    try:
+        img = reader.Execute()
+    except RuntimeError as exc:
+        raise VolregIOError(f"{what} `{p}` could not be read as an image: {_sitk_reason(exc)}.") from exc
+
+    ncomp = img.GetNumberOfComponentsPerPixel()
+    if ncomp != 1:
+        raise VolregIOError(
+            f"{what} `{p}` has {ncomp} components per voxel ({img.GetPixelIDTypeAsString()}); "
+            "expected a scalar image."
+        )
+    dim = img.GetDimension()
+    size = tuple(img.GetSize())
+    if dim < 2 or (dim > 3 and any(n != 1 for n in size[3:])):
+        raise VolregIOError(
+            f"{what} `{p}` is {dim}-D with size {size}; expected a 2-D or 3-D image "
+            "(extra axes of size 1 are allowed)."
+        )
+
+    array = sitk.GetArrayViewFromImage(img)  # (..., k, j, i); a view, copied once below
+    if np.iscomplexobj(array):
+        raise VolregIOError(f"{what} `{p}` has complex voxels ({array.dtype}); expected a real scalar image.")
+    origin = np.asarray(img.GetOrigin(), dtype=float)
+    spacing = np.asarray(img.GetSpacing(), dtype=float)
+    direction = np.asarray(img.GetDirection(), dtype=float).reshape(dim, dim)
+    if dim > 3:
+        off_block = np.concatenate([direction[:3, 3:].ravel(), direction[3:, :3].ravel()])
+        if np.any(np.abs(off_block) > _DIR_TOL):
+            raise VolregIOError(
+                f"{what} `{p}` is {dim}-D with a direction matrix that mixes its extra axes with space; "
+                "expected a spatial 3-D block."
+            )
+        array = array.reshape(size[2::-1])
+        origin, spacing, direction = origin[:3], spacing[:3], direction[:3, :3]
+    array = np.ascontiguousarray(array.T)
+    del img
+    if nimg is not None:
+        array = _nifti_after_sitk(nimg, array, origin, spacing, direction, p, what)
+    return array, origin, spacing, direction
+
+
+def _as_integer_labels(array: np.ndarray, path: Path, what: str) -> np.ndarray:
+    """Cast a float array holding whole numbers to the smallest integer dtype holding them."""
+    finite = np.isfinite(array)
+    if not finite.all():
+        n_nan = int(np.isnan(array).sum())
+        n_inf = int(array.size - finite.sum()) - n_nan
+        raise VolregIOError(
+            f"{what} `{path}` has {array.dtype} voxels with {n_nan} NaN and {n_inf} Inf values; "
+            "expected integer labels."
+        )
+    nonint = array != np.round(array)
+    if nonint.any():
+        example = float(array[nonint].flat[0])
+        raise VolregIOError(
+            f"{what} `{path}` has {array.dtype} voxels with {int(nonint.sum())} non-integral values "
+            f"(e.g. {example:g}); expected integer labels."
+        )
+    lo, hi = int(array.min()), int(array.max())
+    dtype = np.promote_types(np.min_scalar_type(lo), np.min_scalar_type(hi))
+    if dtype.kind not in "iu":
+        raise VolregIOError(
+            f"{what} `{path}` has label values in [{lo}, {hi}], beyond any integer dtype; expected integer labels."
+        )
+    return array.astype(dtype)
+
+
+def read_labels(path: str | os.PathLike[str]) -> LabelVolume:
+    """Read a label volume from NIfTI, NRRD or MetaImage.
+
+    Parameters
+    ----------
+    path : path-like
+        ``.nii``, ``.nii.gz``, ``.nrrd``, ``.nhdr``, ``.mha`` or ``.mhd`` file
+        holding a 2-D or 3-D scalar image.
+
+    Returns
+    -------
+    LabelVolume
+        ``array`` is ``(n_i, n_j[, n_k])`` in ITK index order, with the
+        on-disk integer dtype kept exactly; origin and spacing in mm and the
+        direction matrix in ITK physical space (LPS).
+
+    Raises
+    ------
+    VolregIOError
+        If the file is missing, not an image, truncated (including a
+        truncated ``.nii.gz``, which SimpleITK would read as zero-filled),
+        4-D or more (a trailing axis of size 1 is squeezed), vector-valued,
+        a float image with NaN, Inf or non-integral values, or a NIfTI whose
+        qform and sform are both set and disagree by more than 1e-3 mm.
+
+    Notes
+    -----
+    A float image whose values are all whole numbers is accepted and cast
+    to the smallest integer dtype that holds its range (e.g. ``uint8`` for
+    labels 0..255).
+    """
+    what = "Label image"
+    p = Path(path)
+    array, origin, spacing, direction = _read_sitk(p, what)
+    if array.dtype.kind == "f":
+        array = _as_integer_labels(array, p, what)
+    elif array.dtype.kind not in "iub":
+        raise VolregIOError(f"{what} `{p}` has {array.dtype} voxels; expected integer labels.")
+    try:
+        return LabelVolume(array, origin, spacing, direction)
+    except GeometryError as exc:
+        raise VolregIOError(f"{what} `{p}` has invalid geometry: {exc}") from exc
+
+
+def read_image(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Read a scalar (e.g. intensity) image as floats.
+
+    Parameters
+    ----------
+    path : path-like
+        As for :func:`read_labels`.
+
+    Returns
+    -------
+    array : (n_i, n_j[, n_k]) float ndarray
+        Voxel values in ITK index order; ``float64`` for ``float64`` and 32-/64-bit
+        integer files (to keep them exact), ``float32`` otherwise.  NaN and Inf
+        are passed through.
+    origin : (D,) float ndarray, mm
+    spacing : (D,) float ndarray, mm
+    direction : (D, D) float ndarray
+        Columns are the LPS directions of the index axes.
+
+    Raises
+    ------
+    VolregIOError
+        As for :func:`read_labels`, except that float values are not checked.
+    """
+    array, origin, spacing, direction = _read_sitk(path, "Image")
+    wide = array.dtype == np.float64 or (array.dtype.kind in "iu" and array.dtype.itemsize >= 4)
+    array = array.astype(np.float64 if wide else np.float32, copy=False)
+    return array, origin, spacing, direction
+
+
+def _check_output_suffix(path: Path, what: str) -> str:
+    suffix = _suffix(path)
+    if suffix not in WRITE_SUFFIXES:
+        raise VolregIOError(
+            f"{what} `{path}` has unsupported suffix {suffix!r}; expected one of {', '.join(WRITE_SUFFIXES)} "
+            "(detached-header .nhdr/.mhd are read-only)."
+        )
+    return suffix
+
+
+def _write_sitk(array: np.ndarray, like: LabelVolume, path: Path, suffix: str, force: bool, what: str) -> None:
+    img = sitk.GetImageFromArray(np.ascontiguousarray(array.T), isVector=False)
+    img.SetOrigin(tuple(float(v) for v in like.origin))
+    img.SetSpacing(tuple(float(v) for v in like.spacing))
+    img.SetDirection(tuple(float(v) for v in like.direction.ravel()))
+    with atomic_output(path, force=force) as tmp:
+        writer = sitk.ImageFileWriter()
+        writer.SetFileName(str(tmp))
+        writer.SetUseCompression(suffix != ".nii")
+        try:
+            writer.Execute(img)
+        except RuntimeError as exc:
+            raise VolregIOError(f"{what} `{path}` could not be written: {_sitk_reason(exc)}.") from exc
+
+
+def write_labels(volume: LabelVolume, path: str | os.PathLike[str], *, force: bool = False) -> None:
+    """Write a label volume with its geometry and dtype, atomically.
+
+    Parameters
+    ----------
+    volume : LabelVolume
+        Labels in ITK index order with LPS geometry (mm).  A boolean array is
+        written as ``uint8``; every other integer dtype is kept.
+    path : path-like
+        ``.nii``, ``.nii.gz``, ``.nrrd`` or ``.mha``.  NRRD, MetaImage and
+        ``.nii.gz`` are compressed.  NIfTI files get identical qform and sform
+        (code 1, scanner), both the RAS form of the LPS geometry.
+    force : bool, default False
+        Overwrite an existing ``path``.
+
+    Raises
+    ------
+    VolregIOError
+        If ``path`` exists and ``force`` is false, has an unsupported suffix,
+        or the write fails; nothing is left behind on failure.
+    """
+    if not isinstance(volume, LabelVolume):
+        raise VolregIOError(f"Expected `volume` to be a LabelVolume, got {type(volume).__name__}.")
+    p = Path(path)
+    suffix = _check_output_suffix(p, "Label image")
+    array = volume.array
+    if array.dtype == np.bool_:
+        array = array.astype(np.uint8)
+    _write_sitk(array, volume, p, suffix, force, "Label image")
+
+
+def write_scalar(array: np.ndarray, like: LabelVolume, path: str | os.PathLike[str], *, force: bool = False) -> None:
+    """Write a float32 scalar image on the grid of a label volume, atomically.
+
+    Parameters
+    ----------
+    array : (n_i, n_j[, n_k]) real ndarray
+        Values in ITK index order; cast to ``float32``.  Shape must equal
+        ``like.shape``.
+    like : LabelVolume
+        Supplies origin, spacing and direction (LPS, mm).
+    path : path-like
+        ``.nii``, ``.nii.gz``, ``.nrrd`` or ``.mha``.
+    force : bool, default False
+        Overwrite an existing ``path``.
+
+    Raises
+    ------
+    VolregIOError
+        On a shape mismatch, an unsupported suffix, an existing ``path``
+        without ``force``, or a failed write.
+    """
+    if not isinstance(like, LabelVolume):
+        raise VolregIOError(f"Expected `like` to be a LabelVolume, got {type(like).__name__}.")
+    array = np.asarray(array)
+    if array.shape != like.shape:
+        raise VolregIOError(f"Expected `array` of shape {like.shape} (the grid of `like`), got {array.shape}.")
+    if np.iscomplexobj(array) or not (np.issubdtype(array.dtype, np.number) or array.dtype == np.bool_):
+        raise VolregIOError(f"Expected `array` to hold real numbers, got dtype {array.dtype}.")
+    p = Path(path)
+    suffix = _check_output_suffix(p, "Image")
+    _write_sitk(array.astype(np.float32, copy=False), like, p, suffix, force, "Image")

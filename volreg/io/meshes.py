@@ -1,0 +1,208 @@
+"""Surface meshes and 2-D outlines: VTK, VTP, PLY, STL and OBJ via pyvista.
+
+Vertices are world points in ITK physical space (LPS, mm), like everything
+else in volreg; the files carry no frame of their own.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Mapping
+from contextlib import nullcontext
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+
+from ._atomic import VolregIOError, atomic_output
+
+__all__ = ["write_mesh", "read_mesh"]
+
+#: Suffixes the mesh reader and writer accept (lower case).
+MESH_SUFFIXES = (".vtk", ".vtp", ".ply", ".stl", ".obj")
+# Which formats can hold what (as written by VTK's writers through pyvista).
+_LINE_SUFFIXES = (".vtk", ".vtp", ".obj")
+_NORMAL_SUFFIXES = (".vtk", ".vtp", ".ply", ".obj")
+_POINT_DATA_SUFFIXES = (".vtk", ".vtp")
+
+
+def _mesh_suffix(path: Path, what: str) -> str:
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise VolregIOError(
+            f"{what} `{path}` has unsupported suffix {suffix!r}; expected one of {', '.join(MESH_SUFFIXES)}."
+        )
+    return suffix
+
+
+def _points3(values: object, n: int | None, name: str) -> np.ndarray:
+    """Validate an (N, 2) or (N, 3) finite float array; pad 2-D with z = 0."""
+    a = np.asarray(values, dtype=float)
+    if a.ndim != 2 or a.shape[1] not in (2, 3) or (n is not None and a.shape[0] != n):
+        rows = "N" if n is None else str(n)
+        raise VolregIOError(f"Expected `{name}` of shape ({rows}, 3) or ({rows}, 2), got {a.shape}.")
+    if not np.all(np.isfinite(a)):
+        bad = int((~np.isfinite(a)).any(axis=1).sum())
+        raise VolregIOError(f"Expected finite `{name}`, got {bad} rows with NaN/Inf.")
+    if a.shape[1] == 2:
+        a = np.column_stack([a, np.zeros(len(a))])
+    return a
+
+
+def write_mesh(
+    vertices: np.ndarray,
+    cells: np.ndarray,
+    path: str | os.PathLike[str],
+    *,
+    normals: np.ndarray | None = None,
+    point_data: Mapping[str, np.ndarray] | None = None,
+    force: bool = False,
+) -> None:
+    """Write a triangle mesh or a set of line segments, atomically.
+
+    Parameters
+    ----------
+    vertices : (N, 3) or (N, 2) float ndarray, mm
+        Vertex positions (LPS).  2-D points are written with ``z = 0``.
+    cells : (F, 3) or (F, 2) int ndarray
+        Triangles (vertex indices) or line segments (2-D outlines).
+    path : path-like
+        ``.vtk`` (legacy), ``.vtp``, ``.ply``, ``.stl`` or ``.obj``, chosen by
+        suffix.  Segments can be written to ``.vtk``, ``.vtp`` and ``.obj``
+        only; normals to all but ``.stl``; ``point_data`` to ``.vtk`` and
+        ``.vtp`` only.
+    normals : (N, 3) or (N, 2) float ndarray, optional
+        Per-vertex normals, stored as the point array ``"Normals"`` and made
+        the active normals.
+    point_data : mapping of str to (N, ...) ndarray, optional
+        Extra per-vertex arrays, stored under their names.
+    force : bool, default False
+        Overwrite an existing ``path``.
+
+    Raises
+    ------
+    VolregIOError
+        On malformed inputs (shapes, NaN, out-of-range indices, no cells), a
+        format that cannot hold what was given, an existing ``path`` without
+        ``force``, or a failed write.
+    """
+    p = Path(path)
+    suffix = _mesh_suffix(p, "Mesh")
+    points = _points3(vertices, None, "vertices")
+    n = len(points)
+    c = np.asarray(cells)
+    if c.ndim != 2 or c.shape[1] not in (2, 3) or not (np.issubdtype(c.dtype, np.integer) or c.size == 0):
+        raise VolregIOError(f"Expected integer `cells` of shape (F, 3) or (F, 2), got {c.shape} {c.dtype}.")
+    if c.shape[0] == 0:
+        raise VolregIOError(f"Expected at least one cell in `cells`; refusing to write an empty mesh to `{p}`.")
+    if c.min() < 0 or c.max() >= n:
+        raise VolregIOError(f"Expected `cells` to index vertices in [0, {n}), got values in [{c.min()}, {c.max()}].")
+    c = c.astype(np.int64)
+    is_lines = c.shape[1] == 2
+    if is_lines and suffix not in _LINE_SUFFIXES:
+        raise VolregIOError(
+            f"Mesh `{p}`: {suffix} cannot hold line segments; expected one of {', '.join(_LINE_SUFFIXES)}."
+        )
+    if normals is not None and suffix not in _NORMAL_SUFFIXES:
+        raise VolregIOError(
+            f"Mesh `{p}`: {suffix} cannot hold vertex normals; expected one of {', '.join(_NORMAL_SUFFIXES)}."
+        )
+    if point_data and suffix not in _POINT_DATA_SUFFIXES:
+        raise VolregIOError(
+            f"Mesh `{p}`: {suffix} cannot hold `point_data`; expected one of {', '.join(_POINT_DATA_SUFFIXES)}."
+        )
+
+    connectivity = np.column_stack([np.full(len(c), c.shape[1], dtype=np.int64), c]).ravel()
+    mesh = pv.PolyData(points, lines=connectivity) if is_lines else pv.PolyData(points, faces=connectivity)
+    for name, values in (point_data or {}).items():
+        values = np.asarray(values)
+        if name == "Normals":
+            raise VolregIOError("Expected `point_data` not to contain 'Normals'; pass `normals=` instead.")
+        if values.ndim == 0 or values.shape[0] != n:
+            raise VolregIOError(f"Expected `point_data[{name!r}]` with first axis of length {n}, got {values.shape}.")
+        mesh.point_data[name] = values
+    if normals is not None:
+        # float32: VTK's PLY writer drops normals of any other type.
+        mesh.point_data["Normals"] = _points3(normals, n, "normals").astype(np.float32)
+        mesh.GetPointData().SetActiveNormals("Normals")
+
+    with atomic_output(p, force=force) as tmp:
+        try:
+            mesh.save(tmp, binary=True, recompute_normals=False)
+        except Exception as exc:  # VTK writers raise assorted types
+            raise VolregIOError(f"Mesh `{p}` could not be written: {exc}".splitlines()[0]) from exc
+
+
+def read_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Read a triangle mesh.
+
+    Parameters
+    ----------
+    path : path-like
+        ``.vtk``, ``.vtp``, ``.ply``, ``.stl`` or ``.obj``.  Polygons and
+        triangle strips are triangulated; non-PolyData datasets (e.g. an
+        unstructured grid in a legacy ``.vtk``) are reduced to their surface.
+
+    Returns
+    -------
+    vertices : (N, 3) float ndarray, mm
+        As stored (STL readers merge duplicate corners, so order may differ
+        from what was written).
+    triangles : (F, 3) int ndarray
+        Vertex indices.
+    normals : (N, 3) float ndarray or None
+        The active point normals, or the point array ``"Normals"``, if present.
+
+    Raises
+    ------
+    VolregIOError
+        If the file is missing, unreadable, empty, has no triangles, or has
+        NaN/Inf vertices.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise VolregIOError(f"Mesh `{p}` does not exist.")
+    if not p.is_file():
+        raise VolregIOError(f"Mesh `{p}` is not a regular file.")
+    _mesh_suffix(p, "Mesh")
+
+    quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else nullcontext()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            with quiet:
+                mesh = pv.read(p)
+        except Exception as exc:  # pyvista/VTK raise assorted types for bad files
+            raise VolregIOError(f"Mesh `{p}` could not be read: {str(exc).strip().splitlines()[0]}") from exc
+    problems = [w for w in caught if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning))]
+    if problems:
+        raise VolregIOError(f"Mesh `{p}` could not be read: {str(problems[0].message).strip().splitlines()[0]}")
+    if mesh is None or not isinstance(mesh, pv.DataSet):
+        raise VolregIOError(f"Mesh `{p}` holds {type(mesh).__name__}; expected a single surface mesh.")
+    if not isinstance(mesh, pv.PolyData):
+        mesh = mesh.extract_surface()
+    if mesh.n_points == 0:
+        raise VolregIOError(f"Mesh `{p}` is empty (no vertices).")
+    vertices = np.array(mesh.points, dtype=float)
+    if not np.all(np.isfinite(vertices)):
+        bad = int((~np.isfinite(vertices)).any(axis=1).sum())
+        raise VolregIOError(f"Mesh `{p}` has {bad} vertices with NaN/Inf coordinates; expected finite points.")
+
+    tri = mesh.triangulate()
+    faces = np.asarray(tri.faces, dtype=np.int64)
+    if faces.size == 0:
+        raise VolregIOError(f"Mesh `{p}` has no triangles (only {mesh.n_cells} vertex/line cells); expected a surface.")
+    faces = faces.reshape(-1, 4)
+    if not np.all(faces[:, 0] == 3) or tri.n_points != mesh.n_points:
+        raise VolregIOError(f"Mesh `{p}` could not be triangulated; expected polygonal faces.")
+    triangles = faces[:, 1:].copy()
+
+    normals = tri.point_data.active_normals
+    if normals is None and "Normals" in tri.point_data:
+        normals = tri.point_data["Normals"]
+    if normals is not None:
+        normals = np.array(normals, dtype=float)
+        if normals.shape != vertices.shape:
+            normals = None
+    return vertices, triangles, normals

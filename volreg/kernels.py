@@ -1,0 +1,463 @@
+"""The Wu kernel (paper eq. 13) and sparse neighbour sums over it.
+
+``k(r) = (1 - r)_+^4 (4 + 16 r + 12 r^2 + 3 r^3)`` with ``r = |x - y| / sigma``:
+compactly supported on ``|x - y| < sigma`` and C^2 in up to three dimensions,
+so every kernel sum is a neighbour query and its gradient and Hessian exist in
+closed form.  Writing ``d = x - y``::
+
+    k'(r) / r          = g(r) = -7 (1 - r)^3 (8 + 9 r + 3 r^2)
+    grad_x k           = g(r) d / sigma^2
+    hess_x k           = [g(r) I + h(r) d d^T / sigma^2] / sigma^2,
+    h(r) = g'(r) / r   = 105 (1 - r)^2 (1 + r)^2 / r
+
+(``h(r) d d^T / sigma^2 = 105 (1-r)^2 (1+r)^2 r u u^T`` vanishes as r -> 0.)
+
+Two implementations of the neighbour sums exist side by side:
+
+* :func:`kernel_sum` -- the fast path: points are binned on a uniform grid of
+  cells no smaller than ``sigma`` and a compiled (numba) loop visits only the
+  3^D neighbouring cells of each query, in parallel over queries, writing into
+  preallocated outputs (no temporaries beyond the outputs themselves).
+* :func:`kernel_sum_reference` -- plain scipy (``cKDTree.sparse_distance_matrix``)
+  processed in chunks under a memory budget; slower, used as the test oracle
+  and as the benchmark baseline that justifies the JIT (``BENCHMARKS.md``).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+__all__ = [
+    "wu",
+    "wu_derivatives",
+    "CellGrid",
+    "kernel_sum",
+    "kernel_sum_reference",
+    "kernel_matrix",
+]
+
+#: k(0) of the Wu kernel (13); the diagonal of every kernel matrix.
+WU_AT_ZERO = 4.0
+
+# Cap on the number of grid cells of a CellGrid (int32 start offsets: 64 MiB).
+_MAX_CELLS = 1 << 24
+
+
+def wu(r: np.ndarray) -> np.ndarray:
+    """Wu kernel profile (13), ``k(r)``, zero for ``r >= 1``.
+
+    Parameters
+    ----------
+    r : ndarray
+        Distances divided by the kernel width (dimensionless, >= 0).
+
+    Returns
+    -------
+    ndarray, same shape as ``r``
+    """
+    r = np.asarray(r, dtype=float)
+    t = np.clip(1.0 - r, 0.0, None)
+    return t**4 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+
+
+def wu_derivatives(d: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Value, gradient and Hessian of ``k(|d| / sigma)`` with respect to ``x``.
+
+    Parameters
+    ----------
+    d : (N, D) float ndarray, mm
+        Differences ``x - y``.
+    sigma : float, mm
+        Kernel width (support radius).
+
+    Returns
+    -------
+    value : (N,) float ndarray
+    gradient : (N, D) float ndarray, 1/mm
+    hessian : (N, D, D) float ndarray, 1/mm^2
+    """
+    d = np.asarray(d, dtype=float)
+    dim = d.shape[1]
+    r = np.sqrt(np.einsum("nd,nd->n", d, d)) / sigma
+    inside = r < 1.0
+    t = np.where(inside, 1.0 - r, 0.0)
+    value = t**4 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+    g = -7.0 * t**3 * (8.0 + r * (9.0 + 3.0 * r))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = np.where(r > 0, 105.0 * t**2 * (1.0 + r) ** 2 / np.where(r > 0, r, 1.0), 0.0)
+    gradient = g[:, None] * d / sigma**2
+    hessian = (
+        g[:, None, None] * np.eye(dim)[None] + h[:, None, None] * d[:, :, None] * d[:, None, :] / sigma**2
+    ) / sigma**2
+    return value, gradient, hessian
+
+
+# --------------------------------------------------------------------------------------
+# Uniform cell grid over a point set
+
+
+@dataclass(frozen=True)
+class CellGrid:
+    """Points binned on a uniform grid of cubic cells, for radius queries.
+
+    Attributes
+    ----------
+    points : (M, D) float ndarray, mm
+        The points, reordered cell by cell.
+    order : (M,) int ndarray
+        ``points == original_points[order]``.
+    start : (n_cells + 1,) int32 ndarray
+        Points of cell ``c`` are ``points[start[c]:start[c + 1]]``.
+    lo : (D,) float ndarray, mm
+        Corner of cell ``(0, ..., 0)``.
+    cell : float, mm
+        Cell edge length (>= the query radius it was built for).
+    dims : (D,) int64 ndarray
+        Number of cells per axis.
+    """
+
+    points: np.ndarray
+    order: np.ndarray
+    start: np.ndarray
+    lo: np.ndarray
+    cell: float
+    dims: np.ndarray
+
+    @classmethod
+    def build(cls, points: np.ndarray, radius: float) -> "CellGrid":
+        """Bin ``points`` (M, D) in cells of edge ``>= radius`` (mm)."""
+        points = np.ascontiguousarray(points, dtype=float)
+        if points.ndim != 2 or points.shape[0] == 0:
+            raise ValueError(f"Expected `points` of shape (M, D) with M > 0, got {points.shape}.")
+        if not radius > 0:
+            raise ValueError(f"Expected a positive `radius`, got {radius}.")
+        lo = points.min(axis=0)
+        extent = points.max(axis=0) - lo
+        cell = float(radius)
+        while True:
+            dims = np.floor(extent / cell).astype(np.int64) + 1
+            if np.prod(dims) <= _MAX_CELLS:
+                break
+            cell *= 1.25
+        key = _cell_keys(points, lo, cell, dims)
+        order = np.argsort(key, kind="stable")
+        start = np.searchsorted(key[order], np.arange(np.prod(dims) + 1)).astype(np.int32)
+        return cls(points[order], order, start, lo, cell, dims)
+
+
+def _cell_keys(points: np.ndarray, lo: np.ndarray, cell: float, dims: np.ndarray) -> np.ndarray:
+    idx = np.clip(np.floor((points - lo) / cell).astype(np.int64), 0, dims - 1)
+    key = np.zeros(len(points), dtype=np.int64)
+    for a in range(points.shape[1]):
+        key = key * dims[a] + idx[:, a]
+    return key
+
+
+def _neighbour_offsets(dim: int) -> np.ndarray:
+    return np.array(list(itertools.product((-1, 0, 1), repeat=dim)), dtype=np.int64)
+
+
+@numba.njit(cache=True, inline="always")
+def _cell_of(x, lo, cell, dims, c):
+    """Integer cell coordinates of x into c; False when x is more than a cell outside."""
+    for a in range(x.shape[0]):
+        v = np.floor((x[a] - lo[a]) / cell)
+        if v < -1.0 or v > dims[a]:
+            return False
+        c[a] = np.int64(v)
+    return True
+
+
+@numba.njit(parallel=True, cache=True)
+def _grid_sum(queries, gpts, gcoef, start, lo, cell, dims, offsets, sigma, order, val, grad, hess):
+    n, dim = queries.shape
+    m = gcoef.shape[1]
+    inv_s2 = 1.0 / (sigma * sigma)
+    for q in numba.prange(n):
+        x = queries[q]
+        c = np.empty(dim, dtype=np.int64)
+        if not _cell_of(x, lo, cell, dims, c):
+            continue
+        d = np.empty(dim)
+        for o in range(offsets.shape[0]):
+            key = 0
+            ok = True
+            for a in range(dim):
+                ca = c[a] + offsets[o, a]
+                if ca < 0 or ca >= dims[a]:
+                    ok = False
+                    break
+                key = key * dims[a] + ca
+            if not ok:
+                continue
+            for p in range(start[key], start[key + 1]):
+                r2 = 0.0
+                for a in range(dim):
+                    d[a] = x[a] - gpts[p, a]
+                    r2 += d[a] * d[a]
+                r2 *= inv_s2
+                if r2 >= 1.0:
+                    continue
+                r = np.sqrt(r2)
+                t = 1.0 - r
+                t2 = t * t
+                k = t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+                for j in range(m):
+                    val[q, j] += gcoef[p, j] * k
+                if order >= 1:
+                    g = -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
+                    for j in range(m):
+                        cg = gcoef[p, j] * g
+                        for a in range(dim):
+                            grad[q, j, a] += cg * d[a]
+                if order >= 2:
+                    g = -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
+                    h = 0.0
+                    if r > 0.0:
+                        h = 105.0 * t2 * (1.0 + r) * (1.0 + r) / r * inv_s2 * inv_s2
+                    for j in range(m):
+                        cj = gcoef[p, j]
+                        for a in range(dim):
+                            hess[q, j, a, a] += cj * g
+                            for b in range(dim):
+                                hess[q, j, a, b] += cj * h * d[a] * d[b]
+
+
+def _as_coefficients(coeffs: np.ndarray, m_centres: int) -> tuple[np.ndarray, bool]:
+    coeffs = np.asarray(coeffs, dtype=float)
+    vector = coeffs.ndim == 2
+    coeffs2 = coeffs.reshape(m_centres, -1) if vector else coeffs.reshape(m_centres, 1)
+    if coeffs2.shape[0] != m_centres or coeffs.ndim > 2:
+        raise ValueError(
+            f"Expected `coeffs` of shape ({m_centres},) or ({m_centres}, m), got {coeffs.shape}."
+        )
+    return coeffs2, vector
+
+
+def _check_points(name: str, x: np.ndarray, dim: int | None = None) -> np.ndarray:
+    x = np.asarray(x, dtype=float)
+    if x.ndim != 2 or (dim is not None and x.shape[1] != dim):
+        want = f"(N, {dim})" if dim is not None else "(N, D)"
+        raise ValueError(f"Expected `{name}` of shape {want}, got {x.shape}.")
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"Expected finite values in `{name}`, found NaN or Inf.")
+    return np.ascontiguousarray(x)
+
+
+def kernel_sum(
+    queries: np.ndarray,
+    centres: np.ndarray | CellGrid,
+    coeffs: np.ndarray,
+    sigma: float,
+    *,
+    order: int = 0,
+    out: tuple[np.ndarray, ...] | None = None,
+) -> tuple[np.ndarray, ...]:
+    """Evaluate ``s(x) = sum_i a_i k(|x - x_i| / sigma)`` and its derivatives.
+
+    Parameters
+    ----------
+    queries : (N, D) float ndarray, mm
+        Evaluation points.
+    centres : (M, D) float ndarray, mm, or CellGrid
+        Kernel centres ``x_i`` (a prebuilt :class:`CellGrid` with cell >= sigma
+        avoids re-binning when the same centres are queried repeatedly; its
+        ``order`` is applied to ``coeffs``).
+    coeffs : (M,) or (M, m) float ndarray
+        Coefficients ``a_i`` (scalar or m-vector valued).
+    sigma : float, mm
+        Kernel width (support radius).
+    order : {0, 1, 2}
+        Highest derivative to return.
+    out : tuple of arrays, optional
+        Arrays ``(value, gradient, hessian)`` (as many as ``order + 1``) shaped
+        as below, to accumulate into (added to, not overwritten).
+
+    Returns
+    -------
+    value : (N,) or (N, m) float ndarray
+    gradient : (N, D) or (N, m, D) float ndarray, 1/mm (if ``order >= 1``)
+    hessian : (N, D, D) or (N, m, D, D) float ndarray, 1/mm^2 (if ``order >= 2``)
+    """
+    if order not in (0, 1, 2):
+        raise ValueError(f"Expected `order` in (0, 1, 2), got {order}.")
+    if not sigma > 0:
+        raise ValueError(f"Expected a positive kernel width `sigma`, got {sigma}.")
+    grid = centres if isinstance(centres, CellGrid) else CellGrid.build(_check_points("centres", centres), sigma)
+    if grid.cell < sigma:
+        raise ValueError(f"Expected a CellGrid with cell >= sigma={sigma}, got cell={grid.cell}.")
+    dim = grid.points.shape[1]
+    queries = _check_points("queries", queries, dim)
+    coef, vector = _as_coefficients(coeffs, grid.points.shape[0])
+    coef = np.ascontiguousarray(coef[grid.order])
+    n, m = queries.shape[0], coef.shape[1]
+    shapes = [(n, m), (n, m, dim), (n, m, dim, dim)]
+    if out is None:
+        bufs = [np.zeros(s) for s in shapes[: order + 1]]
+    else:
+        if len(out) < order + 1:
+            raise ValueError(f"Expected {order + 1} arrays in `out`, got {len(out)}.")
+        bufs = [b.reshape(s) for b, s in zip(out, shapes)]
+    val = bufs[0]
+    grad = bufs[1] if order >= 1 else np.zeros((1, 1, 1))
+    hess = bufs[2] if order >= 2 else np.zeros((1, 1, 1, 1))
+    _grid_sum(queries, grid.points, coef, grid.start, grid.lo, grid.cell, grid.dims,
+              _neighbour_offsets(dim), float(sigma), order, val, grad, hess)
+    result = [val, grad, hess][: order + 1]
+    if not vector:
+        result = [a.reshape((n,) + a.shape[2:]) for a in result]
+    return tuple(result)
+
+
+def kernel_sum_reference(
+    queries: np.ndarray,
+    centres: np.ndarray,
+    coeffs: np.ndarray,
+    sigma: float,
+    *,
+    order: int = 0,
+    memory_budget: float = 256e6,
+) -> tuple[np.ndarray, ...]:
+    """Same as :func:`kernel_sum` with scipy only (KD-tree, chunked).
+
+    Queries are processed in chunks so that the neighbour pairs of one chunk
+    take about ``memory_budget`` bytes.  Kept as the oracle for tests and the
+    baseline for benchmarks.
+    """
+    centres = _check_points("centres", centres)
+    dim = centres.shape[1]
+    queries = _check_points("queries", queries, dim)
+    coef, vector = _as_coefficients(coeffs, centres.shape[0])
+    n, m = queries.shape[0], coef.shape[1]
+    tree = cKDTree(centres)
+    # Estimate pairs per query from a small sample to size the chunks.
+    sample = queries[:: max(1, n // 256)]
+    per_query = max(1.0, tree.query_ball_point(sample, sigma, return_length=True).mean())
+    bytes_per_pair = 8 * (4 + dim + dim * dim + m * (1 + dim + dim * dim))
+    chunk = int(max(1, memory_budget // (per_query * bytes_per_pair)))
+    outs = [np.zeros((n, m)), np.zeros((n, m, dim)), np.zeros((n, m, dim, dim))][: order + 1]
+    for s in range(0, n, chunk):
+        q = queries[s : s + chunk]
+        pairs = cKDTree(q).sparse_distance_matrix(tree, sigma, output_type="ndarray")
+        i, j = pairs["i"], pairs["j"]
+        value, gradient, hessian = wu_derivatives(q[i] - centres[j], sigma)
+        c = coef[j]
+        nq = len(q)
+        for col in range(m):
+            outs[0][s : s + nq, col] = np.bincount(i, c[:, col] * value, minlength=nq)
+            if order >= 1:
+                for a in range(dim):
+                    outs[1][s : s + nq, col, a] = np.bincount(i, c[:, col] * gradient[:, a], minlength=nq)
+            if order >= 2:
+                for a in range(dim):
+                    for b in range(dim):
+                        outs[2][s : s + nq, col, a, b] = np.bincount(
+                            i, c[:, col] * hessian[:, a, b], minlength=nq
+                        )
+    if not vector:
+        outs = [a.reshape((n,) + a.shape[2:]) for a in outs]
+    return tuple(outs)
+
+
+@numba.njit(parallel=True, cache=True)
+def _grid_count(queries, gpts, start, lo, cell, dims, offsets, sigma2, counts):
+    n, dim = queries.shape
+    for q in numba.prange(n):
+        x = queries[q]
+        c = np.empty(dim, dtype=np.int64)
+        if not _cell_of(x, lo, cell, dims, c):
+            continue
+        cnt = 0
+        for o in range(offsets.shape[0]):
+            key = 0
+            ok = True
+            for a in range(dim):
+                ca = c[a] + offsets[o, a]
+                if ca < 0 or ca >= dims[a]:
+                    ok = False
+                    break
+                key = key * dims[a] + ca
+            if not ok:
+                continue
+            for p in range(start[key], start[key + 1]):
+                r2 = 0.0
+                for a in range(dim):
+                    da = x[a] - gpts[p, a]
+                    r2 += da * da
+                if r2 < sigma2:
+                    cnt += 1
+        counts[q] = cnt
+
+
+@numba.njit(parallel=True, cache=True)
+def _grid_fill(queries, gpts, gorder, start, lo, cell, dims, offsets, sigma, indptr, indices, data):
+    n, dim = queries.shape
+    sigma2 = sigma * sigma
+    for q in numba.prange(n):
+        x = queries[q]
+        c = np.empty(dim, dtype=np.int64)
+        if not _cell_of(x, lo, cell, dims, c):
+            continue
+        w = indptr[q]
+        for o in range(offsets.shape[0]):
+            key = 0
+            ok = True
+            for a in range(dim):
+                ca = c[a] + offsets[o, a]
+                if ca < 0 or ca >= dims[a]:
+                    ok = False
+                    break
+                key = key * dims[a] + ca
+            if not ok:
+                continue
+            for p in range(start[key], start[key + 1]):
+                r2 = 0.0
+                for a in range(dim):
+                    da = x[a] - gpts[p, a]
+                    r2 += da * da
+                if r2 < sigma2:
+                    r = np.sqrt(r2) / sigma
+                    t = 1.0 - r
+                    t2 = t * t
+                    indices[w] = gorder[p]
+                    data[w] = t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+                    w += 1
+
+
+def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float) -> sp.csr_matrix:
+    """Sparse kernel matrix ``K[i, j] = k(|rows_i - cols_j| / sigma)``.
+
+    Parameters
+    ----------
+    rows : (N, D) float ndarray, mm
+    cols : (M, D) float ndarray, mm, or a CellGrid of them (cell >= sigma)
+    sigma : float, mm
+
+    Returns
+    -------
+    (N, M) scipy.sparse.csr_matrix
+        Column indices refer to the original order of ``cols``; sorted per row.
+    """
+    grid = cols if isinstance(cols, CellGrid) else CellGrid.build(_check_points("cols", cols), sigma)
+    dim = grid.points.shape[1]
+    rows = _check_points("rows", rows, dim)
+    offsets = _neighbour_offsets(dim)
+    counts = np.zeros(len(rows), dtype=np.int64)
+    _grid_count(rows, grid.points, grid.start, grid.lo, grid.cell, grid.dims, offsets, float(sigma) ** 2, counts)
+    indptr = np.zeros(len(rows) + 1, dtype=np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    nnz = int(indptr[-1])
+    index_dtype = np.int32 if max(nnz, len(grid.points)) < 2**31 - 1 else np.int64
+    indices = np.empty(nnz, dtype=index_dtype)
+    data = np.empty(nnz)
+    _grid_fill(rows, grid.points, grid.order.astype(index_dtype), grid.start, grid.lo, grid.cell,
+               grid.dims, offsets, float(sigma), indptr, indices, data)
+    mat = sp.csr_matrix((data, indices, indptr.astype(index_dtype)), shape=(len(rows), len(grid.points)))
+    mat.sort_indices()
+    return mat

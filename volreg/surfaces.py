@@ -1,0 +1,269 @@
+"""Label volume -> boundary meshes with outward normals, and their implicit surfaces.
+
+Each label is a binary mask, lightly smoothed (a Gaussian about a voxel wide,
+so that the mesh follows the object rather than the voxel staircase, with the
+shrinkage that blurring causes on curved boundaries corrected) and
+contoured at 1/2 by marching cubes (3-D, ``skimage.measure.marching_cubes``) or
+marching squares (2-D, ``skimage.measure.find_contours``).  Vertices are mapped
+to world (LPS, mm) through the volume's full geometry, oblique directions
+included, and the cells are oriented so that normals point outward (a
+direction matrix with negative determinant mirrors the mesh; this is detected
+from the signed enclosed volume and undone).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Callable, Iterable, Literal
+
+import numpy as np
+from scipy import ndimage
+from skimage import measure
+
+from .implicit import ImplicitSurface
+from .volume import LabelVolume
+
+__all__ = ["Surface", "SurfaceError", "label_surface", "label_surfaces", "implicit_surfaces", "voxel_size"]
+
+
+class SurfaceError(ValueError):
+    """A label cannot give a surface (absent from the volume, or too small)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Surface:
+    """A boundary mesh in world coordinates.
+
+    Attributes
+    ----------
+    vertices : (N, D) float ndarray, mm (LPS)
+    cells : (F, D) int ndarray
+        Triangles (D = 3) or line segments (D = 2), oriented outward.
+    normals : (N, D) float ndarray
+        Outward unit vertex normals.
+    label : int
+        The label value the surface bounds (0 if not from a label volume).
+    """
+
+    vertices: np.ndarray
+    cells: np.ndarray
+    normals: np.ndarray
+    label: int = 0
+
+    @property
+    def dim(self) -> int:
+        """Spatial dimension ``D``."""
+        return self.vertices.shape[1]
+
+    def enclosed_volume(self) -> float:
+        """Signed enclosed volume (D = 3, mm^3) or area (D = 2, mm^2); positive when outward."""
+        return _signed_measure(self.vertices, self.cells)
+
+
+def voxel_size(volume: LabelVolume) -> float:
+    """A single voxel size for a possibly anisotropic grid: the largest spacing, mm."""
+    return float(np.max(volume.spacing))
+
+
+def _signed_measure(vertices: np.ndarray, cells: np.ndarray) -> float:
+    v = [vertices[cells[:, i]] for i in range(cells.shape[1])]
+    if cells.shape[1] == 3:
+        return float(np.einsum("nd,nd->", v[0], np.cross(v[1], v[2])) / 6.0)
+    return float(np.sum(v[0][:, 0] * v[1][:, 1] - v[1][:, 0] * v[0][:, 1]) / 2.0)
+
+
+def _cell_normals(vertices: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Area-weighted cell normals (not normalised), (F, D)."""
+    if cells.shape[1] == 3:
+        a, b, c = (vertices[cells[:, i]] for i in range(3))
+        return np.cross(b - a, c - a) / 2.0
+    t = vertices[cells[:, 1]] - vertices[cells[:, 0]]
+    return np.stack([t[:, 1], -t[:, 0]], axis=1)
+
+
+def vertex_normals(vertices: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Unit vertex normals: area-weighted mean of the incident cell normals, (N, D)."""
+    fn = _cell_normals(vertices, cells)
+    vn = np.zeros_like(vertices)
+    for i in range(cells.shape[1]):
+        np.add.at(vn, cells[:, i], fn)
+    length = np.linalg.norm(vn, axis=1, keepdims=True)
+    return vn / np.where(length > 0, length, 1.0)
+
+
+def _contour(mask: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """Iso-contour of a padded float mask in its index space: (vertices, cells)."""
+    if mask.ndim == 3:
+        verts, faces, _, _ = measure.marching_cubes(mask, level=level)
+        return verts, faces.astype(np.int64)
+    verts, cells = [], []
+    base = 0
+    for c in measure.find_contours(mask, level):
+        closed = len(c) > 2 and np.allclose(c[0], c[-1])
+        pts = c[:-1] if closed else c
+        k = len(pts)
+        if k < 2:
+            continue
+        idx = np.arange(k)
+        seg = np.stack([idx, (idx + 1) % k], axis=1) if closed else np.stack([idx[:-1], idx[1:]], axis=1)
+        verts.append(pts)
+        cells.append(seg + base)
+        base += k
+    if not verts:
+        return np.zeros((0, 2)), np.zeros((0, 2), dtype=np.int64)
+    return np.concatenate(verts), np.concatenate(cells)
+
+
+def _mean_curvature(field: np.ndarray, spacing: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Sum of principal curvatures (1/mm) of the level sets of a field that is high inside.
+
+    ``H = div(n)`` with the outward unit normal ``n = -grad u / |grad u|``,
+    by central differences on the (orthogonal) grid, interpolated linearly at
+    the continuous indices ``at`` (N, D).
+    """
+    grad = np.gradient(field.astype(float), *spacing)
+    norm = np.sqrt(sum(g * g for g in grad)) + 1e-12
+    div = sum(np.gradient(-g / norm, h, axis=a) for a, (g, h) in enumerate(zip(grad, spacing)))
+    return ndimage.map_coordinates(div, at.T, order=1, mode="nearest")
+
+
+def label_surface(
+    volume: LabelVolume,
+    label: int,
+    *,
+    smoothing: float = 1.0,
+    min_voxels: int = 8,
+) -> Surface:
+    """Boundary mesh of one label, in world mm with outward normals.
+
+    Parameters
+    ----------
+    volume : LabelVolume
+    label : int
+        Label value (non-zero).
+    smoothing : float
+        Standard deviation of the Gaussian applied to the binary mask before
+        contouring, in units of the largest voxel spacing (isotropic in mm).
+        0 contours the raw mask: a voxel staircase whose normals are off by
+        13-20 degrees.  Blurring moves a curved boundary inward by ``H s^2 / 2``
+        (``H`` the sum of principal curvatures, ``s`` the blur in mm); that
+        shift is undone using ``H`` measured on the blurred mask.
+    min_voxels : int
+        Labels with fewer voxels raise :class:`SurfaceError`.
+
+    Returns
+    -------
+    Surface
+
+    Raises
+    ------
+    SurfaceError
+        If the label is absent or has fewer than ``min_voxels`` voxels.
+    """
+    mask = volume.array == label
+    count = int(mask.sum())
+    if count == 0:
+        raise SurfaceError(f"Label {label} is absent from the volume (labels present: {volume.labels().tolist()}).")
+    if count < min_voxels:
+        raise SurfaceError(f"Label {label} has {count} voxels, fewer than min_voxels={min_voxels}.")
+    sigma_mm = float(smoothing) * voxel_size(volume)
+    sigma_vox = sigma_mm / volume.spacing
+    margin = 2 + int(np.ceil(3 * sigma_vox.max()))
+    nz = np.nonzero(mask)
+    lo = np.array([a.min() for a in nz])
+    hi = np.array([a.max() for a in nz]) + 1
+    crop = mask[tuple(slice(a, b) for a, b in zip(lo, hi))].astype(np.float32)
+    field = np.pad(crop, margin)
+    if sigma_mm > 0:
+        field = ndimage.gaussian_filter(field, sigma_vox, mode="constant")
+    verts, cells = _contour(field, 0.5)
+    if len(cells) == 0:
+        raise SurfaceError(f"Label {label} gave an empty contour (object thinner than the smoothing).")
+    world = volume.index_to_world(verts + (lo - margin))
+    if _signed_measure(world, cells) < 0:
+        cells = cells[:, ::-1].copy()
+    normals = vertex_normals(world, cells)
+    if sigma_mm > 0:
+        # Blurring a curved boundary moves its 1/2 level inward by H sigma^2 / 2
+        # (H: sum of principal curvatures, positive where convex); move it back.
+        shift = 0.5 * sigma_mm**2 * _mean_curvature(field, volume.spacing, verts)
+        world = world + np.clip(shift, -sigma_mm, sigma_mm)[:, None] * normals
+        normals = vertex_normals(world, cells)
+    return Surface(world, cells, normals, int(label))
+
+
+def label_surfaces(
+    volume: LabelVolume,
+    labels: Iterable[int] | None = None,
+    *,
+    on_small: Literal["error", "warn"] = "error",
+    smoothing: float = 1.0,
+    min_voxels: int = 8,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> dict[int, Surface]:
+    """Boundary meshes of several labels.
+
+    Parameters
+    ----------
+    volume : LabelVolume
+    labels : iterable of int, optional
+        Labels to extract; default every non-zero label present.
+    on_small : {"error", "warn"}
+        For an absent or too-small label: raise :class:`SurfaceError`, or warn
+        and skip it.
+    smoothing, min_voxels
+        As in :func:`label_surface`.
+    progress : callable, optional
+        ``progress(stage, done, total)`` after each label.
+
+    Returns
+    -------
+    dict of int to Surface
+    """
+    if on_small not in ("error", "warn"):
+        raise ValueError(f"Expected `on_small` in ('error', 'warn'), got {on_small!r}.")
+    labels = volume.labels().tolist() if labels is None else [int(v) for v in labels]
+    out: dict[int, Surface] = {}
+    for i, lab in enumerate(labels):
+        try:
+            out[lab] = label_surface(volume, lab, smoothing=smoothing, min_voxels=min_voxels)
+        except SurfaceError as err:
+            if on_small == "error":
+                raise
+            warnings.warn(f"Skipping label {lab}: {err}", stacklevel=2)
+        if progress is not None:
+            progress("extract surfaces", i + 1, len(labels))
+    return out
+
+
+def implicit_surfaces(
+    volume: LabelVolume,
+    surfaces: dict[int, Surface],
+    *,
+    min_width_voxels: float = 4.0,
+    progress: Callable[[str, int, int], None] | None = None,
+    **kwargs,
+) -> dict[int, ImplicitSurface]:
+    """Fit an :class:`ImplicitSurface` to each surface of a label volume.
+
+    Parameters
+    ----------
+    volume : LabelVolume
+        The volume the surfaces came from (for the voxel size).
+    surfaces : dict of int to Surface
+    min_width_voxels : float
+        Finest kernel width in voxels (largest spacing).
+    progress : callable, optional
+        ``progress(stage, done, total)`` after each label.
+    **kwargs
+        Passed to :class:`ImplicitSurface`.
+    """
+    out = {}
+    for i, (lab, surf) in enumerate(surfaces.items()):
+        out[lab] = ImplicitSurface(
+            surf.vertices, surf.normals, min_width=min_width_voxels * voxel_size(volume), **kwargs
+        )
+        if progress is not None:
+            progress("fit implicit surfaces", i + 1, len(surfaces))
+    return out
