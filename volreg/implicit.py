@@ -252,8 +252,10 @@ class ImplicitSurface:
     box : float
         Box constraint ``C`` on the dual coefficients (mm); ``inf`` (default)
         gives epsilon-insensitive interpolation.
-    offset : float, mm
-        The fixed offset ``b`` (value of ``f`` far from every centre).
+    offset : float, mm, optional
+        The fixed offset ``b``: the value of ``f`` farther than the kernel
+        widths from every centre.  Default ``max_width`` (positive: far points
+        count as outside, as their true signed distance is at least about that).
     tol : float, mm, optional
         Coordinate descent stops when no fitted value changes by more than
         this in a sweep; default ``1e-4 * min_width``.
@@ -281,7 +283,7 @@ class ImplicitSurface:
         density: float = 3.0,
         epsilon: float | None = None,
         box: float = np.inf,
-        offset: float = 0.0,
+        offset: float | None = None,
         tol: float | None = None,
         max_sweeps: int = 200,
         progress: ProgressCallback | None = None,
@@ -311,7 +313,7 @@ class ImplicitSurface:
             widths.append(widths[-1] / 2.0)
         eps = 0.025 * min_width if epsilon is None else float(epsilon)
         tol = 1e-4 * min_width if tol is None else float(tol)
-        self.offset = float(offset)
+        self.offset = float(max_width if offset is None else offset)
         self.dim = dim
         self.levels: list[ImplicitLevel] = []
         self.log: list[dict] = []
@@ -392,6 +394,12 @@ class ImplicitSurface:
     def hessian(self, x: np.ndarray) -> np.ndarray:
         """Hessian of ``f`` at ``x``, (N, D, D), 1/mm."""
         return self.evaluate(x, order=2)[2]
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Corners ``(lo, hi)``, each (D,) mm, of the box outside which ``f`` equals the offset."""
+        lo = np.min([lev.centres.min(axis=0) - lev.width for lev in self.levels], axis=0)
+        hi = np.max([lev.centres.max(axis=0) + lev.width for lev in self.levels], axis=0)
+        return lo, hi
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain arrays describing the model (for ``np.savez``; no pickle needed)."""

@@ -25,7 +25,6 @@ Two implementations of the neighbour sums exist side by side:
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 
 import numba
@@ -44,6 +43,9 @@ __all__ = [
 
 #: k(0) of the Wu kernel (13); the diagonal of every kernel matrix.
 WU_AT_ZERO = 4.0
+
+# Queries per parallel work item (per-item scratch arrays are allocated once).
+_BLOCK = 512
 
 # Cap on the number of grid cells of a CellGrid (int32 start offsets: 64 MiB).
 _MAX_CELLS = 1 << 24
@@ -117,9 +119,12 @@ class CellGrid:
     lo : (D,) float ndarray, mm
         Corner of cell ``(0, ..., 0)``.
     cell : float, mm
-        Cell edge length (>= the query radius it was built for).
+        Cell edge length.
     dims : (D,) int64 ndarray
         Number of cells per axis.
+    radius : float, mm
+        The query radius the grid was built for; a query visits the cells
+        whose box is closer than ``radius``.
     """
 
     points: np.ndarray
@@ -128,10 +133,17 @@ class CellGrid:
     lo: np.ndarray
     cell: float
     dims: np.ndarray
+    radius: float
 
     @classmethod
-    def build(cls, points: np.ndarray, radius: float) -> "CellGrid":
-        """Bin ``points`` (M, D) in cells of edge ``>= radius`` (mm)."""
+    def build(cls, points: np.ndarray, radius: float, *, subdivisions: int = 2) -> "CellGrid":
+        """Bin ``points`` (M, D) for queries of radius ``radius`` (mm).
+
+        Cells have edge ``radius / subdivisions`` (larger if the grid would
+        exceed 2^24 cells): smaller cells mean fewer candidate points per query
+        but more cells to look up; 2 was fastest on surface-like point sets
+        (``benchmarks/bench_kernels.py``).
+        """
         points = np.ascontiguousarray(points, dtype=float)
         if points.ndim != 2 or points.shape[0] == 0:
             raise ValueError(f"Expected `points` of shape (M, D) with M > 0, got {points.shape}.")
@@ -139,7 +151,7 @@ class CellGrid:
             raise ValueError(f"Expected a positive `radius`, got {radius}.")
         lo = points.min(axis=0)
         extent = points.max(axis=0) - lo
-        cell = float(radius)
+        cell = float(radius) / max(1, int(subdivisions))
         while True:
             dims = np.floor(extent / cell).astype(np.int64) + 1
             if np.prod(dims) <= _MAX_CELLS:
@@ -148,7 +160,7 @@ class CellGrid:
         key = _cell_keys(points, lo, cell, dims)
         order = np.argsort(key, kind="stable")
         start = np.searchsorted(key[order], np.arange(np.prod(dims) + 1)).astype(np.int32)
-        return cls(points[order], order, start, lo, cell, dims)
+        return cls(points[order], order, start, lo, cell, dims, float(radius))
 
 
 def _cell_keys(points: np.ndarray, lo: np.ndarray, cell: float, dims: np.ndarray) -> np.ndarray:
@@ -159,85 +171,175 @@ def _cell_keys(points: np.ndarray, lo: np.ndarray, cell: float, dims: np.ndarray
     return key
 
 
-def _neighbour_offsets(dim: int) -> np.ndarray:
-    return np.array(list(itertools.product((-1, 0, 1), repeat=dim)), dtype=np.int64)
+@numba.njit(cache=True, inline="always")
+def _gap2(x, lo_c, cell):
+    """Squared distance from coordinate x to the interval [lo_c, lo_c + cell]."""
+    if x < lo_c:
+        return (lo_c - x) * (lo_c - x)
+    if x > lo_c + cell:
+        return (x - lo_c - cell) * (x - lo_c - cell)
+    return 0.0
 
 
 @numba.njit(cache=True, inline="always")
-def _cell_of(x, lo, cell, dims, c):
-    """Integer cell coordinates of x into c; False when x is more than a cell outside."""
-    for a in range(x.shape[0]):
-        v = np.floor((x[a] - lo[a]) / cell)
-        if v < -1.0 or v > dims[a]:
-            return False
-        c[a] = np.int64(v)
-    return True
+def _axis_range(x, radius, lo, cell, n):
+    """Cells ``[first, last]`` of one axis that can hold points within ``radius`` of x."""
+    first = np.floor((x - radius - lo) / cell)
+    last = np.floor((x + radius - lo) / cell)
+    first = max(first, 0.0)
+    last = min(last, n - 1.0)
+    return np.int64(first), np.int64(last)
+
+
+@numba.njit(cache=True)
+def _candidate_ranges(x, lo, cell, dims, radius, start, ranges):
+    """Fill ``ranges`` with ``[begin, end)`` runs of grid points that may lie within
+    ``radius`` of ``x``: cells whose box is closer than ``radius``; along the last
+    axis consecutive cells are contiguous, so each row of cells is one run.
+    Returns the number of runs (D = 2 or 3)."""
+    dim = x.shape[0]
+    r2 = radius * radius
+    nr = 0
+    i0, i1 = _axis_range(x[0], radius, lo[0], cell, dims[0])
+    for i in range(i0, i1 + 1):
+        gi = _gap2(x[0], lo[0] + i * cell, cell)
+        if gi >= r2:
+            continue
+        if dim == 2:
+            rem = np.sqrt(r2 - gi)
+            k0, k1 = _axis_range(x[1], rem, lo[1], cell, dims[1])
+            if k0 > k1:
+                continue
+            base = i * dims[1]
+            b, e = start[base + k0], start[base + k1 + 1]
+            if e > b:
+                ranges[nr, 0] = b
+                ranges[nr, 1] = e
+                nr += 1
+            continue
+        j0, j1 = _axis_range(x[1], np.sqrt(r2 - gi), lo[1], cell, dims[1])
+        for j in range(j0, j1 + 1):
+            gj = gi + _gap2(x[1], lo[1] + j * cell, cell)
+            if gj >= r2:
+                continue
+            rem = np.sqrt(r2 - gj)
+            k0, k1 = _axis_range(x[2], rem, lo[2], cell, dims[2])
+            if k0 > k1:
+                continue
+            base = (i * dims[1] + j) * dims[2]
+            b, e = start[base + k0], start[base + k1 + 1]
+            if e > b:
+                ranges[nr, 0] = b
+                ranges[nr, 1] = e
+                nr += 1
+    return nr
+
+
+def _max_runs(grid: "CellGrid") -> int:
+    """Upper bound on the runs :func:`_candidate_ranges` returns for this grid."""
+    per_axis = int(np.ceil(grid.radius / grid.cell)) * 2 + 2
+    return per_axis ** (grid.points.shape[1] - 1)
 
 
 @numba.njit(parallel=True, cache=True)
-def _grid_sum(queries, gpts, gcoef, start, lo, cell, dims, offsets, sigma, order, val, grad, hess):
+def _grid_sum(queries, gpts, gcoef, start, lo, cell, dims, max_runs, sigma, order, val, grad, hess):
     n, dim = queries.shape
     m = gcoef.shape[1]
     inv_s2 = 1.0 / (sigma * sigma)
-    for q in numba.prange(n):
-        x = queries[q]
-        c = np.empty(dim, dtype=np.int64)
-        if not _cell_of(x, lo, cell, dims, c):
-            continue
+    n_blocks = (n + _BLOCK - 1) // _BLOCK
+    for blk in numba.prange(n_blocks):
+        ranges = np.empty((max_runs, 2), dtype=np.int64)
         d = np.empty(dim)
-        for o in range(offsets.shape[0]):
-            key = 0
-            ok = True
-            for a in range(dim):
-                ca = c[a] + offsets[o, a]
-                if ca < 0 or ca >= dims[a]:
-                    ok = False
-                    break
-                key = key * dims[a] + ca
-            if not ok:
-                continue
-            for p in range(start[key], start[key + 1]):
-                r2 = 0.0
-                for a in range(dim):
-                    d[a] = x[a] - gpts[p, a]
-                    r2 += d[a] * d[a]
-                r2 *= inv_s2
-                if r2 >= 1.0:
-                    continue
-                r = np.sqrt(r2)
-                t = 1.0 - r
-                t2 = t * t
-                k = t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
-                for j in range(m):
-                    val[q, j] += gcoef[p, j] * k
-                if order >= 1:
-                    g = -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
+        for q in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
+            x = queries[q]
+            nr = _candidate_ranges(x, lo, cell, dims, sigma, start, ranges)
+            for rr in range(nr):
+                for p in range(ranges[rr, 0], ranges[rr, 1]):
+                    r2 = 0.0
+                    for a in range(dim):
+                        d[a] = x[a] - gpts[p, a]
+                        r2 += d[a] * d[a]
+                    r2 *= inv_s2
+                    if r2 >= 1.0:
+                        continue
+                    r = np.sqrt(r2)
+                    t = 1.0 - r
+                    t2 = t * t
+                    k = t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
                     for j in range(m):
-                        cg = gcoef[p, j] * g
-                        for a in range(dim):
-                            grad[q, j, a] += cg * d[a]
-                if order >= 2:
-                    g = -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
-                    h = 0.0
-                    if r > 0.0:
-                        h = 105.0 * t2 * (1.0 + r) * (1.0 + r) / r * inv_s2 * inv_s2
-                    for j in range(m):
-                        cj = gcoef[p, j]
-                        for a in range(dim):
-                            hess[q, j, a, a] += cj * g
-                            for b in range(dim):
-                                hess[q, j, a, b] += cj * h * d[a] * d[b]
+                        val[q, j] += gcoef[p, j] * k
+                    if order >= 1:
+                        g = -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
+                        for j in range(m):
+                            cg = gcoef[p, j] * g
+                            for a in range(dim):
+                                grad[q, j, a] += cg * d[a]
+                        if order >= 2:
+                            h = 0.0
+                            if r > 0.0:
+                                h = 105.0 * t2 * (1.0 + r) * (1.0 + r) / r * inv_s2 * inv_s2
+                            for j in range(m):
+                                cj = gcoef[p, j]
+                                for a in range(dim):
+                                    hess[q, j, a, a] += cj * g
+                                    for b in range(dim):
+                                        hess[q, j, a, b] += cj * h * d[a] * d[b]
+
+
+@numba.njit(parallel=True, cache=True)
+def _grid_sum_scalar(queries, gpts, gcoef, start, lo, cell, dims, max_runs, sigma, val, grad):
+    """Hot path of :func:`_grid_sum` for scalar coefficients, order <= 1, D <= 3:
+    accumulates in registers instead of the output arrays."""
+    n, dim = queries.shape
+    inv_s2 = 1.0 / (sigma * sigma)
+    want_grad = grad.shape[0] == n
+    n_blocks = (n + _BLOCK - 1) // _BLOCK
+    for blk in numba.prange(n_blocks):
+        ranges = np.empty((max_runs, 2), dtype=np.int64)
+        for q in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
+            x = queries[q]
+            nr = _candidate_ranges(x, lo, cell, dims, sigma, start, ranges)
+            x0 = x[0]
+            x1 = x[1]
+            x2 = x[2] if dim == 3 else 0.0
+            v = 0.0
+            g0 = 0.0
+            g1 = 0.0
+            g2 = 0.0
+            for rr in range(nr):
+                for p in range(ranges[rr, 0], ranges[rr, 1]):
+                    d0 = x0 - gpts[p, 0]
+                    d1 = x1 - gpts[p, 1]
+                    d2 = (x2 - gpts[p, 2]) if dim == 3 else 0.0
+                    r2 = (d0 * d0 + d1 * d1 + d2 * d2) * inv_s2
+                    if r2 >= 1.0:
+                        continue
+                    r = np.sqrt(r2)
+                    t = 1.0 - r
+                    t2 = t * t
+                    a = gcoef[p, 0]
+                    v += a * t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+                    if want_grad:
+                        g = a * -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
+                        g0 += g * d0
+                        g1 += g * d1
+                        g2 += g * d2
+            val[q, 0] += v
+            if want_grad:
+                grad[q, 0, 0] += g0
+                grad[q, 0, 1] += g1
+                if dim == 3:
+                    grad[q, 0, 2] += g2
 
 
 def _as_coefficients(coeffs: np.ndarray, m_centres: int) -> tuple[np.ndarray, bool]:
     coeffs = np.asarray(coeffs, dtype=float)
-    vector = coeffs.ndim == 2
-    coeffs2 = coeffs.reshape(m_centres, -1) if vector else coeffs.reshape(m_centres, 1)
-    if coeffs2.shape[0] != m_centres or coeffs.ndim > 2:
+    if coeffs.ndim not in (1, 2) or coeffs.shape[0] != m_centres:
         raise ValueError(
             f"Expected `coeffs` of shape ({m_centres},) or ({m_centres}, m), got {coeffs.shape}."
         )
-    return coeffs2, vector
+    vector = coeffs.ndim == 2
+    return (coeffs if vector else coeffs[:, None]), vector
 
 
 def _check_points(name: str, x: np.ndarray, dim: int | None = None) -> np.ndarray:
@@ -266,7 +368,7 @@ def kernel_sum(
     queries : (N, D) float ndarray, mm
         Evaluation points.
     centres : (M, D) float ndarray, mm, or CellGrid
-        Kernel centres ``x_i`` (a prebuilt :class:`CellGrid` with cell >= sigma
+        Kernel centres ``x_i`` (a prebuilt :class:`CellGrid` for radius >= sigma
         avoids re-binning when the same centres are queried repeatedly; its
         ``order`` is applied to ``coeffs``).
     coeffs : (M,) or (M, m) float ndarray
@@ -290,8 +392,8 @@ def kernel_sum(
     if not sigma > 0:
         raise ValueError(f"Expected a positive kernel width `sigma`, got {sigma}.")
     grid = centres if isinstance(centres, CellGrid) else CellGrid.build(_check_points("centres", centres), sigma)
-    if grid.cell < sigma:
-        raise ValueError(f"Expected a CellGrid with cell >= sigma={sigma}, got cell={grid.cell}.")
+    if grid.radius < sigma:
+        raise ValueError(f"Expected a CellGrid built for radius >= sigma={sigma}, got {grid.radius}.")
     dim = grid.points.shape[1]
     queries = _check_points("queries", queries, dim)
     coef, vector = _as_coefficients(coeffs, grid.points.shape[0])
@@ -305,10 +407,15 @@ def kernel_sum(
             raise ValueError(f"Expected {order + 1} arrays in `out`, got {len(out)}.")
         bufs = [b.reshape(s) for b, s in zip(out, shapes)]
     val = bufs[0]
-    grad = bufs[1] if order >= 1 else np.zeros((1, 1, 1))
+    grad = bufs[1] if order >= 1 else np.zeros((0, 1, dim))
     hess = bufs[2] if order >= 2 else np.zeros((1, 1, 1, 1))
-    _grid_sum(queries, grid.points, coef, grid.start, grid.lo, grid.cell, grid.dims,
-              _neighbour_offsets(dim), float(sigma), order, val, grad, hess)
+    runs = _max_runs(grid)
+    if m == 1 and order <= 1:
+        _grid_sum_scalar(queries, grid.points, coef, grid.start, grid.lo, grid.cell, grid.dims,
+                         runs, float(sigma), val, grad)
+    else:
+        _grid_sum(queries, grid.points, coef, grid.start, grid.lo, grid.cell, grid.dims,
+                  runs, float(sigma), order, val, grad, hess)
     result = [val, grad, hess][: order + 1]
     if not vector:
         result = [a.reshape((n,) + a.shape[2:]) for a in result]
@@ -366,68 +473,33 @@ def kernel_sum_reference(
 
 
 @numba.njit(parallel=True, cache=True)
-def _grid_count(queries, gpts, start, lo, cell, dims, offsets, sigma2, counts):
-    n, dim = queries.shape
-    for q in numba.prange(n):
-        x = queries[q]
-        c = np.empty(dim, dtype=np.int64)
-        if not _cell_of(x, lo, cell, dims, c):
-            continue
-        cnt = 0
-        for o in range(offsets.shape[0]):
-            key = 0
-            ok = True
-            for a in range(dim):
-                ca = c[a] + offsets[o, a]
-                if ca < 0 or ca >= dims[a]:
-                    ok = False
-                    break
-                key = key * dims[a] + ca
-            if not ok:
-                continue
-            for p in range(start[key], start[key + 1]):
-                r2 = 0.0
-                for a in range(dim):
-                    da = x[a] - gpts[p, a]
-                    r2 += da * da
-                if r2 < sigma2:
-                    cnt += 1
-        counts[q] = cnt
-
-
-@numba.njit(parallel=True, cache=True)
-def _grid_fill(queries, gpts, gorder, start, lo, cell, dims, offsets, sigma, indptr, indices, data):
+def _grid_pairs(queries, gpts, gorder, start, lo, cell, dims, max_runs, sigma, indptr, indices, data, fill):
+    """Count (``fill`` False: into ``indptr[1:]``) or write the kernel matrix rows."""
     n, dim = queries.shape
     sigma2 = sigma * sigma
-    for q in numba.prange(n):
-        x = queries[q]
-        c = np.empty(dim, dtype=np.int64)
-        if not _cell_of(x, lo, cell, dims, c):
-            continue
-        w = indptr[q]
-        for o in range(offsets.shape[0]):
-            key = 0
-            ok = True
-            for a in range(dim):
-                ca = c[a] + offsets[o, a]
-                if ca < 0 or ca >= dims[a]:
-                    ok = False
-                    break
-                key = key * dims[a] + ca
-            if not ok:
-                continue
-            for p in range(start[key], start[key + 1]):
-                r2 = 0.0
-                for a in range(dim):
-                    da = x[a] - gpts[p, a]
-                    r2 += da * da
-                if r2 < sigma2:
-                    r = np.sqrt(r2) / sigma
-                    t = 1.0 - r
-                    t2 = t * t
-                    indices[w] = gorder[p]
-                    data[w] = t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
-                    w += 1
+    n_blocks = (n + _BLOCK - 1) // _BLOCK
+    for blk in numba.prange(n_blocks):
+        ranges = np.empty((max_runs, 2), dtype=np.int64)
+        for q in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
+            x = queries[q]
+            nr = _candidate_ranges(x, lo, cell, dims, sigma, start, ranges)
+            w = indptr[q] if fill else 0
+            for rr in range(nr):
+                for p in range(ranges[rr, 0], ranges[rr, 1]):
+                    r2 = 0.0
+                    for a in range(dim):
+                        da = x[a] - gpts[p, a]
+                        r2 += da * da
+                    if r2 < sigma2:
+                        if fill:
+                            r = np.sqrt(r2) / sigma
+                            t = 1.0 - r
+                            t2 = t * t
+                            indices[w] = gorder[p]
+                            data[w] = t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+                        w += 1
+            if not fill:
+                indptr[q + 1] = w
 
 
 def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float) -> sp.csr_matrix:
@@ -436,7 +508,7 @@ def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float) -
     Parameters
     ----------
     rows : (N, D) float ndarray, mm
-    cols : (M, D) float ndarray, mm, or a CellGrid of them (cell >= sigma)
+    cols : (M, D) float ndarray, mm, or a CellGrid of them (radius >= sigma)
     sigma : float, mm
 
     Returns
@@ -447,17 +519,19 @@ def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float) -
     grid = cols if isinstance(cols, CellGrid) else CellGrid.build(_check_points("cols", cols), sigma)
     dim = grid.points.shape[1]
     rows = _check_points("rows", rows, dim)
-    offsets = _neighbour_offsets(dim)
-    counts = np.zeros(len(rows), dtype=np.int64)
-    _grid_count(rows, grid.points, grid.start, grid.lo, grid.cell, grid.dims, offsets, float(sigma) ** 2, counts)
+    if grid.radius < sigma:
+        raise ValueError(f"Expected a CellGrid built for radius >= sigma={sigma}, got {grid.radius}.")
     indptr = np.zeros(len(rows) + 1, dtype=np.int64)
-    np.cumsum(counts, out=indptr[1:])
+    gorder = grid.order.astype(np.int64)
+    args = (rows, grid.points, gorder, grid.start, grid.lo, grid.cell, grid.dims, _max_runs(grid), float(sigma))
+    _grid_pairs(*args, indptr, np.zeros(0, np.int64), np.zeros(0), False)
+    np.cumsum(indptr, out=indptr)
     nnz = int(indptr[-1])
-    index_dtype = np.int32 if max(nnz, len(grid.points)) < 2**31 - 1 else np.int64
-    indices = np.empty(nnz, dtype=index_dtype)
+    indices = np.empty(nnz, dtype=np.int64)
     data = np.empty(nnz)
-    _grid_fill(rows, grid.points, grid.order.astype(index_dtype), grid.start, grid.lo, grid.cell,
-               grid.dims, offsets, float(sigma), indptr, indices, data)
-    mat = sp.csr_matrix((data, indices, indptr.astype(index_dtype)), shape=(len(rows), len(grid.points)))
+    _grid_pairs(*args, indptr, indices, data, True)
+    index_dtype = np.int32 if max(nnz, len(grid.points)) < 2**31 - 1 else np.int64
+    indptr, indices = indptr.astype(index_dtype), indices.astype(index_dtype)
+    mat = sp.csr_matrix((data, indices, indptr), shape=(len(rows), len(grid.points)))
     mat.sort_indices()
     return mat

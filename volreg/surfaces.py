@@ -24,7 +24,15 @@ from skimage import measure
 from .implicit import ImplicitSurface
 from .volume import LabelVolume
 
-__all__ = ["Surface", "SurfaceError", "label_surface", "label_surfaces", "implicit_surfaces", "voxel_size"]
+__all__ = [
+    "Surface",
+    "SurfaceError",
+    "label_surface",
+    "label_surfaces",
+    "implicit_surfaces",
+    "implicit_on_grid",
+    "voxel_size",
+]
 
 
 class SurfaceError(ValueError):
@@ -266,4 +274,33 @@ def implicit_surfaces(
         )
         if progress is not None:
             progress("fit implicit surfaces", i + 1, len(surfaces))
+    return out
+
+
+def implicit_on_grid(surface: ImplicitSurface, volume: LabelVolume, *, chunk: int = 1 << 20) -> np.ndarray:
+    """Sample an implicit surface at every voxel centre of ``volume``.
+
+    Only the voxels inside the surface's :meth:`~ImplicitSurface.bounds` are
+    evaluated (in chunks of ``chunk`` points); elsewhere ``f`` equals its
+    offset exactly and is filled in without evaluation.
+
+    Returns
+    -------
+    ndarray of float32, shape ``volume.shape``, mm
+    """
+    out = np.full(volume.shape, surface.offset, dtype=np.float32)
+    lo, hi = surface.bounds()
+    corners = np.array(list(np.ndindex(*([2] * volume.ndim))), dtype=float)
+    box = volume.world_to_index(lo + corners * (hi - lo))
+    start = np.clip(np.floor(box.min(axis=0)).astype(int), 0, volume.shape)
+    stop = np.clip(np.ceil(box.max(axis=0)).astype(int) + 1, 0, volume.shape)
+    if np.any(stop <= start):
+        return out
+    axes = [np.arange(a, b) for a, b in zip(start, stop)]
+    sub_shape = tuple(len(a) for a in axes)
+    idx = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, volume.ndim)
+    values = np.empty(len(idx), dtype=np.float32)
+    for s in range(0, len(idx), chunk):
+        values[s : s + chunk] = surface(volume.index_to_world(idx[s : s + chunk]))
+    out[tuple(slice(a, b) for a, b in zip(start, stop))] = values.reshape(sub_shape)
     return out

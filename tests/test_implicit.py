@@ -1,0 +1,154 @@
+"""Implicit surfaces fitted to label-volume surfaces: the foundation issue's acceptance.
+
+Tolerances are in voxels, with "voxel" the largest spacing of the grid (2 mm on
+the anisotropic 0.8 x 0.8 x 2 mm grid: its staircase along the coarse axis
+limits what any mesh of it can resolve).
+"""
+
+import numpy as np
+import pytest
+
+from shapes import Disc2D, Ellipsoid, Torus, label_volume, rotation
+from volreg.implicit import ImplicitSurface, estimate_normals
+from volreg.surfaces import implicit_surfaces, label_surfaces, voxel_size
+
+ELLIPSOID = Ellipsoid((20, 15, 11), (0.37, -0.21, 0.13))
+TORUS = Torus(16, 6, (0.37, -0.21, 0.13))
+
+
+def _volume(shape, kind):
+    if kind == "iso":
+        return label_volume((56,) * 3, (1, 1, 1), np.eye(3), (-27.5,) * 3, shape.signed_distance)
+    rot = rotation(25)
+    return label_volume((70, 70, 28), (0.8, 0.8, 2.0), rot, -rot @ np.array([27.6, 27.6, 27.0]), shape.signed_distance)
+
+
+CASES = [(s, k) for s in ("ellipsoid", "torus") for k in ("iso", "aniso-oblique")]
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    out = {}
+    for name, kind in CASES:
+        shape = ELLIPSOID if name == "ellipsoid" else TORUS
+        vol = _volume(shape, kind)
+        surf = label_surfaces(vol)
+        out[name, kind] = (shape, vol, implicit_surfaces(vol, surf)[1])
+    return out
+
+
+@pytest.mark.parametrize("case", CASES, ids=["-".join(c) for c in CASES])
+def test_signed_distance_accuracy(fitted, case):
+    shape, vol, f = fitted[case]
+    vox = voxel_size(vol)
+    rng = np.random.default_rng(7)
+    # |f| on the true surface: mean <= 0.1 voxel.
+    pts, normals = shape.surface_points(3000, rng)
+    value, grad = f.evaluate(pts, order=1)
+    assert np.abs(value).mean() <= 0.1 * vox
+    # Angle between grad f and the true normal: mean <= 5 degrees.
+    cos = np.einsum("nd,nd->n", grad, normals) / np.linalg.norm(grad, axis=1)
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).mean() <= 5.0
+    # Within +-3 voxels of the surface, |f - sd| has mean <= 0.25 voxel.
+    grid = vol.grid_points().reshape(-1, 3)
+    sd = shape.signed_distance(grid)
+    band = np.abs(sd) <= 3 * vox
+    assert np.abs(f(grid[band]) - sd[band]).mean() <= 0.25 * vox
+    # Sign right at every grid point farther than one voxel from the surface.
+    far = np.abs(sd) > vox
+    assert np.array_equal(np.sign(f(grid[far])), np.sign(sd[far]))
+
+
+def test_derivatives_match_finite_differences(fitted):
+    _, _, f = fitted["torus", "iso"]
+    rng = np.random.default_rng(8)
+    x = TORUS.surface_points(50, rng)[0] + rng.normal(0, 1.0, (50, 3))
+    _, grad, hess = f.evaluate(x, order=2)
+    h = 1e-5
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = h
+        fp, gp = f.evaluate(x + e, order=1)
+        fm, gm = f.evaluate(x - e, order=1)
+        np.testing.assert_allclose((fp - fm) / (2 * h), grad[:, a], rtol=0, atol=1e-5 * np.abs(grad).max())
+        np.testing.assert_allclose((gp - gm) / (2 * h), hess[:, :, a], rtol=0, atol=1e-5 * np.abs(hess).max())
+
+
+def test_levels_halve_from_half_the_diameter_to_the_minimum_width(fitted):
+    _, vol, f = fitted["ellipsoid", "iso"]
+    widths = np.array(f.widths)
+    assert widths[0] == pytest.approx(f.diameter / 2)
+    np.testing.assert_allclose(widths[1:] / widths[:-1], 0.5)
+    assert widths[-1] >= 4 * voxel_size(vol) > widths[-1] / 2
+    assert all(entry["converged"] or entry["sweeps"] == 200 for entry in f.log)
+
+
+def test_far_from_the_object_f_is_the_positive_offset(fitted):
+    _, _, f = fitted["ellipsoid", "iso"]
+    lo, hi = f.bounds()
+    far = np.array([hi + 1.0, lo - 1.0])
+    np.testing.assert_array_equal(f(far), [f.offset, f.offset])
+    assert f.offset > 0
+
+
+def test_to_arrays_round_trip_is_exact(fitted, tmp_path):
+    _, _, f = fitted["torus", "iso"]
+    path = tmp_path / "f.npz"
+    np.savez(path, **f.to_arrays())
+    with np.load(path, allow_pickle=False) as data:
+        g = ImplicitSurface.from_arrays(data)
+    x = np.random.default_rng(9).uniform(-25, 25, (500, 3))
+    np.testing.assert_array_equal(f.evaluate(x, order=1)[1], g.evaluate(x, order=1)[1])
+
+
+def test_two_dimensional_outline():
+    disc = Disc2D((18, 11), (0.3, -0.2))
+    vol = label_volume((60, 60), (1.0, 1.0), np.eye(2), (-29.5, -29.5), disc.signed_distance)
+    surf = label_surfaces(vol)[1]
+    assert surf.cells.shape[1] == 2
+    f = implicit_surfaces(vol, {1: surf})[1]
+    rng = np.random.default_rng(10)
+    pts, normals = disc.surface_points(500, rng)
+    value, grad = f.evaluate(pts, order=1)
+    # The 3-D thresholds are 0.1 voxel; an outline has far fewer vertices per
+    # kernel width than a surface, so less of the pixel staircase averages out
+    # (measured 0.116 pixel here).
+    assert np.abs(value).mean() <= 0.15
+    cos = np.einsum("nd,nd->n", grad, normals) / np.linalg.norm(grad, axis=1)
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).mean() <= 5.0
+    grid = vol.grid_points().reshape(-1, 2)
+    sd = disc.signed_distance(grid)
+    far = np.abs(sd) > 1.0
+    assert np.array_equal(np.sign(f(grid[far])), np.sign(sd[far]))
+
+
+def test_normals_estimated_from_neighbours():
+    rng = np.random.default_rng(11)
+    pts, true = ELLIPSOID.surface_points(4000, rng)
+    est = estimate_normals(pts)
+    cos = np.einsum("nd,nd->n", est, true)
+    assert np.all(cos > 0)  # every one oriented outward
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).mean() < 3.0
+
+
+def test_fit_from_a_point_cloud_without_normals():
+    rng = np.random.default_rng(12)
+    pts, _ = ELLIPSOID.surface_points(6000, rng)
+    f = ImplicitSurface(pts, min_width=6.0)
+    probe, _ = ELLIPSOID.surface_points(500, rng)
+    assert np.abs(f(probe)).mean() < 0.1
+    inside = ELLIPSOID.centre + np.array([[0, 0, 0], [10, 0, 0], [0, 8, 0]])
+    outside = ELLIPSOID.centre + np.array([[25, 0, 0], [0, 19, 0], [0, 0, 15]])
+    assert np.all(f(inside) < 0) and np.all(f(outside) > 0)
+
+
+def test_bad_arguments():
+    pts = np.random.default_rng(13).normal(size=(50, 3))
+    with pytest.raises(ValueError, match="`normals` of shape"):
+        ImplicitSurface(pts, np.ones((49, 3)))
+    with pytest.raises(ValueError, match="at least 7 `points`"):
+        ImplicitSurface(pts[:3], np.ones((3, 3)))
+    with pytest.raises(ValueError, match="finite values in `points`"):
+        ImplicitSurface(np.full((50, 3), np.nan), np.ones((50, 3)))
+    with pytest.raises(ValueError, match="non-zero `normals`"):
+        ImplicitSurface(pts, np.zeros((50, 3)))

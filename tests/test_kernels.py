@@ -1,0 +1,139 @@
+"""Wu kernel (13): closed forms, neighbour sums against a KD-tree oracle, sparse matrices."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from volreg.kernels import (
+    CellGrid,
+    kernel_matrix,
+    kernel_sum,
+    kernel_sum_reference,
+    wu,
+    wu_derivatives,
+)
+
+
+def test_wu_profile_values():
+    assert wu(0.0) == pytest.approx(4.0)
+    assert wu(1.0) == 0.0
+    assert np.all(wu(np.array([1.0, 1.5, 10.0])) == 0.0)
+    # Strictly decreasing on [0, 1).
+    r = np.linspace(0, 1, 101)
+    assert np.all(np.diff(wu(r)) < 0)
+
+
+def test_wu_is_c2_at_the_support_boundary():
+    # k, k' and k'' vanish at r = 1 (C^2), checked by one-sided finite differences.
+    h = 1e-4
+    r = 1.0 - np.array([0.0, h, 2 * h])
+    k = wu(r)
+    assert abs(k[0]) < 1e-12
+    assert abs((k[0] - k[1]) / h) < 1e-6
+    assert abs((k[0] - 2 * k[1] + k[2]) / h**2) < 1e-3
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("m", [None, 1, 3])
+def test_kernel_sum_matches_kdtree_reference(dim, m):
+    rng = np.random.default_rng(1)
+    centres = rng.uniform(0, 10, (800, dim))
+    coeffs = rng.normal(size=800 if m is None else (800, m))
+    queries = rng.uniform(-3, 13, (1500, dim))
+    fast = kernel_sum(queries, centres, coeffs, 1.7, order=2)
+    slow = kernel_sum_reference(queries, centres, coeffs, 1.7, order=2, memory_budget=2e5)
+    for a, b in zip(fast, slow):
+        assert a.shape == b.shape
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-11)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_gradient_and_hessian_match_finite_differences(dim):
+    rng = np.random.default_rng(2)
+    centres = rng.uniform(0, 10, (600, dim))
+    coeffs = rng.normal(size=600)
+    x = rng.uniform(3, 7, (20, dim))
+    sigma, h = 2.5, 1e-5
+    _, grad, hess = kernel_sum(x, centres, coeffs, sigma, order=2)
+    for a in range(dim):
+        e = np.zeros(dim)
+        e[a] = h
+        fp, gp = kernel_sum(x + e, centres, coeffs, sigma, order=1)
+        fm, gm = kernel_sum(x - e, centres, coeffs, sigma, order=1)
+        np.testing.assert_allclose((fp - fm) / (2 * h), grad[:, a], rtol=0, atol=1e-5 * np.abs(grad).max())
+        np.testing.assert_allclose((gp - gm) / (2 * h), hess[:, :, a], rtol=0, atol=1e-5 * np.abs(hess).max())
+
+
+def test_hessian_is_symmetric_and_finite_at_a_centre():
+    centres = np.array([[0.0, 0.0, 0.0], [0.5, 0.2, 0.1]])
+    _, _, hess = kernel_sum(centres, centres, np.array([1.0, -2.0]), 1.0, order=2)
+    assert np.all(np.isfinite(hess))
+    np.testing.assert_allclose(hess, np.swapaxes(hess, 1, 2), atol=1e-12)
+    # At r = 0 the kernel's Hessian is g(0) I / sigma^2 = -56 I.
+    value, _, h0 = wu_derivatives(np.zeros((1, 3)), 1.0)
+    assert value[0] == pytest.approx(4.0)
+    np.testing.assert_allclose(h0[0], -56.0 * np.eye(3))
+
+
+def test_queries_beyond_the_support_get_zero():
+    centres = np.zeros((1, 3))
+    far = np.array([[2.0, 0, 0], [0, -1.0, 0], [100.0, 100.0, 100.0]])
+    value, grad = kernel_sum(far, centres, np.ones(1), 1.0, order=1)
+    assert np.all(value == 0) and np.all(grad == 0)
+
+
+def test_prebuilt_grid_reorders_coefficients():
+    rng = np.random.default_rng(3)
+    centres = rng.uniform(0, 5, (300, 3))
+    coeffs = rng.normal(size=300)
+    q = rng.uniform(0, 5, (100, 3))
+    grid = CellGrid.build(centres, 1.2)
+    np.testing.assert_allclose(kernel_sum(q, grid, coeffs, 1.2)[0], kernel_sum(q, centres, coeffs, 1.2)[0])
+    with pytest.raises(ValueError, match="radius >= sigma"):
+        kernel_sum(q, grid, coeffs, 2.0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    shift=st.tuples(*[st.floats(-1e3, 1e3)] * 3),
+    sigma=st.floats(0.5, 5.0),
+)
+def test_kernel_sum_is_translation_invariant(shift, sigma):
+    rng = np.random.default_rng(4)
+    centres = rng.uniform(0, 6, (200, 3))
+    coeffs = rng.normal(size=200)
+    q = rng.uniform(0, 6, (50, 3))
+    t = np.array(shift)
+    a = kernel_sum(q, centres, coeffs, sigma, order=1)
+    b = kernel_sum(q + t, centres + t, coeffs, sigma, order=1)
+    scale = 1 + np.abs(t).max() / sigma
+    for u, v in zip(a, b):
+        np.testing.assert_allclose(u, v, atol=1e-9 * scale * np.abs(coeffs).sum())
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_kernel_matrix_matches_dense(dim):
+    rng = np.random.default_rng(5)
+    a = rng.uniform(0, 8, (300, dim))
+    b = rng.uniform(0, 8, (250, dim))
+    k = kernel_matrix(a, b, 1.9)
+    dense = wu(np.linalg.norm(a[:, None] - b[None], axis=2) / 1.9)
+    np.testing.assert_allclose(k.toarray(), dense, atol=1e-14)
+    sym = kernel_matrix(a, a, 1.9)
+    assert abs(sym - sym.T).max() == 0
+    np.testing.assert_allclose(sym.diagonal(), 4.0)
+
+
+def test_bad_arguments_are_named():
+    c = np.zeros((5, 3))
+    with pytest.raises(ValueError, match="`queries` of shape"):
+        kernel_sum(np.zeros((4, 2)), c, np.ones(5), 1.0)
+    with pytest.raises(ValueError, match="`coeffs`"):
+        kernel_sum(np.zeros((4, 3)), c, np.ones(4), 1.0)
+    with pytest.raises(ValueError, match="`sigma`"):
+        kernel_sum(np.zeros((4, 3)), c, np.ones(5), 0.0)
+    with pytest.raises(ValueError, match="`order`"):
+        kernel_sum(np.zeros((4, 3)), c, np.ones(5), 1.0, order=3)
+    with pytest.raises(ValueError, match="finite values in `queries`"):
+        kernel_sum(np.full((1, 3), np.nan), c, np.ones(5), 1.0)

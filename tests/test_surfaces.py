@@ -1,0 +1,92 @@
+"""Label volume -> meshes: world placement, outward orientation, small labels, grids."""
+
+import numpy as np
+import pytest
+
+from shapes import Disc2D, Ellipsoid, label_volume, rotation
+from volreg.implicit import ImplicitSurface
+from volreg.surfaces import SurfaceError, implicit_on_grid, label_surface, label_surfaces
+
+SPHERE = Ellipsoid((12, 12, 12), (0.31, 0.17, -0.23))
+
+GEOMETRIES = {
+    "identity": (np.eye(3), (1.0, 1.0, 1.0)),
+    "lps-to-ras-flip": (np.diag([-1.0, -1.0, 1.0]), (1.0, 1.0, 1.0)),
+    "mirrored": (np.diag([1.0, 1.0, -1.0]), (1.0, 1.0, 1.0)),
+    "oblique-anisotropic": (rotation(30), (0.8, 0.8, 2.0)),
+}
+
+
+def _sphere_volume(direction, spacing):
+    spacing = np.asarray(spacing)
+    shape = tuple(int(np.ceil(34 / s)) for s in spacing)
+    centre_index = (np.array(shape) - 1) / 2
+    origin = -direction @ (centre_index * spacing)
+    return label_volume(shape, spacing, direction, origin, SPHERE.signed_distance, label=7)
+
+
+@pytest.mark.parametrize("name", list(GEOMETRIES))
+def test_sphere_mesh_in_world_with_outward_normals(name):
+    vol = _sphere_volume(*GEOMETRIES[name])
+    surf = label_surface(vol, 7)
+    radial = surf.vertices - SPHERE.centre
+    radius = np.linalg.norm(radial, axis=1)
+    # Vertices lie on the sphere to a fraction of the (largest) voxel.
+    assert np.abs(radius - 12.0).mean() < 0.15 * vol.spacing.max()
+    # Every normal points outward and is close to radial.
+    cos = np.einsum("nd,nd->n", surf.normals, radial / radius[:, None])
+    assert np.all(cos > 0.5) and cos.mean() > 0.99
+    assert surf.enclosed_volume() == pytest.approx(4 / 3 * np.pi * 12**3, rel=0.03)
+    assert surf.label == 7
+
+
+def test_unsmoothed_mesh_is_the_voxel_staircase():
+    vol = _sphere_volume(*GEOMETRIES["identity"])
+    raw = label_surface(vol, 7, smoothing=0)
+    smooth = label_surface(vol, 7)
+    angle = lambda s: np.degrees(np.arccos(np.einsum("nd,nd->n", s.normals, (s.vertices - SPHERE.centre)
+                                                    / np.linalg.norm(s.vertices - SPHERE.centre, axis=1)[:, None]).clip(-1, 1))).mean()
+    assert angle(raw) > 2 * angle(smooth)
+
+
+def test_two_dimensional_outline_is_oriented_outward():
+    disc = Disc2D((15, 9), (0.2, 0.1))
+    for direction in (np.eye(2), np.diag([-1.0, 1.0])):
+        vol = label_volume((50, 50), (1.0, 1.0), direction, direction @ np.array([-24.5, -24.5]), disc.signed_distance)
+        surf = label_surface(vol, 1)
+        assert surf.cells.shape[1] == 2
+        assert surf.enclosed_volume() == pytest.approx(np.pi * 15 * 9, rel=0.03)
+        assert np.einsum("nd,nd->n", surf.normals, surf.vertices - disc.centre).min() > 0
+
+
+def test_absent_and_small_labels():
+    vol = _sphere_volume(*GEOMETRIES["identity"])
+    array = vol.array.copy()
+    array[0, 0, 0] = 3  # a one-voxel label
+    vol = vol.with_array(array)
+    with pytest.raises(SurfaceError, match="Label 5 is absent"):
+        label_surface(vol, 5)
+    with pytest.raises(SurfaceError, match="Label 3 has 1 voxels"):
+        label_surfaces(vol)
+    with pytest.warns(UserWarning, match="Skipping label 3"):
+        out = label_surfaces(vol, on_small="warn")
+    assert list(out) == [7]
+    with pytest.raises(ValueError, match="`on_small`"):
+        label_surfaces(vol, on_small="ignore")
+
+
+def test_progress_callback_counts_labels():
+    vol = _sphere_volume(*GEOMETRIES["identity"])
+    calls = []
+    label_surfaces(vol, progress=lambda stage, done, total: calls.append((stage, done, total)))
+    assert calls == [("extract surfaces", 1, 1)]
+
+
+def test_implicit_on_grid_matches_pointwise_evaluation():
+    vol = _sphere_volume(*GEOMETRIES["oblique-anisotropic"])
+    surf = label_surface(vol, 7)
+    f = ImplicitSurface(surf.vertices, surf.normals, min_width=8.0)
+    grid = implicit_on_grid(f, vol)
+    assert grid.shape == vol.shape and grid.dtype == np.float32
+    direct = f(vol.grid_points().reshape(-1, 3)).reshape(vol.shape)
+    np.testing.assert_allclose(grid, direct, rtol=1e-6, atol=1e-5)
