@@ -23,12 +23,15 @@ class Ellipsoid:
         hi = np.full(len(p), np.linalg.norm(p, axis=1) * self.axes.max() + 1.0)
         for _ in range(200):
             t = 0.5 * (lo + hi)
-            f = np.sum((self.axes * p / (t[:, None] + a2)) ** 2, axis=1) - 1.0
+            with np.errstate(divide="ignore", invalid="ignore"):  # t = -a_min^2 on an axis
+                f = np.sum((self.axes * p / (t[:, None] + a2)) ** 2, axis=1) - 1.0
+            f = np.where(np.isnan(f), np.inf, f)
             pos = f > 0
             lo = np.where(pos, t, lo)
             hi = np.where(pos, hi, t)
         t = 0.5 * (lo + hi)
-        nearest = a2 * p / (t[:, None] + a2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            nearest = np.where(p == 0, 0.0, a2 * p / (t[:, None] + a2))
         dist = np.linalg.norm(p - nearest, axis=1)
         inside = np.sum((p / self.axes) ** 2, axis=1) < 1.0
         return np.where(inside, -dist, dist)

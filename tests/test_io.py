@@ -581,3 +581,111 @@ def test_read_mesh_errors(tmp_path):
     garbage.write_bytes(np.random.default_rng(7).bytes(512))
     with _raises(garbage, "could not be read"):
         read_mesh(garbage)
+
+
+# --------------------------------------------------------------------------- VTK image data (.vti)
+
+
+def _vti(path: Path, values: np.ndarray, *, dims, spacing, origin, direction, extent_lo=(0, 0, 0)) -> pv.ImageData:
+    """Save a pyvista ImageData holding ``values`` (flat, VTK x-fastest order) and return it."""
+    img = pv.ImageData(dimensions=dims, spacing=spacing, origin=origin, direction_matrix=direction)
+    img.extent = tuple(v for lo, n in zip(extent_lo, dims) for v in (lo, lo + n - 1))
+    img.point_data["labels"] = values
+    img.save(path)
+    return img
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.int16, np.uint16, np.int32], ids=lambda d: np.dtype(d).name)
+@pytest.mark.parametrize("orientation", ["identity", "oblique_20deg", "left_handed"])
+def test_vti_matches_pyvista(tmp_path, dtype, orientation):
+    direction, spacing, origin = ORIENTATIONS[orientation]
+    dims = (5, 4, 3)
+    rng = np.random.default_rng(11)
+    values = rng.integers(0, 7, size=int(np.prod(dims))).astype(dtype)
+    values[0] = np.iinfo(dtype).max  # an extreme value proves the dtype survives
+    # A non-zero extent start moves index 0 away from the ImageData origin.
+    img = _vti(tmp_path / "lab.vti", values, dims=dims, spacing=spacing, origin=origin, direction=direction,
+               extent_lo=(2, -1, 3))
+    vol = read_labels(tmp_path / "lab.vti")
+    assert vol.shape == dims
+    assert vol.array.dtype == np.dtype(dtype)
+    points = np.asarray(img.points)  # VTK's world points, x fastest
+    for ijk in [(0, 0, 0), (4, 0, 0), (1, 2, 0), (0, 3, 2), (4, 3, 2), (2, 1, 1)]:
+        flat = ijk[0] + dims[0] * (ijk[1] + dims[1] * ijk[2])
+        assert vol.array[ijk] == values[flat]
+        np.testing.assert_allclose(vol.index_to_world(np.array([ijk]))[0], points[flat], atol=1e-9)
+    np.testing.assert_allclose(vol.spacing, spacing)
+    np.testing.assert_allclose(vol.direction, direction, atol=1e-12)
+
+
+def test_vti_single_slice_is_2d(tmp_path):
+    dims = (6, 4, 1)
+    values = np.arange(24, dtype=np.int16)
+    _vti(tmp_path / "slice.vti", values, dims=dims, spacing=(0.5, 2.0, 1.0), origin=(1.0, 2.0, 0.0),
+         direction=np.eye(3))
+    vol = read_labels(tmp_path / "slice.vti")
+    assert vol.shape == (6, 4)
+    assert vol.array[5, 3] == values[5 + 6 * 3]
+    np.testing.assert_allclose(vol.index_to_world(np.array([[5.0, 3.0]])), [[3.5, 8.0]])
+
+
+def test_vti_float_image(tmp_path):
+    values = np.linspace(-1.0, 1.0, 24).astype(np.float32)
+    _vti(tmp_path / "f.vti", values, dims=(4, 3, 2), spacing=(1, 1, 1), origin=(0, 0, 0), direction=np.eye(3))
+    array, origin, spacing, direction = read_image(tmp_path / "f.vti")
+    assert array.dtype == np.float32
+    np.testing.assert_array_equal(array[3, 2, 1], values[-1])
+    with _raises(tmp_path / "f.vti", "non-integral values"):
+        read_labels(tmp_path / "f.vti")
+
+
+def test_vti_frog_tissues_shipped_with_pyvista():
+    from pyvista import examples
+
+    path = Path(examples.__file__).parent / "frog_tissues.vti"
+    vol = read_labels(path)
+    assert vol.shape == (500, 470, 136)
+    assert vol.array.dtype == np.uint8
+    np.testing.assert_allclose(vol.spacing, [1.0, 1.0, 1.5])
+    assert len(vol.labels()) == 25  # 26 values including background 0
+
+
+def test_vti_truncated(tmp_path):
+    path = tmp_path / "cut.vti"
+    _vti(path, np.arange(60, dtype=np.int16), dims=(5, 4, 3), spacing=(1, 1, 1), origin=(0, 0, 0),
+         direction=np.eye(3))
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with _raises(path, "could not be read as VTK image data"):
+        read_labels(path)
+
+
+def test_vti_not_image_data(tmp_path):
+    text = tmp_path / "notes.vti"
+    text.write_text("this is not an image\n" * 30)
+    with _raises(text, "not a VTK XML image data file"):
+        read_labels(text)
+    poly = tmp_path / "poly.vti"
+    pv.Sphere().save(tmp_path / "poly.vtp")
+    os.replace(tmp_path / "poly.vtp", poly)
+    with _raises(poly, "not a VTK XML image data file"):
+        read_labels(poly)
+
+
+def test_vti_vector_and_ambiguous_arrays(tmp_path):
+    img = pv.ImageData(dimensions=(3, 3, 3))
+    img.point_data["vec"] = np.zeros((27, 3), dtype=np.float32)
+    img.save(tmp_path / "vec.vti")
+    with _raises(tmp_path / "vec.vti", "3 components per voxel"):
+        read_labels(tmp_path / "vec.vti")
+    img = pv.ImageData(dimensions=(3, 3, 3))
+    img.point_data.set_array(np.zeros(27, dtype=np.uint8), "a")
+    img.point_data.set_array(np.ones(27, dtype=np.uint8), "b")
+    img.save(tmp_path / "two.vti")
+    with _raises(tmp_path / "two.vti", "none is marked active"):
+        read_labels(tmp_path / "two.vti")
+    cells = pv.ImageData(dimensions=(3, 3, 3))
+    cells.cell_data["labels"] = np.ones(8, dtype=np.uint8)
+    cells.save(tmp_path / "cells.vti")
+    with _raises(tmp_path / "cells.vti", "no point data array"):
+        read_labels(tmp_path / "cells.vti")

@@ -26,6 +26,7 @@ Two implementations of the neighbour sums exist side by side:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numba
 import numpy as np
@@ -104,7 +105,7 @@ def wu_derivatives(d: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray,
 # Uniform cell grid over a point set
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class CellGrid:
     """Points binned on a uniform grid of cubic cells, for radius queries.
 
@@ -135,13 +136,21 @@ class CellGrid:
     dims: np.ndarray
     radius: float
 
+    @cached_property
+    def columns(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Coordinates as three contiguous (M,) arrays (z zeros in 2-D), for SIMD loops."""
+        cols = [np.ascontiguousarray(self.points[:, a]) for a in range(self.points.shape[1])]
+        while len(cols) < 3:
+            cols.append(np.zeros(len(self.points)))
+        return tuple(cols)
+
     @classmethod
-    def build(cls, points: np.ndarray, radius: float, *, subdivisions: int = 2) -> "CellGrid":
+    def build(cls, points: np.ndarray, radius: float, *, subdivisions: int = 1) -> "CellGrid":
         """Bin ``points`` (M, D) for queries of radius ``radius`` (mm).
 
         Cells have edge ``radius / subdivisions`` (larger if the grid would
         exceed 2^24 cells): smaller cells mean fewer candidate points per query
-        but more cells to look up; 2 was fastest on surface-like point sets
+        but more cells to look up; 1 was fastest on surface-like point sets
         (``benchmarks/bench_kernels.py``).
         """
         points = np.ascontiguousarray(points, dtype=float)
@@ -191,7 +200,7 @@ def _axis_range(x, radius, lo, cell, n):
     return np.int64(first), np.int64(last)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _candidate_ranges(x, lo, cell, dims, radius, start, ranges):
     """Fill ``ranges`` with ``[begin, end)`` runs of grid points that may lie within
     ``radius`` of ``x``: cells whose box is closer than ``radius``; along the last
@@ -286,13 +295,53 @@ def _grid_sum(queries, gpts, gcoef, start, lo, cell, dims, max_runs, sigma, orde
                                         hess[q, j, a, b] += cj * h * d[a] * d[b]
 
 
+@numba.njit(cache=True, fastmath=True, inline="always")
+def _run_value(x0, x1, x2, px, py, pz, gcoef, begin, end, inv_s2, dim3):
+    """sum_p a_p k(|x - p| / sigma) over one run of points: branch-free so that it
+    compiles to SIMD code (t = 0 outside the support zeroes the term)."""
+    v = 0.0
+    for p in range(begin, end):
+        d0 = x0 - px[p]
+        d1 = x1 - py[p]
+        d2 = x2 - pz[p]
+        r = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2) * inv_s2)
+        t = max(1.0 - r, 0.0)
+        t2 = t * t
+        v += gcoef[p] * t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+    return v
+
+
+@numba.njit(cache=True, fastmath=True, inline="always")
+def _run_value_grad(x0, x1, x2, px, py, pz, gcoef, begin, end, inv_s2, dim3):
+    """Value and gradient of the sum over one run of points (branch-free, SIMD)."""
+    v = 0.0
+    g0 = 0.0
+    g1 = 0.0
+    g2 = 0.0
+    for p in range(begin, end):
+        d0 = x0 - px[p]
+        d1 = x1 - py[p]
+        d2 = x2 - pz[p]
+        r = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2) * inv_s2)
+        t = max(1.0 - r, 0.0)
+        t2 = t * t
+        a = gcoef[p]
+        v += a * t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+        g = a * -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
+        g0 += g * d0
+        g1 += g * d1
+        g2 += g * d2
+    return v, g0, g1, g2
+
+
 @numba.njit(parallel=True, cache=True)
-def _grid_sum_scalar(queries, gpts, gcoef, start, lo, cell, dims, max_runs, sigma, val, grad):
-    """Hot path of :func:`_grid_sum` for scalar coefficients, order <= 1, D <= 3:
-    accumulates in registers instead of the output arrays."""
+def _grid_sum_scalar(queries, px, py, pz, gcoef, start, lo, cell, dims, max_runs, sigma, val, grad):
+    """Hot path of :func:`_grid_sum` for scalar coefficients, order <= 1, D <= 3;
+    point coordinates as separate arrays (``pz`` zeros in 2-D) for SIMD loads."""
     n, dim = queries.shape
     inv_s2 = 1.0 / (sigma * sigma)
     want_grad = grad.shape[0] == n
+    dim3 = dim == 3
     n_blocks = (n + _BLOCK - 1) // _BLOCK
     for blk in numba.prange(n_blocks):
         ranges = np.empty((max_runs, 2), dtype=np.int64)
@@ -301,35 +350,29 @@ def _grid_sum_scalar(queries, gpts, gcoef, start, lo, cell, dims, max_runs, sigm
             nr = _candidate_ranges(x, lo, cell, dims, sigma, start, ranges)
             x0 = x[0]
             x1 = x[1]
-            x2 = x[2] if dim == 3 else 0.0
-            v = 0.0
-            g0 = 0.0
-            g1 = 0.0
-            g2 = 0.0
-            for rr in range(nr):
-                for p in range(ranges[rr, 0], ranges[rr, 1]):
-                    d0 = x0 - gpts[p, 0]
-                    d1 = x1 - gpts[p, 1]
-                    d2 = (x2 - gpts[p, 2]) if dim == 3 else 0.0
-                    r2 = (d0 * d0 + d1 * d1 + d2 * d2) * inv_s2
-                    if r2 >= 1.0:
-                        continue
-                    r = np.sqrt(r2)
-                    t = 1.0 - r
-                    t2 = t * t
-                    a = gcoef[p, 0]
-                    v += a * t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
-                    if want_grad:
-                        g = a * -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
-                        g0 += g * d0
-                        g1 += g * d1
-                        g2 += g * d2
-            val[q, 0] += v
+            x2 = x[2] if dim3 else 0.0
             if want_grad:
+                v = 0.0
+                g0 = 0.0
+                g1 = 0.0
+                g2 = 0.0
+                for rr in range(nr):
+                    dv, d0, d1, d2 = _run_value_grad(x0, x1, x2, px, py, pz, gcoef, ranges[rr, 0], ranges[rr, 1],
+                                                     inv_s2, dim3)
+                    v += dv
+                    g0 += d0
+                    g1 += d1
+                    g2 += d2
+                val[q, 0] += v
                 grad[q, 0, 0] += g0
                 grad[q, 0, 1] += g1
-                if dim == 3:
+                if dim3:
                     grad[q, 0, 2] += g2
+            else:
+                v = 0.0
+                for rr in range(nr):
+                    v += _run_value(x0, x1, x2, px, py, pz, gcoef, ranges[rr, 0], ranges[rr, 1], inv_s2, dim3)
+                val[q, 0] += v
 
 
 def _as_coefficients(coeffs: np.ndarray, m_centres: int) -> tuple[np.ndarray, bool]:
@@ -411,8 +454,9 @@ def kernel_sum(
     hess = bufs[2] if order >= 2 else np.zeros((1, 1, 1, 1))
     runs = _max_runs(grid)
     if m == 1 and order <= 1:
-        _grid_sum_scalar(queries, grid.points, coef, grid.start, grid.lo, grid.cell, grid.dims,
-                         runs, float(sigma), val, grad)
+        px, py, pz = grid.columns
+        _grid_sum_scalar(queries, px, py, pz, np.ascontiguousarray(coef[:, 0]), grid.start, grid.lo,
+                         grid.cell, grid.dims, runs, float(sigma), val, grad)
     else:
         _grid_sum(queries, grid.points, coef, grid.start, grid.lo, grid.cell, grid.dims,
                   runs, float(sigma), order, val, grad, hess)

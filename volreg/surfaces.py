@@ -52,12 +52,15 @@ class Surface:
         Outward unit vertex normals.
     label : int
         The label value the surface bounds (0 if not from a label volume).
+    smoothing : float, mm
+        The Gaussian blur actually applied to the mask before contouring.
     """
 
     vertices: np.ndarray
     cells: np.ndarray
     normals: np.ndarray
     label: int = 0
+    smoothing: float = 0.0
 
     @property
     def dim(self) -> int:
@@ -126,14 +129,44 @@ def _contour(mask: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
 def _mean_curvature(field: np.ndarray, spacing: np.ndarray, at: np.ndarray) -> np.ndarray:
     """Sum of principal curvatures (1/mm) of the level sets of a field that is high inside.
 
-    ``H = div(n)`` with the outward unit normal ``n = -grad u / |grad u|``,
-    by central differences on the (orthogonal) grid, interpolated linearly at
-    the continuous indices ``at`` (N, D).
+    ``H = div(n)`` with the outward unit normal ``n = -grad u / |grad u|``, i.e.
+    ``H = -(lap u - m^T hess(u) m) / |grad u|`` with ``m = grad u / |grad u|``.
+    Derivatives are central differences with a one-voxel step, on values
+    interpolated linearly at a stencil around each point (only where needed,
+    not on the whole grid; cubic interpolation measured no better); the grid axes are orthogonal, so index-space
+    derivatives divided by the spacing are physical ones.
+
+    Parameters
+    ----------
+    field : (n_0, ..., n_{D-1}) float ndarray
+    spacing : (D,) float ndarray, mm
+    at : (N, D) float ndarray
+        Continuous indices.
+
+    Returns
+    -------
+    (N,) float ndarray, 1/mm
     """
-    grad = np.gradient(field.astype(float), *spacing)
-    norm = np.sqrt(sum(g * g for g in grad)) + 1e-12
-    div = sum(np.gradient(-g / norm, h, axis=a) for a, (g, h) in enumerate(zip(grad, spacing)))
-    return ndimage.map_coordinates(div, at.T, order=1, mode="nearest")
+    dim = field.ndim
+    eye = np.eye(dim)
+
+    def sample(offset):
+        return ndimage.map_coordinates(field, (at + offset).T, order=1, mode="nearest")
+
+    centre = sample(np.zeros(dim))
+    grad = np.empty((len(at), dim))
+    hess = np.empty((len(at), dim, dim))
+    for a in range(dim):
+        up, down = sample(eye[a]), sample(-eye[a])
+        grad[:, a] = (up - down) / (2 * spacing[a])
+        hess[:, a, a] = (up - 2 * centre + down) / spacing[a] ** 2
+        for b in range(a + 1, dim):
+            cross = sample(eye[a] + eye[b]) - sample(eye[a] - eye[b]) - sample(eye[b] - eye[a]) + sample(-eye[a] - eye[b])
+            hess[:, a, b] = hess[:, b, a] = cross / (4 * spacing[a] * spacing[b])
+    norm = np.linalg.norm(grad, axis=1) + 1e-12
+    m = grad / norm[:, None]
+    lap = np.trace(hess, axis1=1, axis2=2)
+    return -(lap - np.einsum("na,nab,nb->n", m, hess, m)) / norm
 
 
 def label_surface(
@@ -154,7 +187,9 @@ def label_surface(
         Standard deviation of the Gaussian applied to the binary mask before
         contouring, in units of the largest voxel spacing (isotropic in mm).
         0 contours the raw mask: a voxel staircase whose normals are off by
-        13-20 degrees.  Blurring moves a curved boundary inward by ``H s^2 / 2``
+        13-20 degrees.  A label too thin to survive the blur (its blurred mask
+        stays below 1/2) is contoured with half, a quarter, then none of it;
+        ``Surface.smoothing`` records what was used.  Blurring moves a curved boundary inward by ``H s^2 / 2``
         (``H`` the sum of principal curvatures, ``s`` the blur in mm); that
         shift is undone using ``H`` measured on the blurred mask.
     min_voxels : int
@@ -182,9 +217,14 @@ def label_surface(
     lo = np.array([a.min() for a in nz])
     hi = np.array([a.max() for a in nz]) + 1
     crop = mask[tuple(slice(a, b) for a, b in zip(lo, hi))].astype(np.float32)
-    field = np.pad(crop, margin)
-    if sigma_mm > 0:
-        field = ndimage.gaussian_filter(field, sigma_vox, mode="constant")
+    padded = np.pad(crop, margin)
+    # A structure thinner than about two blur widths never reaches 1/2 once
+    # blurred; halve the blur until it does (down to the raw mask).
+    for blur in (sigma_mm, sigma_mm / 2, sigma_mm / 4, 0.0):
+        field = ndimage.gaussian_filter(padded, blur / volume.spacing, mode="constant") if blur > 0 else padded
+        if field.max() >= 0.55:
+            break
+    sigma_mm = blur
     verts, cells = _contour(field, 0.5)
     if len(cells) == 0:
         raise SurfaceError(f"Label {label} gave an empty contour (object thinner than the smoothing).")
@@ -198,7 +238,7 @@ def label_surface(
         shift = 0.5 * sigma_mm**2 * _mean_curvature(field, volume.spacing, verts)
         world = world + np.clip(shift, -sigma_mm, sigma_mm)[:, None] * normals
         normals = vertex_normals(world, cells)
-    return Surface(world, cells, normals, int(label))
+    return Surface(world, cells, normals, int(label), smoothing=sigma_mm)
 
 
 def label_surfaces(

@@ -1,4 +1,4 @@
-"""File formats: label volumes, scalar images and meshes.
+"""File formats: label volumes, scalar images, meshes and JSON summaries.
 
 The only modules in volreg that import SimpleITK, nibabel or pyvista for
 files.  Readers validate and raise :class:`VolregIOError` (a ``ValueError``)
@@ -9,6 +9,7 @@ to overwrite unless ``force=True``.
 from ._atomic import VolregIOError, atomic_output, check_writable
 from .images import read_image, read_labels, write_labels, write_scalar
 from .meshes import read_mesh, write_mesh
+from .summary import write_json
 
 __all__ = [
     "VolregIOError",
@@ -17,6 +18,7 @@ __all__ = [
     "read_image",
     "read_labels",
     "read_mesh",
+    "write_json",
     "write_labels",
     "write_mesh",
     "write_scalar",

@@ -1,10 +1,12 @@
-"""Label volumes and scalar images: NIfTI, NRRD and MetaImage via SimpleITK.
+"""Label volumes and scalar images: NIfTI, NRRD and MetaImage via SimpleITK; VTK ``.vti``.
 
 Arrays are returned in ITK index order ``[i, j, k]`` (SimpleITK's
 ``GetArrayFromImage`` gives ``[k, j, i]``; we transpose), and geometry is
 SimpleITK's: origin, spacing and direction in ITK physical space (LPS, mm).
 For NIfTI files, whose affines are RAS, this means ``LPS = diag(-1, -1, 1) @ RAS``
-(SimpleITK does the conversion).
+(SimpleITK does the conversion).  VTK image data (``.vti``, read-only) have no
+anatomical frame; their world coordinates are taken as LPS unchanged, as ITK's
+VTK image IO does (see :mod:`volreg.io.vti`).
 
 Readers validate aggressively, because a silently wrong label volume is worse
 than a refusal: every problem raises :class:`VolregIOError` with one line
@@ -26,11 +28,12 @@ import SimpleITK as sitk
 
 from ..volume import GeometryError, LabelVolume
 from ._atomic import VolregIOError, atomic_output
+from .vti import read_vti
 
 __all__ = ["read_labels", "write_labels", "write_scalar", "read_image"]
 
 #: Suffixes the readers accept (lower case).
-READ_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
+READ_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".vti")
 #: Suffixes the writers accept: single-file formats only, so a write can be atomic.
 WRITE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha")
 
@@ -188,9 +191,14 @@ def _nifti_after_sitk(
 
 
 def _read_sitk(path: str | os.PathLike[str], what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Read and validate a scalar 2-D/3-D image; return ``(array[i,j,k], origin, spacing, direction)``."""
+    """Read and validate a scalar 2-D/3-D image; return ``(array[i,j,k], origin, spacing, direction)``.
+
+    ``.vti`` files go to :func:`volreg.io.vti.read_vti`; everything else to SimpleITK.
+    """
     p = Path(path)
     suffix = _check_input(p, what)
+    if suffix == ".vti":
+        return read_vti(p, what)
     nimg = _check_nifti(p, suffix, what) if suffix in (".nii", ".nii.gz") else None
 
     reader = sitk.ImageFileReader()
@@ -263,13 +271,16 @@ def _as_integer_labels(array: np.ndarray, path: Path, what: str) -> np.ndarray:
 
 
 def read_labels(path: str | os.PathLike[str]) -> LabelVolume:
-    """Read a label volume from NIfTI, NRRD or MetaImage.
+    """Read a label volume from NIfTI, NRRD, MetaImage or VTK image data.
 
     Parameters
     ----------
     path : path-like
-        ``.nii``, ``.nii.gz``, ``.nrrd``, ``.nhdr``, ``.mha`` or ``.mhd`` file
-        holding a 2-D or 3-D scalar image.
+        ``.nii``, ``.nii.gz``, ``.nrrd``, ``.nhdr``, ``.mha``, ``.mhd`` or
+        ``.vti`` file holding a 2-D or 3-D scalar image.  For ``.vti`` the
+        active (or only) point array is read, and VTK world coordinates
+        (origin, spacing, ``direction_matrix``) are taken as LPS mm unchanged,
+        as ITK's VTK image IO does; a single-slice ``.vti`` is read as 2-D.
 
     Returns
     -------
@@ -282,7 +293,8 @@ def read_labels(path: str | os.PathLike[str]) -> LabelVolume:
     ------
     VolregIOError
         If the file is missing, not an image, truncated (including a
-        truncated ``.nii.gz``, which SimpleITK would read as zero-filled),
+        truncated ``.nii.gz``, which SimpleITK would read as zero-filled;
+        a ``.vti`` that fails to parse),
         4-D or more (a trailing axis of size 1 is squeezed), vector-valued,
         a float image with NaN, Inf or non-integral values, or a NIfTI whose
         qform and sform are both set and disagree by more than 1e-3 mm.

@@ -1,0 +1,321 @@
+"""The ``volreg`` command line: parse -> io -> numerics -> io.
+
+Commands
+--------
+``volreg surface LABELS -o OUTDIR``
+    Boundary meshes and kernel implicit surfaces (paper Section 4) of the
+    labels of a label volume.
+
+Exit status is 0 on success and 2 for any invalid input (a file that cannot
+be read or written, a bad argument, a label that cannot give a surface); the
+error is then one line on stderr, ``volreg <command>: error: <message>``, and
+no output file is left behind.  Any other exception is a bug and propagates
+with its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+from . import __version__
+from .io import VolregIOError, check_writable, read_labels, write_json, write_mesh, write_scalar
+from .progress import ProgressBars
+from .surfaces import SurfaceError, implicit_on_grid, implicit_surfaces, label_surfaces
+from .volume import GeometryError, LabelVolume
+
+__all__ = ["main", "build_parser", "UsageError"]
+
+PROG = "volreg"
+
+
+class UsageError(ValueError):
+    """A command-line request that cannot be carried out (bad argument or combination)."""
+
+
+#: Errors that are the user's input, not volreg's bug: reported in one line, exit status 2.
+EXPECTED_ERRORS = (VolregIOError, SurfaceError, GeometryError, UsageError)
+
+#: How many label values an error message lists before eliding the rest.
+_MAX_LISTED = 30
+
+
+# --------------------------------------------------------------------------- argument types
+
+
+def _label_list(text: str) -> list[int]:
+    """``"1,3"`` -> ``[1, 3]``; for ``--labels``."""
+    expected = "expected comma-separated non-zero integer labels such as 1,3"
+    items = [t.strip() for t in text.split(",")]
+    try:
+        labels = [int(t) for t in items]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{expected}, got {text!r}") from None
+    if 0 in labels:
+        raise argparse.ArgumentTypeError(f"{expected}, got {text!r} (0 is the background)")
+    duplicates = sorted({v for v in labels if labels.count(v) > 1})
+    if duplicates:
+        raise argparse.ArgumentTypeError(f"{expected}, got {text!r} (label {duplicates[0]} is listed twice)")
+    return labels
+
+
+def _float_at_least(lower: float, *, strict: bool):
+    """An argparse type for a finite float ``> lower`` (``strict``) or ``>= lower``."""
+    relation = ">" if strict else ">="
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number {relation} {lower:g}, got {text!r}") from None
+        if not math.isfinite(value) or (value <= lower if strict else value < lower):
+            raise argparse.ArgumentTypeError(f"expected a number {relation} {lower:g}, got {text!r}")
+        return value
+
+    return parse
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``volreg`` command, with its subcommands."""
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description="Kernel registration of label volumes (Schölkopf, Steinke & Blanz, ICML 2005). "
+        "World coordinates are ITK physical space: LPS, millimetres.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    surface = commands.add_parser(
+        "surface",
+        help="meshes and implicit surfaces of the labels of a label volume",
+        description="For each label: a boundary mesh with outward normals (OUTDIR/label_<id>.vtk; "
+        "line segments for a 2-D image) and the fitted kernel implicit surface sampled on the input "
+        "grid as a float32 signed distance in mm, negative inside (OUTDIR/sdf_<id>.nii.gz), plus "
+        "OUTDIR/surface.json summarising the run.",
+    )
+    surface.add_argument(
+        "image", metavar="LABELS", type=Path,
+        help="label volume: .nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd or .vti",
+    )
+    surface.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True,
+                         help="output directory (created if missing)")
+    surface.add_argument("--labels", metavar="IDS", type=_label_list, default=None,
+                         help="comma-separated labels to process, e.g. 1,3 (default: every non-zero label)")
+    surface.add_argument("--skip-small", action="store_true",
+                         help="warn about and skip labels that are absent or too small, instead of failing")
+    surface.add_argument("--smoothing", metavar="VOXELS", type=_float_at_least(0.0, strict=False), default=1.0,
+                         help="Gaussian blur (s.d.) of each mask before contouring, in units of the largest voxel spacing "
+                         "(default 1.0; 0: none)")
+    surface.add_argument("--min-width", metavar="VOXELS", type=_float_at_least(0.0, strict=True), default=4.0,
+                         help="finest kernel width of the implicit surface, in units of the largest voxel spacing (default 4)")
+    surface.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    surface.add_argument("--quiet", action="store_true", help="no progress bars")
+    surface.set_defaults(run=_surface)
+    return parser
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _listing(values: Sequence[int]) -> str:
+    shown = ", ".join(str(v) for v in values[:_MAX_LISTED])
+    return shown + (f", ... ({len(values)} in all)" if len(values) > _MAX_LISTED else "")
+
+
+def _warn(command: str, message: str) -> None:
+    print(f"{PROG} {command}: warning: {message}", file=sys.stderr)
+
+
+def _select_labels(volume: LabelVolume, image: Path, requested: list[int] | None, skip: bool) -> list[int]:
+    """The labels to process: ``requested`` (checked against the volume) or all present."""
+    present = volume.labels().tolist()
+    if not present:
+        raise UsageError(f"Label image `{image}` holds no labels (every voxel is 0); expected a segmentation.")
+    if requested is None:
+        return present
+    present_set = set(present)
+    absent = [v for v in requested if v not in present_set]
+    for v in absent:
+        message = f"label {v} of --labels is absent from `{image}` (labels present: {_listing(present)})"
+        if not skip:
+            raise UsageError(message[0].upper() + message[1:] + "; pass --skip-small to skip it.")
+        _warn("surface", f"skipping {message}.")
+    labels = [v for v in requested if v not in absent]
+    if not labels:
+        raise UsageError(f"None of --labels {_listing(requested)} is present in `{image}`; nothing to do.")
+    return labels
+
+
+def _make_directory(path: Path) -> list[Path]:
+    """Create ``path`` and any missing parents; return the directories created, outermost first."""
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"Output directory `{path}` exists and is not a directory; expected a directory for -o.")
+    missing = []
+    p = path
+    while not p.exists():
+        missing.append(p)
+        if p.parent == p:
+            break
+        p = p.parent
+    created: list[Path] = []
+    for d in reversed(missing):
+        try:
+            d.mkdir()
+        except OSError as exc:
+            _remove_directories(created)
+            raise VolregIOError(f"Output directory `{d}` could not be created: {exc.strerror}.") from exc
+        created.append(d)
+    return created
+
+
+def _remove_directories(created: list[Path]) -> None:
+    """Remove directories this run created, innermost first, if they are empty."""
+    for d in reversed(created):
+        try:
+            d.rmdir()
+        except OSError:
+            return
+
+
+# --------------------------------------------------------------------------- volreg surface
+
+
+def _surface(args: argparse.Namespace) -> int:
+    """``volreg surface``: meshes, implicit surfaces and their signed distances for each label."""
+    start = time.perf_counter()
+    volume = read_labels(args.image)
+    labels = _select_labels(volume, args.image, args.labels, args.skip_small)
+
+    outdir: Path = args.output
+    meshes = {v: outdir / f"label_{v}.vtk" for v in labels}
+    sdfs = {v: outdir / f"sdf_{v}.nii.gz" for v in labels}
+    summary_path = outdir / "surface.json"
+    created = _make_directory(outdir)
+    written: list[Path] = []
+    try:
+        check_writable([*meshes.values(), *sdfs.values(), summary_path], force=args.force)
+        with ProgressBars(quiet=args.quiet) as progress:
+            with warnings.catch_warnings(record=True) as caught:
+                # label_surfaces warns for each label it skips (on_small="warn").
+                warnings.simplefilter("always")
+                surfaces = label_surfaces(
+                    volume,
+                    labels,
+                    on_small="warn" if args.skip_small else "error",
+                    smoothing=args.smoothing,
+                    progress=progress,
+                )
+            for w in caught:
+                _warn("surface", str(w.message))
+            if not surfaces:
+                raise UsageError(f"No label of `{args.image}` gave a surface; nothing to write.")
+
+            records = []
+            implicit = {}
+            for i, (label, surf) in enumerate(surfaces.items()):
+                t0 = time.perf_counter()
+                implicit[label] = implicit_surfaces(volume, {label: surf}, min_width_voxels=args.min_width)[label]
+                fit_seconds = time.perf_counter() - t0
+                model = implicit[label]
+                records.append(
+                    {
+                        "label": int(label),
+                        "mesh": meshes[label].name,
+                        "sdf": sdfs[label].name,
+                        "vertices": int(len(surf.vertices)),
+                        "cells": int(len(surf.cells)),
+                        "smoothing_mm": float(surf.smoothing),
+                        "levels": [float(w) for w in model.widths],
+                        "centres": int(sum(len(level.centres) for level in model.levels)),
+                        "fit_seconds": round(fit_seconds, 3),
+                    }
+                )
+                progress("fit implicit surfaces", i + 1, len(surfaces))
+
+            for i, (label, surf) in enumerate(surfaces.items()):
+                write_mesh(surf.vertices, surf.cells, meshes[label], normals=surf.normals, force=args.force)
+                written.append(meshes[label])
+                sdf = implicit_on_grid(implicit[label], volume)
+                write_scalar(sdf, volume, sdfs[label], force=args.force)
+                written.append(sdfs[label])
+                progress("sample and write", i + 1, len(surfaces))
+
+            summary = {
+                "volreg_version": __version__,
+                "command": "surface",
+                "input": str(args.image),
+                "grid": {
+                    "shape": [int(n) for n in volume.shape],
+                    "origin_mm": volume.origin.tolist(),
+                    "spacing_mm": volume.spacing.tolist(),
+                    "direction": volume.direction.tolist(),
+                    "frame": "LPS",
+                },
+                "parameters": {
+                    "smoothing_voxels": args.smoothing,
+                    "min_width_voxels": args.min_width,
+                    "skip_small": bool(args.skip_small),
+                },
+                "labels": records,
+                "skipped": [int(v) for v in (args.labels or labels) if v not in surfaces],
+                "seconds": round(time.perf_counter() - start, 3),
+            }
+            write_json(summary, summary_path, force=args.force)
+            written.append(summary_path)
+    except BaseException:
+        # Leave nothing behind: remove what this run wrote and the directories it created.
+        for path in written:
+            path.unlink(missing_ok=True)
+        _remove_directories(created)
+        raise
+
+    done = sorted(surfaces)
+    print(
+        f"{PROG} surface: {len(done)} label{'s' if len(done) != 1 else ''} ({_listing(done)}) -> "
+        f"{outdir}{os.sep} ({len(written)} files) in {time.perf_counter() - start:.1f} s"
+    )
+    return 0
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``volreg`` command line.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Arguments without the program name; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        Exit status: 0 on success, 2 for a usage error or invalid input
+        (reported as one line on stderr).  ``--help`` and ``--version``
+        return 0.
+
+    Raises
+    ------
+    Exception
+        Anything other than volreg's input errors (:class:`~volreg.io.VolregIOError`,
+        :class:`~volreg.surfaces.SurfaceError`, :class:`~volreg.volume.GeometryError`,
+        :class:`UsageError`) is a bug and propagates with its traceback.
+    """
+    parser = build_parser()
+    try:
+        args = parser.parse_args(None if argv is None else list(argv))
+    except SystemExit as exc:  # argparse exits for --help, --version and usage errors
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    try:
+        return args.run(args)
+    except EXPECTED_ERRORS as exc:
+        message = " ".join(str(exc).split("\n")).strip() or type(exc).__name__
+        print(f"{PROG} {args.command}: error: {message}", file=sys.stderr)
+        return 2

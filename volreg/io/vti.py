@@ -1,0 +1,145 @@
+"""VTK XML image data (``.vti``) via VTK's reader, as shipped with pyvista.
+
+VTK stores image data x-fastest: point ``(i, j, k)`` of a grid of
+``dimensions = (nx, ny, nz)`` is entry ``i + nx * (j + ny * k)`` of a point
+array, so the flat array reshapes to ``(nz, ny, nx)`` and is transposed to
+ITK index order ``[i, j, k]``.  The world point of index ``(i, j, k)`` is
+``origin + direction @ (spacing * (extent_lo + (i, j, k)))``.
+
+VTK image data carry no anatomical frame.  volreg takes VTK world
+coordinates to be ITK physical coordinates (LPS, mm) unchanged, as ITK's
+own VTK image IO does: no axis is flipped.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
+from vtkmodules.vtkIOXML import vtkXMLImageDataReader
+
+from ._atomic import VolregIOError
+
+__all__ = ["read_vti"]
+
+# Tolerance for the off-diagonal direction block of a single-slice image (unitless).
+_DIR_TOL = 1e-6
+
+
+def _vtk_reason(text: str) -> str:
+    """The first VTK error message in an output-window transcript, without file/line noise."""
+    for line in text.splitlines():
+        line = line.strip()
+        if not line or line.startswith(("ERROR:", "Warning:", "WARNING:")):
+            continue
+        # "vtkXMLDataParser (0x55...): Error parsing XML ..." -> "Error parsing XML ..."
+        head, sep, tail = line.partition("): ")
+        return (tail if sep and head.startswith("vtk") else line).rstrip(".")
+    return "VTK could not parse it"
+
+
+def _run_reader(path: Path, what: str) -> pv.ImageData:
+    """Run VTK's XML image reader with its messages captured instead of printed."""
+    reader = vtkXMLImageDataReader()
+    reader.SetFileName(str(path))
+    window = vtkStringOutputWindow()
+    previous = vtkOutputWindow.GetInstance()
+    vtkOutputWindow.SetInstance(window)
+    # VTK's logger prints to stderr separately from the output window.
+    quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else None
+    try:
+        if quiet is not None:
+            with quiet:
+                ok = reader.CanReadFile(str(path))
+                if ok:
+                    reader.Update()
+        else:  # pragma: no cover - pyvista < 0.45
+            ok = reader.CanReadFile(str(path))
+            if ok:
+                reader.Update()
+    finally:
+        vtkOutputWindow.SetInstance(previous)
+    messages = window.GetOutput() or ""
+    if not ok:
+        reason = f": {_vtk_reason(messages)}" if messages.strip() else ""
+        raise VolregIOError(f"{what} `{path}` is not a VTK XML image data file{reason}.")
+    if "ERROR" in messages:
+        raise VolregIOError(f"{what} `{path}` could not be read as VTK image data: {_vtk_reason(messages)}.")
+    return pv.wrap(reader.GetOutput())
+
+
+def _scalar_array(image: pv.ImageData, path: Path, what: str) -> np.ndarray:
+    """The one scalar point array of ``image`` (the active one if several)."""
+    names = list(image.point_data.keys())
+    if not names:
+        cells = list(image.cell_data.keys())
+        extra = f" (it has cell data {cells}; expected values at the points)" if cells else ""
+        raise VolregIOError(f"{what} `{path}` holds no point data array{extra}.")
+    active = image.point_data.active_scalars_name
+    if active is None:
+        if len(names) > 1:
+            raise VolregIOError(
+                f"{what} `{path}` holds point arrays {names} and none is marked active; expected one label array."
+            )
+        active = names[0]
+    values = np.asarray(image.point_data[active])
+    if values.ndim != 1:
+        raise VolregIOError(
+            f"{what} `{path}`: point array {active!r} has {values.shape[1]} components per voxel; "
+            "expected a scalar image."
+        )
+    if values.dtype.kind not in "iubf":
+        raise VolregIOError(f"{what} `{path}`: point array {active!r} has {values.dtype} values; expected numbers.")
+    return values
+
+
+def read_vti(path: Path, what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Read a scalar ``.vti`` image; return ``(array[i, j, k], origin, spacing, direction)``.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        An existing ``.vti`` file.
+    what : str
+        What the file is, for error messages (e.g. ``"Label image"``).
+
+    Returns
+    -------
+    array : (n_i, n_j[, n_k]) ndarray
+        Point values in ITK index order, dtype as stored.  A grid with a
+        single slice along ``z`` whose direction keeps ``z`` separate is
+        returned as a 2-D image.
+    origin : (D,) float ndarray, mm
+        World point of index ``0`` (the first point of the extent).
+    spacing : (D,) float ndarray, mm
+    direction : (D, D) float ndarray
+        The image's direction matrix; world coordinates are taken as LPS.
+
+    Raises
+    ------
+    VolregIOError
+        If the file is not VTK image data, fails to parse (e.g. truncated),
+        is empty, holds no point array, several arrays none of them active,
+        or a vector array.
+    """
+    image = _run_reader(path, what)
+    dims = tuple(int(n) for n in image.dimensions)
+    if image.n_points == 0 or min(dims) < 1:
+        raise VolregIOError(f"{what} `{path}` holds an empty image (dimensions {dims}); expected voxels.")
+    values = _scalar_array(image, path, what)
+    if values.size != int(np.prod(dims)):
+        raise VolregIOError(
+            f"{what} `{path}` has {values.size} values for dimensions {dims}; expected {int(np.prod(dims))}."
+        )
+    array = np.ascontiguousarray(values.reshape(dims[::-1]).T)  # (nz, ny, nx) -> [i, j, k]
+    spacing = np.asarray(image.spacing, dtype=float)
+    direction = np.asarray(image.direction_matrix, dtype=float)
+    extent_lo = np.asarray(image.extent, dtype=float)[0::2]
+    origin = np.asarray(image.origin, dtype=float) + direction @ (spacing * extent_lo)
+    separable = np.all(np.abs(direction[:2, 2]) < _DIR_TOL) and np.all(np.abs(direction[2, :2]) < _DIR_TOL)
+    if dims[2] == 1 and separable:
+        array = array[:, :, 0]
+        origin, spacing, direction = origin[:2], spacing[:2], direction[:2, :2]
+    return array, origin, spacing, direction
