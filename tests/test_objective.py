@@ -1,0 +1,94 @@
+"""Objective (11): analytic gradient against finite differences, terms behave as defined."""
+
+import numpy as np
+import pytest
+
+from volreg.kernels import kernel_matrix
+from volreg.objective import FeaturePair, LevelObjective, simplex_vertices
+
+
+class SphereSDF:
+    """Exact signed distance of a sphere, with gradient and Hessian."""
+
+    def __init__(self, centre, radius):
+        self.centre, self.radius = np.asarray(centre, float), float(radius)
+
+    def evaluate(self, x, order=1):
+        d = x - self.centre
+        n = np.linalg.norm(d, axis=1)
+        out = [n - self.radius]
+        if order >= 1:
+            u = d / n[:, None]
+            out.append(u)
+        if order >= 2:
+            dim = x.shape[1]
+            out.append((np.eye(dim)[None] - u[:, :, None] * u[:, None, :]) / n[:, None, None])
+        return tuple(out)
+
+
+def _objective(dim, rng, **kw):
+    samples = rng.uniform(-6, 6, (150, dim))
+    centres = samples[::3]
+    sigma = 5.0
+    feats = [FeaturePair(SphereSDF(np.zeros(dim), 4.0), SphereSDF(np.full(dim, 0.7), 4.5)),
+             FeaturePair(SphereSDF(np.full(dim, 2.0), 2.0), SphereSDF(np.full(dim, 2.5), 2.2), weight=0.5)]
+    base = samples + 0.1 * np.sin(samples)
+    lm = rng.uniform(-4, 4, (5, dim))
+    return LevelObjective(
+        kernel=kernel_matrix(samples, centres, sigma),
+        kernel_centres=kernel_matrix(centres, centres, sigma),
+        base=base, samples=samples, features=feats,
+        landmark_kernel=kernel_matrix(lm, centres, sigma), landmark_base=lm + 0.05,
+        landmark_targets=lm + 0.5, **kw,
+    )
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize(
+    "kw",
+    [dict(lambda_loc=3.0, alpha=0.0), dict(lambda_loc=3.0, alpha=2.0, lambda_p=0.7),
+     dict(lambda_loc=1.0, alpha=1.0, neighbourhood=simplex_vertices(2, 0.5))],
+    ids=["distance-only", "distance+gradient+landmarks", "neighbourhood"],
+)
+def test_gradient_matches_finite_differences(dim, kw):
+    rng = np.random.default_rng(20 + dim)
+    if "neighbourhood" in kw:
+        kw = dict(kw, neighbourhood=simplex_vertices(dim, 0.5))
+    obj = _objective(dim, rng, **kw)
+    c = rng.normal(0, 0.05, obj.n_centres * dim)
+    value, grad = obj(c)
+    h = 1e-6
+    idx = rng.choice(len(c), 25, replace=False)
+    fd = np.array([(obj(c + h * np.eye(len(c))[i])[0] - obj(c - h * np.eye(len(c))[i])[0]) / (2 * h) for i in idx])
+    np.testing.assert_allclose(grad[idx], fd, rtol=1e-5, atol=1e-7 * np.abs(grad).max())
+
+
+def test_terms_add_up_and_vanish_where_expected():
+    rng = np.random.default_rng(3)
+    obj = _objective(3, rng, lambda_loc=2.0, alpha=1.5, lambda_p=1.0)
+    value, _ = obj(np.zeros(obj.n_centres * 3))
+    t = obj.last_terms
+    assert t["regulariser"] == 0.0  # zero coefficients
+    assert value == pytest.approx(t["regulariser"] + t["landmarks"] + t["distance"] + t["gradient"])
+    # landmark residual is 0.45 in each coordinate at C = 0
+    assert t["landmarks"] == pytest.approx(1.0 * 5 * 3 * 0.45**2)
+
+
+def test_identical_objects_at_identity_cost_nothing():
+    rng = np.random.default_rng(4)
+    samples = rng.uniform(-5, 5, (80, 3))
+    f = SphereSDF(np.zeros(3), 3.0)
+    obj = LevelObjective(kernel=kernel_matrix(samples, samples, 4.0), kernel_centres=kernel_matrix(samples, samples, 4.0),
+                         base=samples.copy(), samples=samples, features=[FeaturePair(f, f)], lambda_loc=5.0, alpha=2.0)
+    value, grad = obj(np.zeros(80 * 3))
+    assert value == 0.0 and np.all(grad == 0.0)
+
+
+def test_simplex_vertices_are_regular():
+    for dim in (2, 3):
+        v = simplex_vertices(dim, 2.0)
+        assert v.shape == (dim + 1, dim)
+        np.testing.assert_allclose(v.sum(axis=0), 0, atol=1e-12)
+        np.testing.assert_allclose(np.linalg.norm(v, axis=1), 2.0)
+        d = np.linalg.norm(v[:, None] - v[None], axis=2)[np.triu_indices(dim + 1, 1)]
+        np.testing.assert_allclose(d, d[0])

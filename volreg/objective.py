@@ -1,0 +1,169 @@
+"""The warp objective (11) of one level and its analytic gradient.
+
+At a level of kernel width ``sigma`` with centres ``x_j`` (the level's training
+points, paper Section 3.5) the warp is
+
+    tau(x) = tau_prev(x) + sum_j c_j k(x, x_j)                        (9)
+
+where ``tau_prev`` holds the coarser levels (fixed).  The objective over the
+coefficients ``C`` (M, D) is (11) with the empirical measure on the sample
+points ``x`` (mean over them, so ``lambda_loc`` does not depend on how densely
+a level is sampled):
+
+    E(C) = 1/2 sum_d C_d^T K C_d                                      (10)
+         + lambda_p sum_i |tau(p_i) - z_i|^2                          (8)
+         + lambda_loc mean_x sum_l w_l [ (f1_l(x) - f2_l(tau(x)))^2    (3), (6)
+                                  + alpha |grad f1_l(x) - grad f2_l(tau(x))|^2 ]   (4)
+
+``f1_l``, ``f2_l`` are feature functions (one implicit surface per label and
+object, (6)); ``alpha`` (mm^2) weighs the gradient term, ``alpha = 0`` giving
+the distance-only cost (3).  Optionally the neighbourhood cost (5) replaces
+``f(x)`` by ``f(x + dx)`` for ``dx`` over the vertices of a regular simplex.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["FeaturePair", "LevelObjective", "simplex_vertices"]
+
+#: ``evaluate(points, order) -> (f, grad f[, hess f])`` as ImplicitSurface.evaluate.
+Feature = Callable[..., tuple]
+
+
+@dataclass(frozen=True)
+class FeaturePair:
+    """One feature function of each object (paper (6)): ``f1`` on O1, ``f2`` on O2.
+
+    ``f1`` and ``f2`` are objects with ``evaluate(points, order=...)`` returning
+    ``(f, grad f[, hess f])`` (e.g. :class:`~volreg.implicit.ImplicitSurface`).
+    """
+
+    f1: object
+    f2: object
+    weight: float = 1.0
+
+
+def simplex_vertices(dim: int, radius: float) -> np.ndarray:
+    """Vertices of a regular simplex centred at 0 with circumradius ``radius`` (mm).
+
+    Returns
+    -------
+    (dim + 1, dim) float ndarray
+    """
+    e = np.eye(dim + 1) - 1.0 / (dim + 1)
+    # Orthonormal basis of the hyperplane sum = 0, then project the unit vectors.
+    q, _ = np.linalg.qr(e[:, :dim])
+    v = e @ q
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    return radius * v
+
+
+@dataclass
+class LevelObjective:
+    """Objective (11) for one level's coefficients, with analytic gradient.
+
+    Parameters
+    ----------
+    kernel : (N, M) sparse matrix
+        ``k(x_n, c_j)`` between the sample points and the level's centres.
+    kernel_centres : (M, M) sparse matrix
+        ``k(c_i, c_j)`` among the centres (the regulariser's Gram matrix (10)).
+    base : (N, D) float ndarray, mm
+        ``tau_prev(x)`` at the sample points.
+    samples : (N, D) float ndarray, mm
+        The sample points ``x`` themselves.
+    features : sequence of FeaturePair
+    lambda_loc, alpha : float
+        Weight of the locational cost, and of its gradient term (mm^2).
+    landmark_kernel : (L, M) sparse matrix, optional
+        ``k(p_i, c_j)`` for source landmarks ``p_i``.
+    landmark_base : (L, D) float ndarray, mm, optional
+        ``tau_prev(p_i)``.
+    landmark_targets : (L, D) float ndarray, mm, optional
+        ``z_i``.
+    lambda_p : float
+        Landmark weight (8).
+    neighbourhood : (K, D) float ndarray, mm, optional
+        Offsets ``dx`` of the neighbourhood cost (5) (e.g. :func:`simplex_vertices`);
+        default only ``dx = 0``.
+    """
+
+    kernel: sp.spmatrix
+    kernel_centres: sp.spmatrix
+    base: np.ndarray
+    samples: np.ndarray
+    features: Sequence[FeaturePair]
+    lambda_loc: float = 1.0
+    alpha: float = 0.0
+    landmark_kernel: sp.spmatrix | None = None
+    landmark_base: np.ndarray | None = None
+    landmark_targets: np.ndarray | None = None
+    lambda_p: float = 0.0
+    neighbourhood: np.ndarray | None = None
+    _f1: list = field(default_factory=list, init=False, repr=False)
+    last_terms: dict = field(default_factory=dict, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.kernel = sp.csr_matrix(self.kernel)
+        self.kernel_t = self.kernel.T.tocsr()
+        self.kernel_centres = sp.csr_matrix(self.kernel_centres)
+        n, m = self.kernel.shape
+        self.dim = self.base.shape[1]
+        if self.samples.shape != self.base.shape or self.base.shape[0] != n:
+            raise ValueError(f"Expected `samples` and `base` of shape ({n}, D), got {self.samples.shape}, {self.base.shape}.")
+        if self.kernel_centres.shape != (m, m):
+            raise ValueError(f"Expected `kernel_centres` of shape ({m}, {m}), got {self.kernel_centres.shape}.")
+        offsets = np.zeros((1, self.dim)) if self.neighbourhood is None else np.asarray(self.neighbourhood, float)
+        self.offsets = offsets
+        # f1 and its gradient at the (fixed) sample points, once per offset.
+        order = 1 if self.alpha > 0 else 0
+        self._f1 = [[pair.f1.evaluate(self.samples + dx, order=order) for dx in offsets] for pair in self.features]
+        if self.lambda_p > 0:
+            if self.landmark_kernel is None or self.landmark_base is None or self.landmark_targets is None:
+                raise ValueError("Expected `landmark_kernel`, `landmark_base` and `landmark_targets` when `lambda_p` > 0.")
+            self.landmark_kernel = sp.csr_matrix(self.landmark_kernel)
+            self.landmark_kernel_t = self.landmark_kernel.T.tocsr()
+        self.n_centres = m
+
+    def warp_samples(self, coeffs: np.ndarray) -> np.ndarray:
+        """``tau(x)`` at the sample points for coefficients ``coeffs`` (M, D)."""
+        return self.base + self.kernel @ coeffs
+
+    def __call__(self, flat: np.ndarray) -> tuple[float, np.ndarray]:
+        """Objective and gradient at flattened coefficients (M * D,), for scipy.optimize."""
+        c = flat.reshape(self.n_centres, self.dim)
+        kc = self.kernel_centres @ c
+        reg = 0.5 * float(np.einsum("md,md->", c, kc))
+        grad = kc.copy()
+        tau = self.warp_samples(c)
+        n = len(tau)
+        dist_term = 0.0
+        grad_term = 0.0
+        g_tau = np.zeros_like(tau)
+        scale = self.lambda_loc / (n * len(self.offsets))
+        order = 2 if self.alpha > 0 else 1
+        for pair, f1_list in zip(self.features, self._f1):
+            for dx, f1 in zip(self.offsets, f1_list):
+                out = pair.f2.evaluate(tau + dx, order=order)
+                r = f1[0] - out[0]  # (N,)
+                dist_term += pair.weight * float(r @ r)
+                g_tau -= (2 * scale * pair.weight) * r[:, None] * out[1]
+                if self.alpha > 0:
+                    rg = f1[1] - out[1]  # (N, D)
+                    grad_term += pair.weight * self.alpha * float(np.einsum("nd,nd->", rg, rg))
+                    g_tau -= (2 * scale * pair.weight * self.alpha) * np.einsum("nab,nb->na", out[2], rg)
+        grad += self.kernel_t @ g_tau
+        loc = scale * (dist_term + grad_term)
+        land = 0.0
+        if self.lambda_p > 0:
+            resid = self.landmark_base + self.landmark_kernel @ c - self.landmark_targets
+            land = self.lambda_p * float(np.einsum("ld,ld->", resid, resid))
+            grad += self.landmark_kernel_t @ (2 * self.lambda_p * resid)
+        self.last_terms = dict(regulariser=reg, landmarks=land, distance=scale * dist_term,
+                               gradient=scale * grad_term)
+        return reg + land + loc, grad.ravel()
