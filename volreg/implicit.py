@@ -34,7 +34,7 @@ from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 import scipy.sparse as sp
 
-from .kernels import WU_AT_ZERO, CellGrid, _check_points, kernel_matrix, kernel_sum
+from .kernels import CellGrid, _check_points, kernel_matrix, kernel_sum
 
 __all__ = ["ImplicitSurface", "ImplicitLevel", "estimate_normals", "thin_points"]
 
