@@ -42,8 +42,6 @@ __all__ = [
     "kernel_matrix",
 ]
 
-#: k(0) of the Wu kernel (13); the diagonal of every kernel matrix.
-WU_AT_ZERO = 4.0
 
 # Queries per parallel work item (per-item scratch arrays are allocated once).
 _BLOCK = 512
