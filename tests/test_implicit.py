@@ -80,7 +80,9 @@ def test_levels_halve_from_half_the_diameter_to_the_minimum_width(fitted):
     assert widths[0] == pytest.approx(f.diameter / 2)
     np.testing.assert_allclose(widths[1:] / widths[:-1], 0.5)
     assert widths[-1] >= 4 * voxel_size(vol) > widths[-1] / 2
-    assert all(entry["converged"] or entry["sweeps"] == 200 for entry in f.log)
+    # The finest level's coordinate descent converges, to within the tube (epsilon = 0.1 voxel).
+    assert f.log[-1]["converged"]
+    assert f.log[-1]["max_residual"] <= 0.1 * voxel_size(vol) + 1e-3
 
 
 def test_far_from_the_object_f_is_the_positive_offset(fitted):
@@ -98,7 +100,10 @@ def test_to_arrays_round_trip_is_exact(fitted, tmp_path):
     with np.load(path, allow_pickle=False) as data:
         g = ImplicitSurface.from_arrays(data)
     x = np.random.default_rng(9).uniform(-25, 25, (500, 3))
-    np.testing.assert_array_equal(f.evaluate(x, order=1)[1], g.evaluate(x, order=1)[1])
+    for a, b in zip(f.evaluate(x, order=1), g.evaluate(x, order=1)):
+        np.testing.assert_array_equal(a, b)
+    assert (g.offset, g.diameter, g.widths) == (f.offset, f.diameter, f.widths)
+    np.testing.assert_array_equal(g.points, f.points)
 
 
 def test_two_dimensional_outline():

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from volreg.kernels import kernel_matrix
+from volreg.kernels import kernel_gradient_matrices, kernel_matrix, kernel_sum
 from volreg.objective import FeaturePair, LevelObjective, simplex_vertices
 
 
@@ -63,12 +63,45 @@ def test_gradient_matches_finite_differences(dim, kw):
     np.testing.assert_allclose(grad[idx], fd, rtol=1e-5, atol=1e-7 * np.abs(grad).max())
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_fold_barrier_gradient_matches_finite_differences(dim):
+    rng = np.random.default_rng(30 + dim)
+    samples = rng.uniform(-6, 6, (120, dim))
+    centres = samples[::2]
+    check = rng.uniform(-6, 6, (200, dim))
+    f = SphereSDF(np.zeros(dim), 4.0)
+    obj = LevelObjective(
+        kernel=kernel_matrix(samples, centres, 5.0), kernel_centres=kernel_matrix(centres, centres, 5.0),
+        base=samples.copy(), samples=samples, features=[FeaturePair(f, f)], lambda_loc=0.0,
+        fold_gradients=kernel_gradient_matrices(check, centres, 5.0),
+        fold_base=np.repeat(np.eye(dim)[None], len(check), axis=0), lambda_fold=50.0, fold_margin=0.9,
+    )
+    c = rng.normal(0, 0.4, obj.n_centres * dim)  # large enough that det J < 0.9 somewhere
+    value, grad = obj(c)
+    assert obj.last_terms["folding"] > 0
+    h = 1e-6
+    idx = rng.choice(len(c), 25, replace=False)
+    fd = np.array([(obj(c + h * np.eye(len(c))[i])[0] - obj(c - h * np.eye(len(c))[i])[0]) / (2 * h) for i in idx])
+    np.testing.assert_allclose(grad[idx], fd, rtol=1e-5, atol=1e-7 * np.abs(grad).max())
+
+
+def test_kernel_gradient_matrices_give_the_warp_jacobian():
+    rng = np.random.default_rng(5)
+    centres = rng.uniform(0, 5, (60, 3))
+    coeffs = rng.normal(size=(60, 3))
+    x = rng.uniform(0, 5, (40, 3))
+    jac = np.stack([g @ coeffs for g in kernel_gradient_matrices(x, centres, 2.0)], axis=2) + np.eye(3)
+    _, grad = kernel_sum(x, centres, coeffs, 2.0, order=1)
+    np.testing.assert_allclose(jac, np.eye(3) + grad, atol=1e-12)
+
+
 def test_terms_add_up_and_vanish_where_expected():
     rng = np.random.default_rng(3)
     obj = _objective(3, rng, lambda_loc=2.0, alpha=1.5, lambda_p=1.0)
     value, _ = obj(np.zeros(obj.n_centres * 3))
     t = obj.last_terms
     assert t["regulariser"] == 0.0  # zero coefficients
+    assert t["folding"] == 0.0
     assert value == pytest.approx(t["regulariser"] + t["landmarks"] + t["distance"] + t["gradient"])
     # landmark residual is 0.45 in each coordinate at C = 0
     assert t["landmarks"] == pytest.approx(1.0 * 5 * 3 * 0.45**2)

@@ -82,11 +82,20 @@ def test_progress_callback_counts_labels():
     assert calls == [("extract surfaces", 1, 1)]
 
 
-def test_implicit_on_grid_matches_pointwise_evaluation():
-    vol = _sphere_volume(*GEOMETRIES["oblique-anisotropic"])
+@pytest.mark.parametrize("size_mm", [34, 120])
+def test_implicit_on_grid_matches_pointwise_evaluation(size_mm):
+    # 120 mm is wider than the surface's bounds: the voxels beyond them take the offset unevaluated.
+    direction, spacing = rotation(30), np.array([2.0, 2.0, 2.5])
+    shape = tuple(int(np.ceil(size_mm / s)) for s in spacing)
+    origin = -direction @ ((np.array(shape) - 1) / 2 * spacing)
+    vol = label_volume(shape, spacing, direction, origin, SPHERE.signed_distance, label=7)
     surf = label_surface(vol, 7)
     f = ImplicitSurface(surf.vertices, surf.normals, min_width=8.0)
-    grid = implicit_on_grid(f, vol)
+    grid = implicit_on_grid(f, vol, chunk=1000)
     assert grid.shape == vol.shape and grid.dtype == np.float32
     direct = f(vol.grid_points().reshape(-1, 3)).reshape(vol.shape)
     np.testing.assert_allclose(grid, direct, rtol=1e-6, atol=1e-5)
+    lo, hi = f.bounds()
+    beyond = np.any((vol.grid_points() < lo) | (vol.grid_points() > hi), axis=-1)
+    assert beyond.any() == (size_mm == 120)
+    assert np.all(grid[beyond] == np.float32(f.offset))

@@ -65,17 +65,18 @@ def _label_list(text: str) -> list[int]:
     return labels
 
 
-def _float_at_least(lower: float, *, strict: bool):
-    """An argparse type for a finite float ``> lower`` (``strict``) or ``>= lower``."""
+def _float_at_least(lower: float, *, strict: bool, upper: float = math.inf):
+    """An argparse type for a finite float ``> lower`` (``strict``) or ``>= lower``, and ``<= upper``."""
     relation = ">" if strict else ">="
+    expected = f"a number {relation} {lower:g}" + (f" and <= {upper:g}" if upper < math.inf else "")
 
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number {relation} {lower:g}, got {text!r}") from None
-        if not math.isfinite(value) or (value <= lower if strict else value < lower):
-            raise argparse.ArgumentTypeError(f"expected a number {relation} {lower:g}, got {text!r}")
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+        if not math.isfinite(value) or (value <= lower if strict else value < lower) or value > upper:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
         return value
 
     return parse
@@ -109,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
                          help="comma-separated labels to process, e.g. 1,3 (default: every non-zero label)")
     surface.add_argument("--skip-small", action="store_true",
                          help="warn about and skip labels that are absent or too small, instead of failing")
-    surface.add_argument("--smoothing", metavar="VOXELS", type=_float_at_least(0.0, strict=False), default=1.0,
+    surface.add_argument("--smoothing", metavar="VOXELS", type=_float_at_least(0.0, strict=False, upper=10.0), default=1.0,
                          help="Gaussian blur (s.d.) of each mask before contouring, in units of the largest voxel spacing "
                          "(default 1.0; 0: none)")
     surface.add_argument("--min-width", metavar="VOXELS", type=_float_at_least(0.0, strict=True), default=4.0,

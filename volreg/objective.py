@@ -91,6 +91,14 @@ class LevelObjective:
     neighbourhood : (K, D) float ndarray, mm, optional
         Offsets ``dx`` of the neighbourhood cost (5) (e.g. :func:`simplex_vertices`);
         default only ``dx = 0``.
+    fold_gradients : list of D (P, M) sparse matrices, optional
+        ``d k(y_p, c_j) / d y_b`` at fold-check points ``y_p``
+        (:func:`~volreg.kernels.kernel_gradient_matrices`).
+    fold_base : (P, D, D) float ndarray, optional
+        Jacobian of ``tau_prev`` at the fold-check points.
+    lambda_fold, fold_margin : float
+        Fold barrier (not in the paper): ``lambda_fold mean_p max(0, fold_margin
+        - det J(y_p))^2`` keeps the warp orientation-preserving.
     """
 
     kernel: sp.spmatrix
@@ -105,6 +113,10 @@ class LevelObjective:
     landmark_targets: np.ndarray | None = None
     lambda_p: float = 0.0
     neighbourhood: np.ndarray | None = None
+    fold_gradients: list | None = None
+    fold_base: np.ndarray | None = None
+    lambda_fold: float = 0.0
+    fold_margin: float = 0.2
     _f1: list = field(default_factory=list, init=False, repr=False)
     last_terms: dict = field(default_factory=dict, init=False, repr=False)
 
@@ -129,6 +141,11 @@ class LevelObjective:
             self.landmark_kernel = sp.csr_matrix(self.landmark_kernel)
             self.landmark_kernel_t = self.landmark_kernel.T.tocsr()
         self.n_centres = m
+        if self.lambda_fold > 0:
+            if self.fold_gradients is None or self.fold_base is None:
+                raise ValueError("Expected `fold_gradients` and `fold_base` when `lambda_fold` > 0.")
+            self.fold_gradients = [sp.csr_matrix(g) for g in self.fold_gradients]
+            self.fold_gradients_t = [g.T.tocsr() for g in self.fold_gradients]
 
     def warp_samples(self, coeffs: np.ndarray) -> np.ndarray:
         """``tau(x)`` at the sample points for coefficients ``coeffs`` (M, D)."""
@@ -164,6 +181,31 @@ class LevelObjective:
             resid = self.landmark_base + self.landmark_kernel @ c - self.landmark_targets
             land = self.lambda_p * float(np.einsum("ld,ld->", resid, resid))
             grad += self.landmark_kernel_t @ (2 * self.lambda_p * resid)
+        fold = 0.0
+        if self.lambda_fold > 0:
+            jac = self.fold_base.copy()
+            for b, g in enumerate(self.fold_gradients):
+                jac[:, :, b] += g @ c
+            det, cof = _det_cofactor(jac)
+            short = np.maximum(self.fold_margin - det, 0.0)
+            p = len(det)
+            fold = self.lambda_fold * float(short @ short) / p
+            w = (-2.0 * self.lambda_fold / p) * short[:, None, None] * cof  # dE/dJ, (P, D, D)
+            for b, gt in enumerate(self.fold_gradients_t):
+                grad += gt @ w[:, :, b]
         self.last_terms = dict(regulariser=reg, landmarks=land, distance=scale * dist_term,
-                               gradient=scale * grad_term)
-        return reg + land + loc, grad.ravel()
+                               gradient=scale * grad_term, folding=fold)
+        return reg + land + loc + fold, grad.ravel()
+
+
+def _det_cofactor(jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Determinants (P,) and cofactor matrices (P, D, D) of 2x2 or 3x3 matrices
+    (``d det / d J = cofactor``, defined also where ``det = 0``)."""
+    if jac.shape[1] == 2:
+        cof = np.stack([np.stack([jac[:, 1, 1], -jac[:, 1, 0]], -1),
+                        np.stack([-jac[:, 0, 1], jac[:, 0, 0]], -1)], 1)
+    else:
+        cof = np.stack([np.cross(jac[:, 1], jac[:, 2]), np.cross(jac[:, 2], jac[:, 0]),
+                        np.cross(jac[:, 0], jac[:, 1])], 1)
+    det = np.einsum("nab,nab->n", jac, cof) / jac.shape[1]
+    return det, cof

@@ -9,10 +9,12 @@ For each level, from a kernel width of half the source diameter down to
 2. with landmarks, start from the convex problem (12): kernel ridge regression
    of the landmark residuals, solved exactly;
 3. minimise the objective (11) (:class:`~volreg.objective.LevelObjective`) over
-   the level's coefficients with L-BFGS, on top of the coarser levels;
-4. guard against folding: if ``det d tau / dx`` falls below ``min_det`` at any
-   sample, shrink the level's coefficients until it does not (not in the paper,
-   which has no such safeguard; logged as ``fold_scale``).
+   the level's coefficients with L-BFGS, on top of the coarser levels, plus a
+   fold barrier on ``det d tau / dx`` (not in the paper);
+4. guard against folding: if ``det d tau / dx`` falls below ``min_det`` at a
+   sample or at the centre of one of its octree children, shrink the level's
+   coefficients until it does not (not in the paper, which has no such
+   safeguard; logged as ``fold_scale``).
 """
 
 from __future__ import annotations
@@ -25,9 +27,10 @@ import numpy as np
 import scipy.optimize
 import scipy.sparse as sp
 import scipy.sparse.linalg
+from scipy.spatial import cKDTree
 
 from .implicit import ImplicitSurface
-from .kernels import CellGrid, kernel_matrix, kernel_sum
+from .kernels import CellGrid, _check_points, kernel_gradient_matrices, kernel_matrix, kernel_sum
 from .objective import FeaturePair, LevelObjective, simplex_vertices
 from .sampling import octree_sample
 from .warp import KernelWarp, WarpLevel
@@ -58,9 +61,17 @@ class WarpSettings:
         Octree boxes stop below ``fraction * width`` (paper: 1/2).
     max_iter : int
         L-BFGS iterations per level.
+    lambda_fold : float
+        Weight of the fold barrier (not in the paper): ``lambda_fold mean
+        max(0, fold_margin - det d tau/dx)^2`` over the samples and their
+        octree children, so that L-BFGS keeps the warp orientation-preserving.
+    fold_margin : float
+        Determinant below which the barrier acts.
     min_det : float
-        Fold guard: after each level, its coefficients are shrunk (by 0.7 at a
-        time) until ``det d tau / dx > min_det`` at every sample point.
+        Last-resort fold guard: after each level, its coefficients are shrunk (by 0.7 at a
+        time) until ``det d tau / dx >= min_det`` at every sample point (or, where
+        the coarser levels are already below that, until the level makes the
+        minimum no worse).
     """
 
     pad: float | None = None
@@ -71,10 +82,12 @@ class WarpSettings:
     neighbourhood: float = 0.0
     fraction: float = 0.5
     max_iter: int = 200
+    lambda_fold: float = 1e5
+    fold_margin: float = 0.3
     min_det: float = 0.1
 
     def __post_init__(self) -> None:
-        for name in ("lambda_loc", "alpha", "lambda_p", "neighbourhood"):
+        for name in ("lambda_loc", "alpha", "lambda_p", "neighbourhood", "lambda_fold", "fold_margin", "min_det"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"Expected `{name}` >= 0, got {value}.")
@@ -107,6 +120,17 @@ def _landmark_init(kernel_cc, kernel_lc, base_l, targets, lambda_p) -> np.ndarra
     return np.column_stack([scipy.sparse.linalg.spsolve(a, rhs[:, d]) for d in range(rhs.shape[1])])
 
 
+def _with_children(samples: np.ndarray) -> np.ndarray:
+    """Octree samples (on a lattice) plus the centres of their 2^D child boxes."""
+    if len(samples) < 2:
+        return samples
+    edge = float(np.median(cKDTree(samples).query(samples, 2)[0][:, 1]))
+    dim = samples.shape[1]
+    signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * dim, indexing="ij")).reshape(dim, -1).T
+    children = (samples[:, None, :] + 0.25 * edge * signs[None]).reshape(-1, dim)
+    return np.concatenate([samples, children])
+
+
 def fit_warp(
     features: Sequence[FeaturePair],
     source_points: np.ndarray,
@@ -134,7 +158,9 @@ def fit_warp(
     -------
     RegistrationResult
     """
-    pts = np.asarray(source_points, float)
+    pts = _check_points("source_points", source_points)
+    if len(pts) < 2:
+        raise ValueError(f"Expected at least 2 `source_points`, got {len(pts)}.")
     dim = pts.shape[1]
     diameter = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
     pad = 0.1 * diameter if settings.pad is None else settings.pad
@@ -143,6 +169,8 @@ def fit_warp(
     while widths[-1] / 2 >= min_width * (1 - 1e-9):
         widths.append(widths[-1] / 2)
     if landmarks is not None:
+        if settings.lambda_p <= 0:
+            raise ValueError("Expected `lambda_p` > 0 in `settings` when `landmarks` are given (it weighs them).")
         src_l, dst_l = (np.asarray(a, float) for a in landmarks)
         if src_l.shape != dst_l.shape or src_l.ndim != 2 or src_l.shape[1] != dim:
             raise ValueError(
@@ -162,6 +190,10 @@ def fit_warp(
         if use_landmarks:
             kw = dict(landmark_kernel=kernel_matrix(src_l, grid, width), landmark_base=warp(src_l),
                       landmark_targets=dst_l, lambda_p=settings.lambda_p)
+        check = _with_children(samples)
+        if settings.lambda_fold > 0:
+            kw.update(fold_gradients=kernel_gradient_matrices(check, samples, width), fold_base=warp.jacobian(check),
+                      lambda_fold=settings.lambda_fold, fold_margin=settings.fold_margin)
         objective = LevelObjective(kernel=k_cc, kernel_centres=k_cc, base=base, samples=samples,
                                    features=features, lambda_loc=settings.lambda_loc, alpha=settings.alpha,
                                    neighbourhood=neighbourhood, **kw)
@@ -174,19 +206,21 @@ def fit_warp(
         res = scipy.optimize.minimize(objective, c0.ravel(), jac=True, method="L-BFGS-B",
                                       options=dict(maxiter=settings.max_iter))
         coeffs = res.x.reshape(-1, dim)
-        # Fold guard: tau must stay orientation-preserving at the samples.  If the
-        # level folds space anywhere (det J <= min_det), shrink its coefficients.
-        j_prev = warp.jacobian(samples)
-        j_level = kernel_sum(samples, grid, coeffs, width, order=1)[1]
+        # Fold guard: tau must stay orientation-preserving, checked at the samples
+        # and at the centres of their octree children (the next level's samples).
+        # If the level folds space there (det J < min_det), shrink its coefficients;
+        # where coarser levels are already below min_det, it must not make it worse.
+        j_prev = warp.jacobian(check)
+        j_level = kernel_sum(check, grid, coeffs, width, order=1)[1]
+        floor = min(settings.min_det, float(np.linalg.det(j_prev).min()))
         scale = 1.0
         for _ in range(20):
-            if np.linalg.det(j_prev + scale * j_level).min() > settings.min_det:
+            if np.linalg.det(j_prev + scale * j_level).min() >= floor:
                 break
             scale *= 0.7
         else:
             scale = 0.0
         coeffs = scale * coeffs
-        objective(coeffs.ravel())
         warp = warp.with_level(WarpLevel(samples, coeffs, width))
         log.append(dict(level=li, width=width, samples=int(len(samples)), iterations=int(res.nit),
                         converged=bool(res.success), fold_scale=scale, objective_start=float(e0),
@@ -201,8 +235,7 @@ def fit_warp(
 def _as_implicit(surface, **kwargs) -> tuple[ImplicitSurface, np.ndarray]:
     """An ImplicitSurface and its points from a pyvista mesh, an ImplicitSurface, or (points, normals)."""
     if isinstance(surface, ImplicitSurface):
-        pts = np.concatenate([lev.centres for lev in surface.levels])
-        return surface, pts
+        return surface, surface.points
     if isinstance(surface, tuple):
         pts, normals = (np.asarray(a, float) for a in surface)
         return ImplicitSurface(pts, normals, **kwargs), pts

@@ -336,11 +336,11 @@ def implicit_on_grid(surface: ImplicitSurface, volume: LabelVolume, *, chunk: in
     stop = np.clip(np.ceil(box.max(axis=0)).astype(int) + 1, 0, volume.shape)
     if np.any(stop <= start):
         return out
-    axes = [np.arange(a, b) for a, b in zip(start, stop)]
-    sub_shape = tuple(len(a) for a in axes)
-    idx = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, volume.ndim)
-    values = np.empty(len(idx), dtype=np.float32)
-    for s in range(0, len(idx), chunk):
-        values[s : s + chunk] = surface(volume.index_to_world(idx[s : s + chunk]))
+    sub_shape = tuple(int(b - a) for a, b in zip(start, stop))
+    total = int(np.prod(sub_shape))
+    values = np.empty(total, dtype=np.float32)
+    for s in range(0, total, chunk):
+        idx = np.stack(np.unravel_index(np.arange(s, min(s + chunk, total)), sub_shape), axis=1) + start
+        values[s : s + chunk] = surface(volume.index_to_world(idx))
     out[tuple(slice(a, b) for a, b in zip(start, stop))] = values.reshape(sub_shape)
     return out
