@@ -1,0 +1,90 @@
+"""Surface registration: the paper's Figure 2 (2-D) and a known 3-D deformation.
+
+Run:  .venv/bin/python benchmarks/bench_register.py
+
+Prints a Markdown table: correspondence error against the known answer, the
+distance of the warped source to the target surface, the smallest Jacobian
+determinant, the samples of the finest level and the time.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+
+from shapes import Ellipsoid, label_volume  # noqa: E402
+from volreg.implicit import ImplicitSurface  # noqa: E402
+from volreg.pipeline import WarpSettings, register_surfaces  # noqa: E402
+from volreg.surfaces import label_surface, vertex_normals  # noqa: E402
+from volreg.volume import LabelVolume  # noqa: E402
+
+
+def figure2(alpha: float) -> str:
+    def outline(shift):
+        geom = LabelVolume(np.zeros((100, 100), np.uint8), (-49.5, -49.5), (1.0, 1.0), np.eye(2))
+        x, y = geom.grid_points().reshape(-1, 2).T
+        inside = ((np.abs(x) <= 20) & (np.abs(y) <= 20)) | (
+            (x >= 20) & (x <= 30) & (np.abs(y - shift) <= 8 * (30 - x) / 10))
+        s = label_surface(geom.with_array(inside.reshape(100, 100).astype(np.uint8)), 1)
+        return ImplicitSurface(s.vertices, s.normals, min_width=4.0)
+
+    f1, f2 = outline(0.0), outline(8.0)
+    t0 = time.perf_counter()
+    res = register_surfaces(f1, f2, settings=WarpSettings(alpha=alpha))
+    dt = time.perf_counter() - t0
+    probe = np.array([[25.0, 4.0], [25.0, -4.0], [30.0, 0.0]])
+    err = np.linalg.norm(res.warp(probe) - (probe + [0.0, 8.0]), axis=1)
+    pts = np.random.default_rng(0).uniform([-35, -35], [40, 35], (20000, 2))
+    det = np.linalg.det(res.warp.jacobian(pts)).min()
+    surf = np.abs(f2(res.warp(f1.points))).mean()
+    return (f"| Figure 2 (2-D), alpha = {alpha:g} mm^2 | sides {err[0]:.2f} / {err[1]:.2f}, tip {err[2]:.2f} mm "
+            f"| {surf:.3f} | {det:.2f} | {res.log[-1]['samples']} | {dt:.1f} |")
+
+
+def blob(bumpy: bool, alpha: float) -> str:
+    ell = Ellipsoid((20, 14, 10), (0.37, -0.21, 0.13))
+    b1, b2 = Ellipsoid((6, 6, 6), (14.0, 8.0, 3.0)), Ellipsoid((5, 5, 5), (-6.0, -9.0, 7.0))
+    sdf = (lambda p: np.minimum(np.minimum(ell.signed_distance(p), b1.signed_distance(p)), b2.signed_distance(p))
+           ) if bumpy else ell.signed_distance
+    vol = label_volume((60,) * 3, (1, 1, 1), np.eye(3), (-29.5,) * 3, sdf)
+    s = label_surface(vol, 1)
+    diameter = float(np.linalg.norm(s.vertices.max(0) - s.vertices.min(0)))
+
+    def phi(x):  # odd in every coordinate: no net translation; max |u| = 0.15 diameter
+        u = np.stack([np.sin(x[:, 1] / 15), 0.8 * np.sin(x[:, 2] / 15), 0.8 * np.sin(x[:, 0] / 15)], 1)
+        return x + 0.15 * diameter * u
+
+    v2 = phi(s.vertices)
+    f1 = ImplicitSurface(s.vertices, s.normals, min_width=4.0)
+    f2 = ImplicitSurface(v2, vertex_normals(v2, s.cells), min_width=4.0)
+    t0 = time.perf_counter()
+    res = register_surfaces(f1, f2, settings=WarpSettings(alpha=alpha))
+    dt = time.perf_counter() - t0
+    err = np.linalg.norm(res.warp(s.vertices) - v2, axis=1)
+    centres = np.concatenate([lev.centres for lev in res.warp.levels])
+    det = np.linalg.det(res.warp.jacobian(centres)).min()
+    surf = np.abs(f2(res.warp(s.vertices))).mean()
+    name = "ellipsoid + 2 bumps" if bumpy else "ellipsoid"
+    return (f"| 3-D {name}, known deformation (max {np.linalg.norm(v2 - s.vertices, axis=1).max():.1f} mm, "
+            f"diameter {diameter:.1f} mm), alpha = {alpha:g} | mean {err.mean():.2f} mm "
+            f"({100 * err.mean() / diameter:.1f} % of diameter) | {surf:.3f} | {det:.2f} "
+            f"| {res.log[-1]['samples']} | {dt:.1f} |")
+
+
+def main() -> None:
+    print("| case | correspondence error | mean distance to target surface (mm) | min det J "
+          "| finest-level samples | seconds |\n|---|---|---|---|---|---|")
+    for alpha in (0.0, 10.0):
+        print(figure2(alpha), flush=True)
+    for bumpy in (False, True):
+        for alpha in (0.0, 10.0):
+            print(blob(bumpy, alpha), flush=True)
+
+
+if __name__ == "__main__":
+    main()
