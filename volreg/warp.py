@@ -160,7 +160,30 @@ def _normalise_settings(settings: Mapping[str, Any] | None) -> str:
         raise ValueError(f"Expected JSON-serialisable `settings`: {exc}.") from None
 
 
-class KernelWarp:
+class _PointMap:
+    """``__call__``, ``displacement`` and ``jacobian`` of a map, from its ``evaluate``."""
+
+    def __call__(
+        self, points: np.ndarray, *, chunk: int | None = None, progress: ProgressCallback | None = None
+    ) -> np.ndarray:
+        """The map at ``points``, (N, D) mm; see ``evaluate``."""
+        return self.evaluate(points, order=0, chunk=chunk, progress=progress)[0]
+
+    def displacement(
+        self, points: np.ndarray, *, chunk: int | None = None, progress: ProgressCallback | None = None
+    ) -> np.ndarray:
+        """``u(points) = tau(points) - points``, (N, D) mm (LPS vectors)."""
+        points = _check_points("points", points, self.dim)
+        return self.evaluate(points, order=0, chunk=chunk, progress=progress)[0] - points
+
+    def jacobian(
+        self, points: np.ndarray, *, chunk: int | None = None, progress: ProgressCallback | None = None
+    ) -> np.ndarray:
+        """Analytic Jacobian ``J[n, a, b] = d tau_a / d x_b``, (N, D, D) (chain rule for compositions)."""
+        return self.evaluate(points, order=1, chunk=chunk, progress=progress)[1]
+
+
+class KernelWarp(_PointMap):
     """A multi-scale kernel warp ``tau(x) = x + sum_l u_l(x)`` (paper eq. 9).
 
     Immutable: :meth:`with_level` returns a new warp.  Calling the object
@@ -333,25 +356,6 @@ class KernelWarp:
             if progress is not None:
                 progress("evaluate warp", s + m, n)
         return (tau,) if order == 0 else (tau, jac)
-
-    def __call__(
-        self, points: np.ndarray, *, chunk: int | None = None, progress: ProgressCallback | None = None
-    ) -> np.ndarray:
-        """``tau(points)``, (N, D) mm; see :meth:`evaluate`."""
-        return self.evaluate(points, order=0, chunk=chunk, progress=progress)[0]
-
-    def displacement(
-        self, points: np.ndarray, *, chunk: int | None = None, progress: ProgressCallback | None = None
-    ) -> np.ndarray:
-        """``u(points) = tau(points) - points``, (N, D) mm (LPS vectors)."""
-        points = _check_points("points", points, self.dim)
-        return self.evaluate(points, order=0, chunk=chunk, progress=progress)[0] - points
-
-    def jacobian(
-        self, points: np.ndarray, *, chunk: int | None = None, progress: ProgressCallback | None = None
-    ) -> np.ndarray:
-        """Analytic Jacobian ``J[n, a, b] = d tau_a / d x_b``, (N, D, D); see :meth:`evaluate`."""
-        return self.evaluate(points, order=1, chunk=chunk, progress=progress)[1]
 
     def compose(self, other: "KernelWarp | ComposedWarp") -> "ComposedWarp":
         """The warp ``x -> other(self(x))``: ``self`` is applied first.
@@ -560,7 +564,7 @@ def _parse(arrays: Mapping[str, np.ndarray]) -> KernelWarp:
 AnyWarp = Union[KernelWarp, "ComposedWarp"]
 
 
-class ComposedWarp:
+class ComposedWarp(_PointMap):
     """A chain of warps applied one after another: ``x -> w_k(... w_2(w_1(x)))``.
 
     Made by :meth:`KernelWarp.compose`: ``a.compose(b)`` is ``x -> b(a(x))``
@@ -643,25 +647,6 @@ class ComposedWarp:
             if progress is not None:
                 progress("evaluate warp", s + len(x), n)
         return (out,) if order == 0 else (out, jac)
-
-    def __call__(
-        self, points: np.ndarray, *, chunk: int | None = None, progress: ProgressCallback | None = None
-    ) -> np.ndarray:
-        """The composed map at ``points``, (N, D) mm."""
-        return self.evaluate(points, order=0, chunk=chunk, progress=progress)[0]
-
-    def displacement(
-        self, points: np.ndarray, *, chunk: int | None = None, progress: ProgressCallback | None = None
-    ) -> np.ndarray:
-        """The composed map minus the identity, (N, D) mm."""
-        points = _check_points("points", points, self.dim)
-        return self.evaluate(points, order=0, chunk=chunk, progress=progress)[0] - points
-
-    def jacobian(
-        self, points: np.ndarray, *, chunk: int | None = None, progress: ProgressCallback | None = None
-    ) -> np.ndarray:
-        """Jacobian of the composed map, (N, D, D), by the chain rule."""
-        return self.evaluate(points, order=1, chunk=chunk, progress=progress)[1]
 
     def compose(self, other: AnyWarp) -> "ComposedWarp":
         """``x -> other(self(x))`` (``self`` first), flattened."""
