@@ -107,6 +107,11 @@ def test_landmarks_are_hit_and_help_held_out_points(shapes):
     train_err = np.linalg.norm(with_lm(train_src) - train_dst, axis=1)
     assert train_err.max() <= 0.0005 * diameter
     err_with = np.linalg.norm(with_lm(held) - held_dst, axis=1).mean()
+    # Landmarks are kernel centres too, so one far outside the warp volume is fitted as well.
+    far_src, far_dst = np.array([[-40.0, 0.0]]), np.array([[-40.0, 3.0]])
+    far = register_surfaces(f1, f2, landmarks=(np.concatenate([train_src, far_src]),
+                                               np.concatenate([train_dst, far_dst])), settings=settings).warp
+    assert np.linalg.norm(far(far_src) - far_dst) <= 0.0005 * diameter
     err_without = np.linalg.norm(without(held) - held_dst, axis=1).mean()
     assert err_with < 0.5 * err_without
 

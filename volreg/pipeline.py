@@ -182,22 +182,26 @@ def fit_warp(
     for li, width in enumerate(widths):
         t0 = time.perf_counter()
         samples = octree_sample(pts, pad, width, fraction=settings.fraction)
-        grid = CellGrid.build(samples, width)
-        k_cc = kernel_matrix(samples, grid, width)
+        use_landmarks = landmarks is not None
+        # Centres: the samples, plus the source landmarks (the representer theorem puts
+        # kernels at every training point, so landmarks away from X can be fitted too).
+        centres = np.concatenate([samples, src_l]) if use_landmarks else samples
+        grid = CellGrid.build(centres, width)
+        k_xc = kernel_matrix(samples, grid, width)
+        k_cc = kernel_matrix(centres, grid, width)
         base = warp(samples)
-        use_landmarks = landmarks is not None and settings.lambda_p > 0
         kw = {}
         if use_landmarks:
             kw = dict(landmark_kernel=kernel_matrix(src_l, grid, width), landmark_base=warp(src_l),
                       landmark_targets=dst_l, lambda_p=settings.lambda_p)
         check = _with_children(samples)
         if settings.lambda_fold > 0:
-            kw.update(fold_gradients=kernel_gradient_matrices(check, samples, width), fold_base=warp.jacobian(check),
+            kw.update(fold_gradients=kernel_gradient_matrices(check, centres, width), fold_base=warp.jacobian(check),
                       lambda_fold=settings.lambda_fold, fold_margin=settings.fold_margin)
-        objective = LevelObjective(kernel=k_cc, kernel_centres=k_cc, base=base, samples=samples,
+        objective = LevelObjective(kernel=k_xc, kernel_centres=k_cc, base=base, samples=samples,
                                    features=features, lambda_loc=settings.lambda_loc, alpha=settings.alpha,
                                    neighbourhood=neighbourhood, **kw)
-        c0 = np.zeros((len(samples), dim))
+        c0 = np.zeros((len(centres), dim))
         if use_landmarks:
             c0 = _landmark_init(sp.csr_matrix(k_cc), kw["landmark_kernel"], kw["landmark_base"], dst_l,
                                 settings.lambda_p)
@@ -221,8 +225,9 @@ def fit_warp(
         else:
             scale = 0.0
         coeffs = scale * coeffs
-        warp = warp.with_level(WarpLevel(samples, coeffs, width))
-        log.append(dict(level=li, width=width, samples=int(len(samples)), iterations=int(res.nit),
+        warp = warp.with_level(WarpLevel(centres, coeffs, width))
+        log.append(dict(level=li, width=width, samples=int(len(samples)), centres=int(len(centres)),
+                        iterations=int(res.nit),
                         converged=bool(res.success), fold_scale=scale, objective_start=float(e0),
                         objective=float(objective(coeffs.ravel())[0]),
                         terms_start=terms0, terms=dict(objective.last_terms),
