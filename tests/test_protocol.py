@@ -1,0 +1,50 @@
+"""Protocols: presets load to the documented defaults; bad files are refused by name."""
+
+import pytest
+
+from volreg.pipeline import WarpSettings
+from volreg.protocol import PROTOCOL_DIR, Protocol, ProtocolError, SurfaceSettings, load_protocol
+
+
+def test_default_preset_names_every_default():
+    p = load_protocol("default")
+    assert p.name == "default"
+    assert p.warp == WarpSettings() and p.surface == SurfaceSettings()
+    assert p == Protocol(name="default", description=p.description)
+    text = (PROTOCOL_DIR / "default.toml").read_text()
+    for section in (p.warp, p.surface):  # every setting is named in the file (some commented: optional)
+        for name in section.__dataclass_fields__:
+            assert f"{name} =" in text, name
+
+
+def test_a_file_overrides_and_keeps_the_rest(tmp_path):
+    f = tmp_path / "mine.toml"
+    f.write_text('[warp]\nalpha = 0\npad = 7.5\nmax_iter = 50\n[surface]\nsmoothing = 0.5\n')
+    p = load_protocol(f)
+    assert (p.warp.alpha, p.warp.pad, p.warp.max_iter, p.surface.smoothing) == (0.0, 7.5, 50, 0.5)
+    assert p.warp.lambda_loc == WarpSettings().lambda_loc and p.name == "mine"
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("[warp]\nalpah = 1.0\n", "Unknown setting `warp.alpah`"),
+        ("[wrap]\n", r"Unknown section \[wrap\]"),
+        ("[warp]\nalpha = -1.0\n", "`alpha` >= 0"),
+        ("[warp]\nmax_iter = 2.5\n", "`warp.max_iter` to be int"),
+        ("[warp]\nalpha = true\n", "`warp.alpha` to be float"),
+        ("[surface]\nsmoothing = 50\n", "`smoothing` in \\[0, 10\\]"),
+        ("[protocol]\nnam = 'x'\n", "Unknown setting `protocol.nam`"),
+        ("[warp\n", "not valid TOML"),
+    ],
+)
+def test_bad_files_are_refused_by_name(tmp_path, body, message):
+    f = tmp_path / "bad.toml"
+    f.write_text(body)
+    with pytest.raises(ProtocolError, match=message):
+        load_protocol(f)
+
+
+def test_unknown_preset():
+    with pytest.raises(ProtocolError, match="Protocol `nope` not found.*default"):
+        load_protocol("nope")

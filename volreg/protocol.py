@@ -1,0 +1,132 @@
+"""Protocols: named, validated presets of every setting, read from TOML.
+
+A protocol file has the sections ``[protocol]`` (``name``, ``description``),
+``[surface]`` (:class:`SurfaceSettings`) and ``[warp]``
+(:class:`~volreg.pipeline.WarpSettings`).  Keys left out take their defaults;
+an unknown section or key, or a value of the wrong type, is an error naming it.
+Presets ship in the repository's ``protocols/`` folder; TOML is parsed with the
+standard library's safe parser (``tomllib``; ``tomli`` before Python 3.11).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+from .pipeline import WarpSettings
+
+__all__ = ["Protocol", "ProtocolError", "SurfaceSettings", "load_protocol", "PROTOCOL_DIR"]
+
+#: Where the shipped presets live (the repository's ``protocols/`` folder).
+PROTOCOL_DIR = Path(__file__).resolve().parent.parent / "protocols"
+
+
+class ProtocolError(ValueError):
+    """A protocol file that cannot be used: unreadable, unknown key, bad value."""
+
+
+@dataclass(frozen=True)
+class SurfaceSettings:
+    """How label surfaces and their implicit surfaces are made.
+
+    Attributes
+    ----------
+    smoothing : float, voxels
+        Gaussian blur of each mask before contouring (largest spacing as unit).
+    min_width_voxels : float, voxels
+        Finest kernel width of the implicit surfaces.
+    """
+
+    smoothing: float = 1.0
+    min_width_voxels: float = 4.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.smoothing) and 0 <= self.smoothing <= 10):
+            raise ValueError(f"Expected `smoothing` in [0, 10] voxels, got {self.smoothing}.")
+        if not (math.isfinite(self.min_width_voxels) and self.min_width_voxels > 0):
+            raise ValueError(f"Expected a positive `min_width_voxels`, got {self.min_width_voxels}.")
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """Every setting of a run, by section."""
+
+    name: str = "default"
+    description: str = ""
+    surface: SurfaceSettings = field(default_factory=SurfaceSettings)
+    warp: WarpSettings = field(default_factory=WarpSettings)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data (for reports and saved models)."""
+        return dataclasses.asdict(self)
+
+
+def _section(cls, values: Mapping[str, Any], where: str):
+    """Build the dataclass ``cls`` from a TOML table, checking keys and types."""
+    if not isinstance(values, Mapping):
+        raise ProtocolError(f"Expected [{where}] to be a table, got {type(values).__name__}.")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in values.items():
+        if key not in fields:
+            raise ProtocolError(f"Unknown setting `{where}.{key}`; expected one of: {', '.join(sorted(fields))}.")
+        want = fields[key].type if isinstance(fields[key].type, str) else fields[key].type.__name__
+        if "int" in want and "float" not in want:
+            ok = isinstance(value, int) and not isinstance(value, bool)
+        elif "float" in want:
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+            value = float(value) if ok else value
+        else:
+            ok = isinstance(value, str)
+        if not ok:
+            raise ProtocolError(f"Expected `{where}.{key}` to be {want.replace(' | None', '')}, got {value!r}.")
+        kwargs[key] = value
+    try:
+        return cls(**kwargs)
+    except ValueError as exc:
+        raise ProtocolError(f"In [{where}]: {exc}") from None
+
+
+def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
+    """Read a protocol: a preset name (``protocols/<name>.toml``) or a path to a TOML file.
+
+    Raises
+    ------
+    ProtocolError
+        One line naming the file and the problem.
+    """
+    text = str(name_or_path)
+    path = Path(text) if (text.endswith(".toml") or os.sep in text) else PROTOCOL_DIR / f"{text}.toml"
+    if not path.is_file():
+        presets = sorted(p.stem for p in PROTOCOL_DIR.glob("*.toml"))
+        raise ProtocolError(f"Protocol `{text}` not found: expected a .toml file or a preset ({', '.join(presets)}).")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ProtocolError(f"Protocol `{path}` is not valid TOML: {exc}.") from None
+    unknown = set(data) - {"protocol", "surface", "warp"}
+    if unknown:
+        raise ProtocolError(f"Unknown section [{sorted(unknown)[0]}] in `{path}`; expected [protocol], [surface], [warp].")
+    head = data.get("protocol", {})
+    if not isinstance(head, Mapping) or set(head) - {"name", "description"}:
+        extra = sorted(set(head) - {"name", "description"}) if isinstance(head, Mapping) else ["?"]
+        raise ProtocolError(f"Unknown setting `protocol.{extra[0]}` in `{path}`; expected name, description.")
+    try:
+        return Protocol(
+            name=str(head.get("name", path.stem)),
+            description=str(head.get("description", "")),
+            surface=_section(SurfaceSettings, data.get("surface", {}), "surface"),
+            warp=_section(WarpSettings, data.get("warp", {}), "warp"),
+        )
+    except ProtocolError as exc:
+        raise ProtocolError(f"{exc} (in `{path}`)") from None
