@@ -195,8 +195,9 @@ def fit_warp(
             kw = dict(landmark_kernel=kernel_matrix(src_l, grid, width), landmark_base=warp(src_l),
                       landmark_targets=dst_l, lambda_p=settings.lambda_p)
         check = _with_children(samples)
+        j_prev = warp.jacobian(check)  # coarser levels' Jacobian at the fold-check points
         if settings.lambda_fold > 0:
-            kw.update(fold_gradients=kernel_gradient_matrices(check, centres, width), fold_base=warp.jacobian(check),
+            kw.update(fold_gradients=kernel_gradient_matrices(check, centres, width), fold_base=j_prev,
                       lambda_fold=settings.lambda_fold, fold_margin=settings.fold_margin)
         objective = LevelObjective(kernel=k_xc, kernel_centres=k_cc, base=base, samples=samples,
                                    features=features, lambda_loc=settings.lambda_loc, alpha=settings.alpha,
@@ -214,7 +215,6 @@ def fit_warp(
         # and at the centres of their octree children (the next level's samples).
         # If the level folds space there (det J < min_det), shrink its coefficients;
         # where coarser levels are already below min_det, it must not make it worse.
-        j_prev = warp.jacobian(check)
         j_level = kernel_sum(check, grid, coeffs, width, order=1)[1]
         floor = min(settings.min_det, float(np.linalg.det(j_prev).min()))
         scale = 1.0
