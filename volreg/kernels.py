@@ -41,6 +41,7 @@ __all__ = [
     "kernel_sum_reference",
     "kernel_matrix",
     "kernel_gradient_matrices",
+    "spatial_order",
 ]
 
 
@@ -296,7 +297,7 @@ def _grid_sum(queries, gpts, gcoef, start, lo, cell, dims, max_runs, sigma, orde
 
 
 @numba.njit(cache=True, fastmath=True, inline="always")
-def _run_value(x0, x1, x2, px, py, pz, gcoef, begin, end, inv_s2, dim3):
+def _run_value(x0, x1, x2, px, py, pz, gcoef, begin, end, inv_s2):
     """sum_p a_p k(|x - p| / sigma) over one run of points: branch-free so that it
     compiles to SIMD code (t = 0 outside the support zeroes the term)."""
     v = 0.0
@@ -312,7 +313,7 @@ def _run_value(x0, x1, x2, px, py, pz, gcoef, begin, end, inv_s2, dim3):
 
 
 @numba.njit(cache=True, fastmath=True, inline="always")
-def _run_value_grad(x0, x1, x2, px, py, pz, gcoef, begin, end, inv_s2, dim3):
+def _run_value_grad(x0, x1, x2, px, py, pz, gcoef, begin, end, inv_s2):
     """Value and gradient of the sum over one run of points (branch-free, SIMD)."""
     v = 0.0
     g0 = 0.0
@@ -358,7 +359,7 @@ def _grid_sum_scalar(queries, px, py, pz, gcoef, start, lo, cell, dims, max_runs
                 g2 = 0.0
                 for rr in range(nr):
                     dv, d0, d1, d2 = _run_value_grad(x0, x1, x2, px, py, pz, gcoef, ranges[rr, 0], ranges[rr, 1],
-                                                     inv_s2, dim3)
+                                                     inv_s2)
                     v += dv
                     g0 += d0
                     g1 += d1
@@ -371,8 +372,24 @@ def _grid_sum_scalar(queries, px, py, pz, gcoef, start, lo, cell, dims, max_runs
             else:
                 v = 0.0
                 for rr in range(nr):
-                    v += _run_value(x0, x1, x2, px, py, pz, gcoef, ranges[rr, 0], ranges[rr, 1], inv_s2, dim3)
+                    v += _run_value(x0, x1, x2, px, py, pz, gcoef, ranges[rr, 0], ranges[rr, 1], inv_s2)
                 val[q, 0] += v
+
+
+#: Evaluations of more points than this visit them in spatial order first.
+SORT_ABOVE = 50_000
+
+
+def spatial_order(points: np.ndarray, cell: float) -> np.ndarray | None:
+    """A permutation visiting ``points`` (N, D) cell by cell (cells of ``cell`` mm),
+    or None when there are too few points for it to pay.
+
+    Neighbouring queries share kernel centres, which then stay in cache: 1.5x
+    faster on 1e6 scattered points near the frog's surface.
+    """
+    if len(points) <= SORT_ABOVE or not cell > 0:
+        return None
+    return CellGrid.build(points, cell).order
 
 
 def _as_coefficients(coeffs: np.ndarray, m_centres: int) -> tuple[np.ndarray, bool]:

@@ -187,8 +187,8 @@ def fit_warp(
         # kernels at every training point, so landmarks away from X can be fitted too).
         centres = np.concatenate([samples, src_l]) if use_landmarks else samples
         grid = CellGrid.build(centres, width)
-        k_xc = kernel_matrix(samples, grid, width)
         k_cc = kernel_matrix(centres, grid, width)
+        k_xc = k_cc[: len(samples)] if use_landmarks else k_cc  # samples are the first centres
         base = warp(samples)
         kw = {}
         if use_landmarks:

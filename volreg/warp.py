@@ -33,7 +33,7 @@ from typing import Any, Callable, Union
 
 import numpy as np
 
-from .kernels import CellGrid, _check_points, kernel_sum
+from .kernels import CellGrid, _check_points, kernel_sum, spatial_order
 
 __all__ = ["WarpLevel", "KernelWarp", "ComposedWarp", "FORMAT", "FORMAT_VERSION", "DEFAULT_CHUNK"]
 
@@ -46,10 +46,6 @@ FORMAT_VERSION = 1
 #: Default number of points evaluated at once: the (N, D, D) Jacobian buffer of
 #: a 3-D chunk is then 72 MB.
 DEFAULT_CHUNK = 1_000_000
-
-# Chunks of more points than this are visited in spatial order (neighbouring
-# queries share centres, which stay in cache), as in ImplicitSurface.evaluate.
-_SORT_ABOVE = 50_000
 
 
 def _as_level_array(name: str, value: Any) -> np.ndarray:
@@ -340,7 +336,7 @@ class KernelWarp(_PointMap):
         for s in range(0, n, chunk):
             q = points[s : s + chunk]
             m = len(q)
-            perm = CellGrid.build(q, finest).order if (finest is not None and m > _SORT_ABOVE) else None
+            perm = spatial_order(q, finest) if finest is not None else None
             qs = q if perm is None else np.ascontiguousarray(q[perm])
             outs = (np.zeros((m, dim)), np.zeros((m, dim, dim)))[: order + 1]
             for lev in active:
