@@ -50,9 +50,12 @@ def test_gradient_term_puts_the_protrusion_sides_on_their_partners(warps):
     assert np.all(_errors(warps[10.0].warp) <= 1.5)
 
 
-def test_distance_only_cost_does_not(warps):
-    # Measured: top 9.2, bottom 10.4, tip 11.7 mm -- the paper's failure mode.
-    assert np.all(_errors(warps[0.0].warp) >= 4.0)
+def test_distance_only_cost_is_worse(warps):
+    # Measured: top 0.92, bottom 0.79, tip 0.59 mm with alpha = 0, against 0.1-0.2 mm with the
+    # gradient term.  (When each level was sampled only at its own octree boxes, alpha = 0 left
+    # them 9-12 mm off, the paper's failure mode; sampling the locational cost at the finest
+    # boxes on every level, within a band around the surface, removes most of that failure.)
+    assert np.all(_errors(warps[10.0].warp) < _errors(warps[0.0].warp))
 
 
 def test_half_way_morph_keeps_a_single_protrusion(shapes, warps):
@@ -126,7 +129,7 @@ def test_bad_inputs():
         register_surfaces(pts, pts)
     f = ImplicitSurface(pts * 10, min_width=5.0)
     with pytest.raises(ValueError, match="`lambda_p` > 0"):
-        register_surfaces(f, f, landmarks=(pts[:3], pts[:3]))
+        register_surfaces(f, f, landmarks=(pts[:3], pts[:3]), settings=WarpSettings(lambda_p=0.0))
     with pytest.raises(ValueError, match="as many `target`"):
         f = ImplicitSurface(pts * 10, min_width=5.0)
         register_surfaces([f, f], [f])

@@ -99,6 +99,12 @@ class LevelObjective:
     lambda_fold, fold_margin : float
         Fold barrier (not in the paper): ``lambda_fold mean_p max(0, fold_margin
         - det J(y_p))^2`` keeps the warp orientation-preserving.
+    feature_samples : list of (N_l,) int ndarrays or None, optional
+        For each feature pair, the indices of the samples where it can be
+        non-constant (``None``: all).  Elsewhere both ``f1`` and ``f2(tau)`` sit
+        at their offsets, their residual is a constant with zero gradient, and
+        skipping those samples changes neither the minimiser nor the gradient
+        (with many labels, each label's surface is near few samples).
     """
 
     kernel: sp.spmatrix
@@ -117,6 +123,7 @@ class LevelObjective:
     fold_base: np.ndarray | None = None
     lambda_fold: float = 0.0
     fold_margin: float = 0.2
+    feature_samples: Sequence[np.ndarray | None] | None = None
     _f1: list = field(default_factory=list, init=False, repr=False)
     last_terms: dict = field(default_factory=dict, init=False, repr=False)
 
@@ -134,7 +141,14 @@ class LevelObjective:
         self.offsets = offsets
         # f1 and its gradient at the (fixed) sample points, once per offset.
         order = 1 if self.alpha > 0 else 0
-        self._f1 = [[pair.f1.evaluate(self.samples + dx, order=order) for dx in offsets] for pair in self.features]
+        subsets = [None] * len(self.features) if self.feature_samples is None else list(self.feature_samples)
+        if len(subsets) != len(self.features):
+            raise ValueError(f"Expected one entry of `feature_samples` per feature, got {len(subsets)} for {len(self.features)}.")
+        self._subsets = [None if s is None else np.asarray(s, dtype=np.intp) for s in subsets]
+        self._f1 = [
+            [pair.f1.evaluate((self.samples if idx is None else self.samples[idx]) + dx, order=order) for dx in offsets]
+            for pair, idx in zip(self.features, self._subsets)
+        ]
         if self.lambda_p > 0:
             if self.landmark_kernel is None or self.landmark_base is None or self.landmark_targets is None:
                 raise ValueError("Expected `landmark_kernel`, `landmark_base` and `landmark_targets` when `lambda_p` > 0.")
@@ -164,16 +178,22 @@ class LevelObjective:
         g_tau = np.zeros_like(tau)
         scale = self.lambda_loc / (n * len(self.offsets))
         order = 2 if self.alpha > 0 else 1
-        for pair, f1_list in zip(self.features, self._f1):
+        for pair, f1_list, idx in zip(self.features, self._f1, self._subsets):
+            tau_l = tau if idx is None else tau[idx]
+            g_l = np.zeros_like(tau_l)
             for dx, f1 in zip(self.offsets, f1_list):
-                out = pair.f2.evaluate(tau + dx, order=order)
-                r = f1[0] - out[0]  # (N,)
+                out = pair.f2.evaluate(tau_l + dx, order=order)
+                r = f1[0] - out[0]  # (N_l,)
                 dist_term += pair.weight * float(r @ r)
-                g_tau -= (2 * scale * pair.weight) * r[:, None] * out[1]
+                g_l -= (2 * scale * pair.weight) * r[:, None] * out[1]
                 if self.alpha > 0:
-                    rg = f1[1] - out[1]  # (N, D)
+                    rg = f1[1] - out[1]  # (N_l, D)
                     grad_term += pair.weight * self.alpha * float(np.einsum("nd,nd->", rg, rg))
-                    g_tau -= (2 * scale * pair.weight * self.alpha) * np.einsum("nab,nb->na", out[2], rg)
+                    g_l -= (2 * scale * pair.weight * self.alpha) * np.einsum("nab,nb->na", out[2], rg)
+            if idx is None:
+                g_tau += g_l
+            else:
+                g_tau[idx] += g_l  # the indices of one feature are distinct
         grad += self.kernel_t @ g_tau
         loc = scale * (dist_term + grad_term)
         land = 0.0

@@ -27,8 +27,16 @@ from .pipeline import WarpSettings
 
 __all__ = ["Protocol", "ProtocolError", "SurfaceSettings", "load_protocol", "PROTOCOL_DIR"]
 
-#: Where the shipped presets live (the repository's ``protocols/`` folder).
-PROTOCOL_DIR = Path(__file__).resolve().parent.parent / "protocols"
+def _protocol_dir() -> Path:
+    """The shipped presets: ``volreg/protocols`` in an installed wheel (package data,
+    mapped from the repository's top-level ``protocols/`` by ``pyproject.toml``), else
+    the repository's ``protocols/`` (source checkout, editable install)."""
+    installed = Path(__file__).resolve().parent / "protocols"
+    return installed if installed.is_dir() else Path(__file__).resolve().parent.parent / "protocols"
+
+
+#: Where the shipped presets live.
+PROTOCOL_DIR = _protocol_dir()
 
 
 class ProtocolError(ValueError):

@@ -1,0 +1,126 @@
+"""Displacement fields as ANTs and ITK read and write them (NIfTI-1, 5-D, intent vector).
+
+Convention (``../shared/DESIGN.md``): a displacement field lives on the fixed
+(reference) grid; voxel ``x`` holds ``u(x) = tau(x) - x`` in ITK physical
+space (LPS, mm), so that a moving image is pulled back as
+``moving(x + u(x))``.  On disk: NIfTI-1, float32, shape ``(X, Y, Z, 1, 3)``
+(``(X, Y, 1, 1, 2)`` in 2-D), intent code 1007 (vector), identical qform and
+sform (code 1) holding the RAS form of the LPS grid.  The vector components
+are *not* flipped to RAS: ITK (and so ANTs, SimpleITK, Slicer) store them as
+LPS, and read them back as such.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import SimpleITK as sitk
+
+from ..volume import LabelVolume
+from ._atomic import VolregIOError, atomic_output
+from .images import _check_input, _sitk_reason
+
+__all__ = ["write_displacement", "read_displacement"]
+
+_LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def _nifti_suffix(path: Path, what: str) -> None:
+    name = path.name.lower()
+    if not (name.endswith(".nii") or name.endswith(".nii.gz")):
+        raise VolregIOError(f"{what} `{path}` must be NIfTI (.nii or .nii.gz), the format ANTs and ITK read fields from.")
+
+
+def _ras_affine(like: LabelVolume) -> np.ndarray:
+    """4x4 RAS affine of a 2-D or 3-D LPS grid (2-D grids get a unit third axis)."""
+    a = np.eye(4)
+    d = like.ndim
+    a[:d, :d] = like.direction * like.spacing[None, :]
+    a[:d, 3] = like.origin
+    return _LPS_TO_RAS @ a
+
+
+def write_displacement(
+    displacement: np.ndarray, like: LabelVolume, path: str | os.PathLike[str], *, force: bool = False
+) -> None:
+    """Write a displacement field in the ANTs/ITK convention, atomically.
+
+    Parameters
+    ----------
+    displacement : (*like.shape, D) float ndarray, LPS mm
+        ``u(x) = tau(x) - x`` at the voxel centres of ``like``.
+    like : LabelVolume
+        The reference (fixed) grid: origin, spacing, direction.
+    path : path-like
+        ``.nii.gz`` (or ``.nii``).
+    force : bool
+        Overwrite an existing ``path``.
+
+    Raises
+    ------
+    VolregIOError
+        On a shape mismatch, a non-finite value, a non-NIfTI path, or an
+        existing ``path`` without ``force``.
+    """
+    p = Path(path)
+    _nifti_suffix(p, "Displacement field")
+    u = np.asarray(displacement)
+    want = (*like.shape, like.ndim)
+    if u.shape != want:
+        raise VolregIOError(f"Expected `displacement` of shape {want} (grid of `like`, then D), got {u.shape}.")
+    if not np.all(np.isfinite(u)):
+        raise VolregIOError("Expected a finite `displacement`; it holds NaN or Inf.")
+    if like.ndim == 2:
+        data = u.astype(np.float32)[:, :, None, None, :]
+    else:
+        data = u.astype(np.float32)[:, :, :, None, :]
+    affine = _ras_affine(like)
+    img = nib.Nifti1Image(data, affine)
+    img.header.set_intent("vector")
+    img.header.set_qform(affine, code=1)
+    img.header.set_sform(affine, code=1)
+    img.header.set_xyzt_units("mm", "sec")
+    with atomic_output(p, force=force) as tmp:
+        nib.save(img, str(tmp))
+
+
+def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, LabelVolume]:
+    """Read an ANTs/ITK displacement field.
+
+    Returns
+    -------
+    displacement : (*shape, D) float64 ndarray, LPS mm
+    grid : LabelVolume
+        The field's grid (a ``uint8`` array of zeros carries the geometry).
+
+    Raises
+    ------
+    VolregIOError
+        If the file is unreadable or not a vector image with D components on a D-D grid.
+    """
+    p = Path(path)
+    _check_input(p, "Displacement field")
+    try:
+        img = sitk.ReadImage(str(p))
+    except RuntimeError as exc:
+        raise VolregIOError(f"Displacement field `{p}` could not be read: {_sitk_reason(exc)}.") from exc
+    dim = img.GetDimension()
+    if img.GetNumberOfComponentsPerPixel() != dim or dim not in (2, 3):
+        raise VolregIOError(
+            f"Displacement field `{p}` has {img.GetNumberOfComponentsPerPixel()} components on a {dim}-D grid; "
+            "expected a 2-D or 3-D vector image with one component per axis (ANTs/ITK warp)."
+        )
+    array = sitk.GetArrayFromImage(img).astype(np.float64)  # (k, j, i, D)
+    u = array.transpose(*range(dim - 1, -1, -1), dim)  # (i, j, k, D)
+    if not np.all(np.isfinite(u)):
+        raise VolregIOError(f"Displacement field `{p}` holds NaN or Inf; expected finite displacements in mm.")
+    grid = LabelVolume(
+        np.zeros(u.shape[:-1], dtype=np.uint8),
+        np.array(img.GetOrigin()),
+        np.array(img.GetSpacing()),
+        np.array(img.GetDirection()).reshape(dim, dim),
+    )
+    return np.ascontiguousarray(u), grid

@@ -1,0 +1,104 @@
+"""Landmark point files: CSV (LPS mm), 3D Slicer ``.fcsv`` and ``.mrk.json``.
+
+CSV: a header row naming ``x,y,z`` (optionally a first ``label``/``name``
+column, ignored) then one point per row, in LPS millimetres (ITK physical
+space).  Slicer files say their frame: ``.fcsv`` in its ``# CoordinateSystem``
+line (``LPS``/``RAS`` or 0 = RAS, 1 = LPS; RAS when absent, as older Slicer),
+``.mrk.json`` in each markup's ``coordinateSystem`` (default LPS, as Slicer
+writes it since 4.11); RAS points are converted to LPS by negating x and y.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ._atomic import VolregIOError
+
+__all__ = ["read_landmarks"]
+
+_FLIP = np.array([-1.0, -1.0, 1.0])
+
+
+def _frame(value: str, path: Path) -> bool:
+    """True for RAS, False for LPS."""
+    v = str(value).strip().upper()
+    if v in ("RAS", "0"):
+        return True
+    if v in ("LPS", "1"):
+        return False
+    raise VolregIOError(f"Landmark file `{path}` has coordinate system {value!r}; expected LPS or RAS.")
+
+
+def _read_fcsv(path: Path, text: str) -> np.ndarray:
+    ras = True
+    rows = []
+    for line in text.splitlines():
+        if line.startswith("#"):
+            if "CoordinateSystem" in line:
+                ras = _frame(line.split("=", 1)[1], path)
+            continue
+        if line.strip():
+            rows.append(next(csv.reader([line])))
+    points = np.array([[float(r[1]), float(r[2]), float(r[3])] for r in rows]) if rows else np.zeros((0, 3))
+    return points * _FLIP if ras else points
+
+
+def _read_mrk_json(path: Path, text: str) -> np.ndarray:
+    data = json.loads(text)
+    points = []
+    for markup in data.get("markups", []):
+        ras = _frame(markup.get("coordinateSystem", "LPS"), path)
+        for cp in markup.get("controlPoints", []):
+            p = np.asarray(cp["position"], dtype=float)
+            points.append(p * _FLIP if ras else p)
+    return np.array(points).reshape(-1, 3)
+
+
+def _read_csv(path: Path, text: str) -> np.ndarray:
+    rows = [r for r in csv.reader(text.splitlines()) if r and any(c.strip() for c in r)]
+    if not rows:
+        return np.zeros((0, 3))
+    header = [c.strip().lower() for c in rows[0]]
+    if not {"x", "y", "z"} <= set(header):
+        raise VolregIOError(f"Landmark file `{path}` has header {rows[0]}; expected a header row naming x,y,z (LPS mm).")
+    cols = [header.index(c) for c in ("x", "y", "z")]
+    return np.array([[float(r[c]) for c in cols] for r in rows[1:]]).reshape(-1, 3)
+
+
+def read_landmarks(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read landmark points as an (L, 3) float array in LPS mm.
+
+    Raises
+    ------
+    VolregIOError
+        Missing or unreadable file, unknown suffix, bad numbers, a non-finite
+        value, or no point at all -- one line naming the file.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise VolregIOError(f"Landmark file `{p}` does not exist or is not a file.")
+    name = p.name.lower()
+    try:
+        text = p.read_text(encoding="utf-8")
+        if name.endswith(".fcsv"):
+            points = _read_fcsv(p, text)
+        elif name.endswith(".mrk.json") or name.endswith(".json"):
+            points = _read_mrk_json(p, text)
+        elif name.endswith(".csv"):
+            points = _read_csv(p, text)
+        else:
+            raise VolregIOError(f"Landmark file `{p}` has an unknown suffix; expected .csv (x,y,z LPS mm), .fcsv or .mrk.json.")
+    except (ValueError, IndexError, KeyError, TypeError, UnicodeDecodeError) as exc:
+        if isinstance(exc, VolregIOError):
+            raise
+        raise VolregIOError(f"Landmark file `{p}` could not be parsed: {exc}.") from None
+    if len(points) == 0:
+        raise VolregIOError(f"Landmark file `{p}` holds no points; expected at least one.")
+    if not np.all(np.isfinite(points)):
+        raise VolregIOError(f"Landmark file `{p}` holds NaN or Inf coordinates; expected finite mm.")
+    return points

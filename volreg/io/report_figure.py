@@ -1,0 +1,319 @@
+"""A PNG report figure of one registration: labels, warped labels and the deformed grid.
+
+Drawn with matplotlib's Agg canvas only (no pyplot, no GUI backend) and
+written atomically like every other output of :mod:`volreg.io`.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+from matplotlib import colormaps
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection
+from matplotlib.figure import Figure
+
+from ._atomic import VolregIOError, atomic_output
+
+__all__ = ["write_report_figure"]
+
+#: Resolution of the PNG (dots per inch) and its width in inches (1400 px).
+_DPI = 100
+_WIDTH_IN = 14.0
+#: Nominal spacing of the deformed grid's lines, in fixed-grid voxels.
+_GRID_STEP = 8
+
+_COLUMNS = ("fixed", "moving", "warped moving (contours: fixed)", "warped grid")
+
+
+def _palette() -> np.ndarray:
+    """20 qualitative RGB colours (``tab20``, the saturated half first), shape (20, 3)."""
+    colours = np.asarray(colormaps["tab20"].colors, dtype=float)[:, :3]
+    return np.concatenate([colours[0::2], colours[1::2]])
+
+
+_PALETTE = _palette()
+
+
+def _label_rgb(labels: np.ndarray) -> np.ndarray:
+    """Colour a label array: shape ``labels.shape + (3,)``, floats in [0, 1].
+
+    Label 0 is black; label ``v != 0`` gets ``_PALETTE[(v - 1) % 20]``, so a
+    value has the same colour in every panel and every figure.
+    """
+    lab = np.asarray(labels).astype(np.int64, copy=False)
+    rgb = _PALETTE[np.mod(lab - 1, len(_PALETTE))]
+    rgb[lab == 0] = 0.0
+    return rgb
+
+
+def _boundary_segments(labels: np.ndarray) -> np.ndarray:
+    """Voxel edges between differing labels of a 2-D slice, as line segments.
+
+    ``labels`` has shape (H, V) (first axis horizontal in the panel); voxel
+    ``(a, b)`` is centred at ``(a, b)``.  Returns shape (S, 2, 2): S segments
+    of two (x, y) points each, in voxel units.
+    """
+    lab = np.asarray(labels)
+    # Edges between horizontal neighbours: vertical segments at x = a + 1/2.
+    a, b = np.nonzero(lab[1:, :] != lab[:-1, :])
+    vertical = np.stack(
+        [np.stack([a + 0.5, b - 0.5], axis=-1), np.stack([a + 0.5, b + 0.5], axis=-1)], axis=1
+    )
+    # Edges between vertical neighbours: horizontal segments at y = b + 1/2.
+    a, b = np.nonzero(lab[:, 1:] != lab[:, :-1])
+    horizontal = np.stack(
+        [np.stack([a - 0.5, b + 0.5], axis=-1), np.stack([a + 0.5, b + 0.5], axis=-1)], axis=1
+    )
+    return np.concatenate([vertical, horizontal]).astype(float).reshape(-1, 2, 2)
+
+
+def _bbox_centre(labels: np.ndarray) -> tuple[int, ...]:
+    """Integer centre of the bounding box of the non-zero voxels (array centre if none)."""
+    nonzero = labels != 0
+    centre = []
+    for axis, n in enumerate(labels.shape):
+        others = tuple(a for a in range(labels.ndim) if a != axis)
+        hit = np.flatnonzero(np.any(nonzero, axis=others)) if others else np.flatnonzero(nonzero)
+        centre.append(int((hit[0] + hit[-1]) // 2) if hit.size else (n - 1) // 2)
+    return tuple(centre)
+
+
+# (plane name, fixed axis, in-plane axes (horizontal, vertical)) in ITK index order i, j, k.
+_PLANES_3D = (("axial", 2, (0, 1)), ("coronal", 1, (0, 2)), ("sagittal", 0, (1, 2)))
+_AXIS_NAMES = "ijk"
+
+
+def _take(array: np.ndarray, axis: int | None, index: int) -> np.ndarray:
+    """The slice of ``array`` at ``index`` along ``axis`` (``array`` itself if ``axis`` is None)."""
+    return array if axis is None else np.take(array, index, axis=axis)
+
+
+def _style(ax: Axes, shape: tuple[int, ...], aspect: float) -> None:
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_xlim(-0.5, shape[0] - 0.5)
+    ax.set_ylim(-0.5, shape[1] - 0.5)
+    ax.set_aspect(aspect)
+    ax.set_anchor("N")  # top-align the panels of a row so the column titles line up
+
+
+def _draw_labels(ax: Axes, labels: np.ndarray, aspect: float) -> None:
+    """Label colours (origin lower left) and their boundaries in black."""
+    ax.imshow(
+        np.swapaxes(_label_rgb(labels), 0, 1), origin="lower", interpolation="nearest", aspect=aspect
+    )
+    ax.add_collection(LineCollection(_boundary_segments(labels), colors="black", linewidths=0.6))
+    _style(ax, labels.shape, aspect)
+
+
+def _draw_grid(ax: Axes, labels: np.ndarray, disp: np.ndarray, aspect: float) -> int:
+    """Faint labels and a regular grid moved by the in-plane displacement; returns the step.
+
+    ``disp`` has shape ``labels.shape + (2,)``: the (horizontal, vertical)
+    displacement in voxels.  Grid point ``p`` is drawn at ``p + disp[p]``.
+    """
+    faint = 0.6 + 0.4 * _label_rgb(labels)
+    faint[labels == 0] = 1.0
+    ax.imshow(np.swapaxes(faint, 0, 1), origin="lower", interpolation="nearest", aspect=aspect)
+    nh, nv = labels.shape
+    step = max(2, min(_GRID_STEP, min(nh, nv) // 4))
+    lines = []
+    h = np.arange(nh, dtype=float)
+    for v0 in range(0, nv, step):
+        lines.append(np.stack([h + disp[:, v0, 0], v0 + disp[:, v0, 1]], axis=-1))
+    v = np.arange(nv, dtype=float)
+    for h0 in range(0, nh, step):
+        lines.append(np.stack([h0 + disp[h0, :, 0], v + disp[h0, :, 1]], axis=-1))
+    ax.add_collection(LineCollection(lines, colors="#1a1a66", linewidths=0.7))
+    _style(ax, labels.shape, aspect)
+    return step
+
+
+def _shape_str(shape: tuple[int, ...]) -> str:
+    return "(" + ", ".join(str(n) for n in shape) + ")"
+
+
+def _labels_array(name: str, value: npt.ArrayLike, dims: str) -> np.ndarray:
+    array = np.asarray(value)
+    if array.dtype.kind not in "iub":
+        raise VolregIOError(f"Expected `{name}` of integer dtype (labels), got {array.dtype}.")
+    if array.ndim not in (2, 3) or 0 in array.shape:
+        raise VolregIOError(
+            f"Expected `{name}` of shape {dims} or its 2-D form, non-empty, got {_shape_str(array.shape)}."
+        )
+    return array
+
+
+def _spacing(name: str, value: Sequence[float] | npt.ArrayLike, ndim: int) -> np.ndarray:
+    try:
+        sp = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        sp = np.array([np.nan])
+    if sp.shape != (ndim,) or not np.all(np.isfinite(sp)) or not np.all(sp > 0):
+        raise VolregIOError(f"Expected `{name}` of {ndim} positive finite voxel sizes (mm), got {value!r}.")
+    return sp
+
+
+def write_report_figure(
+    path: str | os.PathLike[str],
+    fixed: npt.ArrayLike,
+    moving: npt.ArrayLike,
+    warped: npt.ArrayLike,
+    displacement: npt.ArrayLike,
+    *,
+    fixed_spacing: Sequence[float] | npt.ArrayLike,
+    moving_spacing: Sequence[float] | npt.ArrayLike,
+    force: bool = False,
+    title: str | None = None,
+) -> None:
+    """Write a PNG showing the labels, the warped moving labels and the deformed grid.
+
+    One row per orthogonal plane (axial ``k``, coronal ``j``, sagittal ``i``)
+    through the centre of the bounding box of the non-zero fixed labels (the
+    moving panel uses the centre of its own labels' bounding box); 2-D inputs
+    give a single row.  Four columns: the fixed labels, the moving labels, the
+    warped moving labels with the fixed labels' boundaries overlaid in white,
+    and a regular grid (lines every ~8 voxels) on the fixed slice moved by the
+    in-plane displacement over the faint fixed labels.  Each label value has
+    one colour in every panel (label 0 black); label boundaries are drawn
+    along voxel edges.  Panels have physical aspect (from the spacings),
+    origin lower left (first index axis horizontal), no ticks.  The figure is
+    1400 px wide at 100 dpi.
+
+    Parameters
+    ----------
+    path : path-like
+        Output file; must end in ``.png``.
+    fixed : array_like of int, shape (X, Y, Z) or (X, Y)
+        Fixed labels, ITK index order ``[i, j, k]``.
+    moving : array_like of int, shape (X', Y', Z') or (X', Y')
+        Moving labels on their own grid (same number of dimensions as ``fixed``).
+    warped : array_like of int, shape (X, Y, Z) or (X, Y)
+        Moving labels resampled onto the fixed grid.
+    displacement : array_like of float, shape (X, Y, Z, 3) or (X, Y, 2)
+        Displacement ``u(x)`` at each fixed voxel, in fixed-grid voxels along
+        ``i, j, k``: voxel ``x`` maps to ``x + u(x)``.
+    fixed_spacing, moving_spacing : sequence of float, length 3 (or 2)
+        Voxel sizes (mm) of the fixed and moving grids, used for each panel's
+        aspect ratio.
+    force : bool, default False
+        Overwrite an existing ``path``.
+    title : str, optional
+        Figure title.
+
+    Raises
+    ------
+    VolregIOError
+        If ``path`` does not end in ``.png``, the shapes, dtypes or spacings
+        do not match the above, ``path`` exists and ``force`` is false, or the
+        write fails; nothing is left behind on failure.
+    """
+    p = Path(path)
+    if not p.name.lower().endswith(".png") or p.name.lower() == ".png":
+        raise VolregIOError(f"Expected `path` ending in `.png` (a PNG file name), got `{p}`.")
+    fix = _labels_array("fixed", fixed, "(X, Y, Z)")
+    ndim = fix.ndim
+    dims = "(X, Y, Z)" if ndim == 3 else "(X, Y)"
+    mov = _labels_array("moving", moving, "(X', Y', Z')")
+    if mov.ndim != ndim:
+        primes = "(X', Y', Z')" if ndim == 3 else "(X', Y')"
+        raise VolregIOError(
+            f"Expected `moving` of shape {primes} ({ndim}-D like `fixed`), got {_shape_str(mov.shape)}."
+        )
+    war = _labels_array("warped", warped, dims)
+    if war.shape != fix.shape:
+        raise VolregIOError(
+            f"Expected `warped` of shape {dims} = {_shape_str(fix.shape)}, got {_shape_str(war.shape)}."
+        )
+    disp = np.asarray(displacement)
+    want = fix.shape + (ndim,)
+    disp_dims = dims[:-1] + f", {ndim})"
+    if disp.shape != want:
+        raise VolregIOError(
+            f"Expected `displacement` of shape {disp_dims} = {_shape_str(want)}, got {_shape_str(disp.shape)}."
+        )
+    if disp.dtype.kind not in "fiu":
+        raise VolregIOError(f"Expected `displacement` of real dtype (voxels), got {disp.dtype}.")
+    disp = disp.astype(float, copy=False)
+    fsp = _spacing("fixed_spacing", fixed_spacing, ndim)
+    msp = _spacing("moving_spacing", moving_spacing, ndim)
+    if title is not None and not isinstance(title, str):
+        raise VolregIOError(f"Expected `title` to be a string or None, got {type(title).__name__}.")
+
+    fc = _bbox_centre(fix)
+    mc = _bbox_centre(mov)
+    if ndim == 3:
+        planes: tuple[tuple[str, int | None, tuple[int, int]], ...] = _PLANES_3D
+    else:
+        planes = (("slice", None, (0, 1)),)
+
+    # Each row's height follows the taller of its fixed and moving panels (physical h / w).
+    panel_w = _WIDTH_IN * 0.95 / 4
+    row_h = []
+    for _, _, (ah, av) in planes:
+        ratio = max(
+            fix.shape[av] * fsp[av] / (fix.shape[ah] * fsp[ah]),
+            mov.shape[av] * msp[av] / (mov.shape[ah] * msp[ah]),
+        )
+        row_h.append(panel_w * float(np.clip(ratio, 0.3, 2.0)))
+    top_in = 0.95 if title else 0.45
+    bottom_in, gap_in = 0.15, 0.4
+    height_in = top_in + bottom_in + sum(row_h) + gap_in * (len(planes) - 1)
+
+    with atomic_output(p, force=force) as tmp:
+        fig = Figure(figsize=(_WIDTH_IN, height_in), dpi=_DPI, facecolor="white")
+        canvas = FigureCanvasAgg(fig)
+        grid = fig.add_gridspec(
+            len(planes),
+            4,
+            height_ratios=row_h,
+            left=0.035,
+            right=0.995,
+            top=1.0 - top_in / height_in,
+            bottom=bottom_in / height_in,
+            wspace=0.05,
+            hspace=gap_in / (sum(row_h) / len(row_h)),
+        )
+        if title:
+            fig.suptitle(title, fontsize=14, y=1.0 - 0.15 / height_in, va="top")
+        for row, (name, axis, (ah, av)) in enumerate(planes):
+            fix_aspect = float(fsp[av] / fsp[ah])
+            mov_aspect = float(msp[av] / msp[ah])
+            where = "" if axis is None else f" {_AXIS_NAMES[axis]}={fc[axis]}"
+            fix_sl = _take(fix, axis, fc[axis] if axis is not None else 0)
+            mov_sl = _take(mov, axis, mc[axis] if axis is not None else 0)
+            war_sl = _take(war, axis, fc[axis] if axis is not None else 0)
+            disp_sl = _take(disp, axis, fc[axis] if axis is not None else 0)[..., [ah, av]]
+            axes = [fig.add_subplot(grid[row, col]) for col in range(4)]
+
+            _draw_labels(axes[0], fix_sl, fix_aspect)
+            axes[0].set_ylabel(f"{name}{where}", fontsize=11)
+
+            _draw_labels(axes[1], mov_sl, mov_aspect)
+            if axis is not None:
+                axes[1].set_xlabel(f"moving {_AXIS_NAMES[axis]}={mc[axis]}", fontsize=9, labelpad=2)
+
+            _draw_labels(axes[2], war_sl, fix_aspect)
+            axes[2].add_collection(
+                LineCollection(_boundary_segments(fix_sl), colors="white", linewidths=0.6)
+            )
+
+            step = _draw_grid(axes[3], fix_sl, disp_sl, fix_aspect)
+            axes[3].set_xlabel(
+                f"grid every {step} voxels ({_AXIS_NAMES[ah]} \u2192, {_AXIS_NAMES[av]} \u2191)",
+                fontsize=9,
+                labelpad=2,
+            )
+            if row == 0:
+                for ax, column in zip(axes, _COLUMNS):
+                    ax.set_title(column, fontsize=11)
+        try:
+            canvas.print_png(str(tmp))
+        except OSError as exc:
+            raise VolregIOError(f"Figure `{p}` could not be written: {exc.strerror}.") from exc

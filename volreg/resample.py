@@ -1,0 +1,176 @@
+"""Resampling images through a warp: label-preserving for labels, linear or B-spline otherwise.
+
+All functions take the *positions* at which to sample -- world points (LPS mm),
+typically ``tau(x)`` at the voxel centres ``x`` of the fixed grid
+(:func:`volreg.field.warp_on_grid`) -- and the image to sample, with its
+geometry.  Points outside the image get the background (0).
+
+Label interpolation
+-------------------
+``"label"`` (the default for labels): for each label, a signed distance map
+(mm, negative inside, Euclidean distance transform of the mask and of its
+complement, ``scipy.ndimage.distance_transform_edt``) is interpolated
+linearly at the points; a point takes the label whose distance is most
+negative, and the background where every distance is positive.  The boundary
+then runs half-way between voxel centres of different labels and moves
+smoothly with the warp, instead of the staircase of nearest neighbour; only
+label values present in the input can come out, in the input's dtype, and at
+voxel centres (the identity) the input comes back bit for bit.  ``"nearest"``
+is nearest neighbour.  The same scheme as ITK's label-Gaussian interpolator and
+greedy's ``-ri LABEL``, with linear instead of Gaussian-smoothed indicators.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Literal
+
+import numpy as np
+from scipy import ndimage
+
+from .volume import LabelVolume
+
+__all__ = ["resample_labels", "resample_image", "signed_distance_map"]
+
+ProgressCallback = Callable[[str, int, int], None]
+
+
+def signed_distance_map(mask: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """Signed distance (mm) of each voxel centre to the mask's boundary: negative inside.
+
+    ``d = edt(outside) - edt(inside)``: an inside voxel gets minus its distance
+    to the nearest outside voxel, an outside voxel its distance to the nearest
+    inside voxel, so that linear interpolation crosses zero half-way between
+    an inside and an outside voxel.
+
+    Parameters
+    ----------
+    mask : (n_i, n_j[, n_k]) bool ndarray
+    spacing : (D,) float ndarray, mm
+
+    Returns
+    -------
+    float32 ndarray of ``mask.shape``, mm
+    """
+    mask = np.asarray(mask, dtype=bool)
+    outside = ndimage.distance_transform_edt(~mask, sampling=spacing) if mask.any() else np.full(mask.shape, np.inf)
+    inside = ndimage.distance_transform_edt(mask, sampling=spacing) if (~mask).any() else np.full(mask.shape, np.inf)
+    return (outside - inside).astype(np.float32)
+
+
+def _indices(image: LabelVolume, points: np.ndarray) -> np.ndarray:
+    """Continuous indices of world ``points`` (..., D) in ``image``, flattened to (N, D)."""
+    points = np.asarray(points, dtype=float)
+    if points.shape[-1] != image.ndim:
+        raise ValueError(f"Expected `points` with a last axis of length {image.ndim}, got shape {points.shape}.")
+    return image.world_to_index(points.reshape(-1, image.ndim))
+
+
+def resample_labels(
+    image: LabelVolume,
+    points: np.ndarray,
+    *,
+    method: Literal["label", "nearest"] = "label",
+    margin: int = 2,
+    progress: ProgressCallback | None = None,
+) -> np.ndarray:
+    """Sample a label volume at world points, keeping label identity.
+
+    Parameters
+    ----------
+    image : LabelVolume
+        The labels to sample (e.g. the moving image).
+    points : (..., D) float ndarray, LPS mm
+        Where to sample (e.g. ``tau(x)`` on the fixed grid).
+    method : {"label", "nearest"}
+        Per-label signed distances interpolated linearly, then the most
+        negative wins (see the module notes); or nearest neighbour.
+    margin : int
+        Voxels around each label's bounding box where its distance map is
+        computed (beyond, the label cannot win).
+    progress : callable, optional
+        ``progress("resample labels", done, total)`` per label.
+
+    Returns
+    -------
+    ndarray of ``points.shape[:-1]``, ``image.array.dtype``
+        Only values present in ``image`` (and 0) occur.
+    """
+    if method not in ("label", "nearest"):
+        raise ValueError(f"Expected `method` 'label' or 'nearest', got {method!r}.")
+    shape = np.shape(points)[:-1]
+    index = _indices(image, points)
+    array = image.array
+    # The image covers its voxels: continuous indices in [-1/2, n - 1/2] (as ITK).
+    size = np.array(image.shape)
+    valid = np.all((index >= -0.5) & (index <= size - 0.5), axis=1)
+    if method == "nearest":
+        nearest = np.clip(np.floor(index[valid] + 0.5).astype(np.int64), 0, size - 1)
+        out = np.zeros(len(index), dtype=array.dtype)
+        out[valid] = array[tuple(nearest.T)]
+        return out.reshape(shape)
+
+    out = np.zeros(len(index), dtype=array.dtype)
+    best = np.zeros(len(index), dtype=np.float32)  # a point is a label's only where its distance < 0
+    objects = ndimage.find_objects(np.where(array > 0, array, 0).astype(np.int64)) if array.min() >= 0 else None
+    labels = image.labels()
+    for n, value in enumerate(labels):
+        if objects is not None and value - 1 < len(objects) and objects[value - 1] is not None:
+            box = objects[value - 1]
+        else:
+            box = ndimage.find_objects((array == value).astype(np.int8))[0]
+        lo = np.array([max(s.start - margin, 0) for s in box])
+        hi = np.array([min(s.stop + margin, size) for s, size in zip(box, image.shape)])
+        # Points whose linear stencil touches the crop.
+        near = valid & np.all((index > lo - 1) & (index < hi), axis=1)
+        if near.any():
+            crop = array[tuple(slice(a, b) for a, b in zip(lo, hi))]
+            sdf = signed_distance_map(crop == value, image.spacing)
+            at = (index[near] - lo).T
+            d = ndimage.map_coordinates(sdf, at, order=1, mode="nearest")
+            win = d < best[near]
+            sel = np.flatnonzero(near)[win]
+            best[sel] = d[win]
+            out[sel] = value
+        if progress is not None:
+            progress("resample labels", n + 1, len(labels))
+    return out.reshape(shape)
+
+
+def resample_image(
+    array: np.ndarray,
+    geometry: LabelVolume,
+    points: np.ndarray,
+    *,
+    order: Literal[0, 1, 3] = 1,
+    fill: float = 0.0,
+) -> np.ndarray:
+    """Sample an intensity image at world points (nearest, linear or cubic B-spline).
+
+    Parameters
+    ----------
+    array : (n_i, n_j[, n_k]) real ndarray
+        The image values, ITK index order.
+    geometry : LabelVolume
+        Supplies the image's origin, spacing and direction (its array is not used).
+    points : (..., D) float ndarray, LPS mm
+    order : {0, 1, 3}
+        Interpolation order (``scipy.ndimage.map_coordinates``).
+    fill : float
+        Value outside the image.
+
+    Returns
+    -------
+    float64 ndarray of ``points.shape[:-1]``
+    """
+    if order not in (0, 1, 3):
+        raise ValueError(f"Expected `order` 0, 1 or 3, got {order!r}.")
+    array = np.asarray(array)
+    if array.shape != geometry.shape:
+        raise ValueError(f"Expected `array` of shape {geometry.shape} (the grid of `geometry`), got {array.shape}.")
+    shape = np.shape(points)[:-1]
+    index = _indices(geometry, points)
+    if order == 0:
+        index = np.floor(index + 0.5)
+    values = ndimage.map_coordinates(array.astype(np.float64, copy=False), index.T, order=max(order, 1) if order else 0,
+                                     mode="constant", cval=fill, prefilter=order == 3)
+    return values.reshape(shape)
