@@ -79,6 +79,21 @@ def _check_pair(fixed: LabelVolume, moving: LabelVolume, fixed_path, moving_path
         )
 
 
+def _json_safe(value):
+    """NaN and Inf -> None (JSON null), recursively; numpy scalars -> Python numbers."""
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
 def _prepare_outdir(outdir: Path, force: bool) -> list[Path]:
     """Create OUTDIR; refuse a non-empty one without ``force``."""
     if outdir.is_dir() and any(outdir.iterdir()) and not force:
@@ -183,6 +198,7 @@ def run_registration(
             report["stages"] = stages
             report["seconds"] = time.perf_counter() - t_all
             report["peak_rss_gb"] = round(_peak_rss_gb(), 3)
+            report = _json_safe(report)
             write_json(report, paths["report.json"], force=force)
             written.append(paths["report.json"])
     except BaseException:

@@ -5,7 +5,10 @@ For each level, from a kernel width of half the source diameter down to
 
 1. sample the warp volume X -- the source surfaces padded by ``pad`` mm -- by
    octree subdivision down to boxes of half the width (Section 3.5); the box
-   centres are both the level's kernel centres and its sample points;
+   centres are the level's kernel centres.  The locational cost is sampled at
+   the finest level's boxes on every level (not in the paper, whose coarse
+   levels see only their own few boxes), and each feature only within a band
+   around its source surface (``WarpSettings.band``);
 2. with landmarks, start from the convex problem (12): kernel ridge regression
    of the landmark residuals, solved exactly;
 3. minimise the objective (11) (:class:`~volreg.objective.LevelObjective`) over
@@ -350,6 +353,44 @@ def _diameter(points: np.ndarray) -> float:
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
 
 
+#: A label drives the warp by default when at least this fraction of its voxels lies in
+#: pieces holding >= 5 % of the label each (in both volumes).
+COMPACT_FRACTION = 0.9
+
+
+def despeckle(volume, labels, *, piece: float = 0.05):
+    """Remove each label's specks: connected pieces (face connectivity) smaller than
+    ``piece`` times the label's voxel count (they are set to 0).
+
+    Returns
+    -------
+    cleaned : LabelVolume
+    kept : dict of int to float
+        Per label, the fraction of its voxels that lies in the pieces kept.
+    """
+    from scipy import ndimage
+
+    array = volume.array.copy()
+    kept = {}
+    objects = ndimage.find_objects(np.where(volume.array > 0, volume.array, 0).astype(np.int64)) if volume.array.min() >= 0 else None
+    for v in labels:
+        box = objects[v - 1] if objects is not None and v - 1 < len(objects) and objects[v - 1] is not None else None
+        box = box if box is not None else tuple(slice(0, n) for n in volume.shape)
+        mask = volume.array[box] == v
+        pieces, n = ndimage.label(mask)
+        sizes = np.bincount(pieces.ravel())[1:]
+        total = int(sizes.sum())
+        if total == 0:
+            kept[v] = 0.0
+            continue
+        small = np.flatnonzero(sizes < piece * total) + 1
+        kept[v] = float(sizes[sizes >= piece * total].sum() / total)
+        if len(small):
+            sub = array[box]
+            sub[np.isin(pieces, small)] = 0
+    return volume.with_array(array), kept
+
+
 class RegistrationInputError(ValueError):
     """Inputs that cannot be registered (no common label, grids far apart, ...)."""
 
@@ -394,8 +435,11 @@ def register_labels(
     fixed, moving : LabelVolume
     drive_labels : sequence of int, optional
         Labels whose surfaces drive the warp; default every label present in
-        both volumes.  Labels too small to give a surface in either volume are
-        skipped (listed in ``result.skipped``).
+        both volumes except speckled ones (less than :data:`COMPACT_FRACTION` of
+        the voxels in pieces of at least 5 % of the label, see :func:`despeckle`).
+        Specks are removed before the surfaces are made.  Labels too small to
+        give a surface in either volume are skipped.  ``result.skipped`` says
+        which and why.
     landmarks : pair of (L, D) float ndarrays, optional
         Fixed-space points and their moving-space partners, LPS mm.
     protocol : Protocol, optional
@@ -441,11 +485,25 @@ def register_labels(
     import warnings
 
     skipped = []
+    clean_fixed, speckled_f = despeckle(fixed, labels)
+    clean_moving, speckled_m = despeckle(moving, labels)
+    if drive_labels is None:
+        # Speckled labels (a sheet broken into many pieces by the voxel grid) give pieces in
+        # one volume that have no partner in the other; their implicit surfaces then differ by
+        # tens of mm near the surfaces and mislead the warp.  They are warped, not driving.
+        for v in labels:
+            frac = min(speckled_f[v], speckled_m[v])
+            if frac < COMPACT_FRACTION:
+                skipped.append(f"Label {v} does not drive the warp: only {100 * frac:.0f} % of its voxels lie in "
+                               f"pieces of at least 5 % of the label (speckled); name it in drive_labels to use it anyway.")
+        labels = [v for v in labels if min(speckled_f[v], speckled_m[v]) >= COMPACT_FRACTION]
+        if not labels:
+            raise RegistrationInputError("Every common label is speckled (many small pieces); choose drive_labels explicitly.")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        s_fixed = label_surfaces(fixed, labels, on_small="warn", smoothing=protocol.surface.smoothing, progress=progress)
-        s_moving = label_surfaces(moving, labels, on_small="warn", smoothing=protocol.surface.smoothing, progress=progress)
-    skipped = [str(w.message) for w in caught]
+        s_fixed = label_surfaces(clean_fixed, labels, on_small="warn", smoothing=protocol.surface.smoothing, progress=progress)
+        s_moving = label_surfaces(clean_moving, labels, on_small="warn", smoothing=protocol.surface.smoothing, progress=progress)
+    skipped += [str(w.message) for w in caught]
     used = [v for v in labels if v in s_fixed and v in s_moving]
     if not used:
         raise RegistrationInputError(f"No label of {labels[:30]} gives a surface in both volumes; nothing drives the warp.")
