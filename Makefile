@@ -1,4 +1,5 @@
-# make demo : surfaces of four frog organs (examples/frog_demo.py) into demo-output/
+# make demo : the main job, `volreg demo`: pyvista's frog labels registered to a copy deformed
+#             by a known warp, every output of `volreg register` into demo-output/
 # make test : the test suite
 # Both create .venv with python3 if it is missing and install volreg (editable) with its
 # test extra; the install is redone only when pyproject.toml changes.
@@ -11,7 +12,7 @@ STAMP  := $(VENV)/.volreg-installed
 .PHONY: demo test
 
 demo: $(STAMP)
-	$(PY) examples/frog_demo.py demo-output
+	$(VENV)/bin/volreg demo -o demo-output --force
 
 test: $(STAMP)
 	$(PY) -m pytest -q
