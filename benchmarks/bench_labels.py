@@ -101,14 +101,19 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--peers", action="store_true")
+    parser.add_argument("--methods", default=None, help="comma-separated subset, e.g. ants-SyNOnly,volreg-fast")
+    parser.add_argument("--no-interpolation", action="store_true", help="skip the interpolation table")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         print(json.dumps(run_one(args.one)))
         return
     methods = ["volreg-fast", "volreg-default"] + (["ants-SyNOnly"] if args.peers else [])
-    print(interpolation_check())
-    print()
+    if args.methods:
+        methods = args.methods.split(",")
+    if not args.no_interpolation:
+        print(interpolation_check())
+        print()
     print("| method | mean Dice | endpoint error mean / p95 (mm) | folded | wall s (runs) | peak RSS GB |")
     print("|---|---|---|---|---|---|")
     for method in methods:
