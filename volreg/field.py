@@ -30,14 +30,7 @@ def support_slices(warp, reference: LabelVolume) -> tuple[slice, ...] | None:
     bounds = warp.bounds()
     if bounds is None:
         return None
-    lo, hi = bounds
-    corners = np.array(list(np.ndindex(*([2] * reference.ndim))), dtype=float)
-    box = reference.world_to_index(lo + corners * (hi - lo))
-    start = np.clip(np.floor(box.min(axis=0)).astype(int), 0, reference.shape)
-    stop = np.clip(np.ceil(box.max(axis=0)).astype(int) + 1, 0, reference.shape)
-    if np.any(stop <= start):
-        return None
-    return tuple(slice(int(a), int(b)) for a, b in zip(start, stop))
+    return reference.index_window(*bounds)
 
 
 def _on_grid(warp, reference: LabelVolume, order: int, chunk: int, progress: ProgressCallback | None, stage: str):

@@ -329,18 +329,15 @@ def implicit_on_grid(surface: ImplicitSurface, volume: LabelVolume, *, chunk: in
     ndarray of float32, shape ``volume.shape``, mm
     """
     out = np.full(volume.shape, surface.offset, dtype=np.float32)
-    lo, hi = surface.bounds()
-    corners = np.array(list(np.ndindex(*([2] * volume.ndim))), dtype=float)
-    box = volume.world_to_index(lo + corners * (hi - lo))
-    start = np.clip(np.floor(box.min(axis=0)).astype(int), 0, volume.shape)
-    stop = np.clip(np.ceil(box.max(axis=0)).astype(int) + 1, 0, volume.shape)
-    if np.any(stop <= start):
+    window = volume.index_window(*surface.bounds())
+    if window is None:
         return out
-    sub_shape = tuple(int(b - a) for a, b in zip(start, stop))
+    start = np.array([w.start for w in window])
+    sub_shape = tuple(w.stop - w.start for w in window)
     total = int(np.prod(sub_shape))
     values = np.empty(total, dtype=np.float32)
     for s in range(0, total, chunk):
         idx = np.stack(np.unravel_index(np.arange(s, min(s + chunk, total)), sub_shape), axis=1) + start
         values[s : s + chunk] = surface(volume.index_to_world(idx))
-    out[tuple(slice(a, b) for a, b in zip(start, stop))] = values.reshape(sub_shape)
+    out[window] = values.reshape(sub_shape)
     return out

@@ -114,6 +114,19 @@ class LabelVolume:
         idx = np.stack(np.meshgrid(*[np.arange(n) for n in self.shape], indexing="ij"), axis=-1)
         return self.index_to_world(idx.reshape(-1, self.ndim)).reshape(*self.shape, self.ndim)
 
+    def index_window(self, lo: np.ndarray, hi: np.ndarray) -> tuple[slice, ...] | None:
+        """Index slices covering the world box ``[lo, hi]`` (each (D,), mm), clipped to the grid.
+
+        ``None`` when the box misses the grid.
+        """
+        corners = np.array(list(np.ndindex(*([2] * self.ndim))), dtype=float)
+        box = self.world_to_index(np.asarray(lo, float) + corners * (np.asarray(hi, float) - lo))
+        start = np.clip(np.floor(box.min(axis=0)).astype(int), 0, self.shape)
+        stop = np.clip(np.ceil(box.max(axis=0)).astype(int) + 1, 0, self.shape)
+        if np.any(stop <= start):
+            return None
+        return tuple(slice(int(a), int(b)) for a, b in zip(start, stop))
+
     def labels(self) -> np.ndarray:
         """Sorted non-zero label values present in the volume."""
         values = np.unique(self.array)
