@@ -21,11 +21,11 @@ import numpy as np
 from . import __version__
 from .cli import PROG, UsageError, _make_directory, _remove_directories
 from .field import displacement_on_grid, jacobian_determinant_on_grid
-from .io import VolregIOError, check_writable, read_image, read_labels, write_json, write_labels, write_scalar
+from .io import check_writable, read_image, read_labels, write_json, write_labels, write_scalar
 from .io.fields import read_displacement, write_displacement
 from .io.landmarks import read_landmarks
 from .io.report_figure import write_report_figure
-from .metrics import dice, folded_fraction, label_scores
+from .metrics import folded_fraction, label_scores
 from .pipeline import register_labels
 from .progress import ProgressBars
 from .protocol import PROTOCOL_DIR, Protocol, load_protocol
@@ -311,12 +311,12 @@ def _demo(args: argparse.Namespace) -> int:
     try:
         write_labels(fixed, args.output / "fixed.nii.gz", force=args.force)
         write_labels(moving, args.output / "moving.nii.gz", force=args.force)
-    except BaseException:
+        report = run_registration(fixed, moving, args.output, protocol=protocol, force=True, quiet=args.quiet,
+                                  inputs=inputs, truth=truth)
+    except BaseException:  # leave nothing half-done: the inputs written above go too
         for name in ("fixed.nii.gz", "moving.nii.gz"):
             (args.output / name).unlink(missing_ok=True)
         _remove_directories(created)
         raise
-    report = run_registration(fixed, moving, args.output, protocol=protocol, force=True, quiet=args.quiet,
-                              inputs=inputs, truth=truth)
     print(_summary_line("demo", report, args.output))
     return 0
