@@ -161,11 +161,12 @@ def test_apply_linear_intensity(known_pair, tmp_path):
     assert 0 <= out.min() and out.max() <= 200.0 + 1e-3
 
 
-def test_identity_registration(tmp_path):
+def test_identity_registration(tmp_path, capsys):
     """Registering a volume to itself: labels bit-identical, |u| <= 0.01 voxel."""
     vol = blob_volume()
     write_labels(vol, tmp_path / "a.nii.gz")
-    assert run(["register", tmp_path / "a.nii.gz", tmp_path / "a.nii.gz", "-o", tmp_path / "out", "--quiet"]) == 0
+    assert run(["register", tmp_path / "a.nii.gz", tmp_path / "a.nii.gz", "-o", tmp_path / "out", "--quiet", "-v"]) == 0
+    assert "level 0: width" in capsys.readouterr().err  # -v logs each warp level
     warped = read_labels(tmp_path / "out" / "warped.nii.gz")
     assert np.array_equal(warped.array, vol.array)
     u, _ = read_displacement(tmp_path / "out" / "warp.nii.gz")

@@ -113,6 +113,8 @@ def run_registration(
     quiet: bool,
     inputs: dict,
     truth=None,
+    verbose: bool = False,
+    command: str = "register",
 ) -> dict:
     """Register, write every output atomically into ``outdir`` (created), return the report."""
     created = _prepare_outdir(outdir, force)
@@ -127,6 +129,20 @@ def run_registration(
                                      protocol=protocol, progress=progress)
             for st in result.stages:
                 stages.append(dict(st, peak_rss_gb=round(_peak_rss_gb(), 3)))
+            if verbose:
+                def log(text: str) -> None:
+                    print(f"{PROG} {command}: {text}", file=sys.stderr)
+
+                log(f"driving labels {result.labels}")
+                for note in result.skipped:
+                    log(note)
+                for st in result.stages:
+                    log(f"{st['stage']}: {st['seconds']:.1f} s")
+                for lev in result.log:
+                    log(f"level {lev['level']}: width {lev['width']:.1f} mm, {lev['centres']} centres, "
+                        f"{lev['samples']} samples, {lev['iterations']} iterations, objective "
+                        f"{lev['objective_start']:.4g} -> {lev['objective']:.4g}, fold scale {lev['fold_scale']:.2f}, "
+                        f"{lev['seconds']:.1f} s")
 
             t0 = time.perf_counter()
             u = displacement_on_grid(result.warp, fixed, progress=progress)
@@ -246,7 +262,8 @@ def _register(args: argparse.Namespace) -> int:
     if landmarks is not None:
         inputs["landmarks"] = [{"path": str(p), "sha256": _sha256(p)} for p in args.landmarks]
     report = run_registration(fixed, moving, args.output, protocol=protocol, drive_labels=args.drive_labels,
-                              landmarks=landmarks, force=args.force, quiet=args.quiet, inputs=inputs)
+                              landmarks=landmarks, force=args.force, quiet=args.quiet, inputs=inputs,
+                              verbose=args.verbose)
     print(_summary_line("register", report, args.output))
     return 0
 
@@ -312,7 +329,7 @@ def _demo(args: argparse.Namespace) -> int:
         write_labels(fixed, args.output / "fixed.nii.gz", force=args.force)
         write_labels(moving, args.output / "moving.nii.gz", force=args.force)
         report = run_registration(fixed, moving, args.output, protocol=protocol, force=True, quiet=args.quiet,
-                                  inputs=inputs, truth=truth)
+                                  inputs=inputs, truth=truth, verbose=args.verbose, command="demo")
     except BaseException:  # leave nothing half-done: the inputs written above go too
         for name in ("fixed.nii.gz", "moving.nii.gz"):
             (args.output / name).unlink(missing_ok=True)

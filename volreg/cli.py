@@ -168,6 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--protocol", metavar="NAME|FILE", default="fast", help="protocol preset or TOML file (default: fast)")
     demo.add_argument("--force", action="store_true", help="overwrite existing outputs")
     demo.add_argument("--quiet", action="store_true", help="no progress bars")
+    demo.add_argument("-v", "--verbose", action="store_true", help="log each stage and warp level to stderr")
     demo.set_defaults(run=_demo)
     return parser
 
@@ -183,6 +184,7 @@ def _common_register_options(parser: argparse.ArgumentParser) -> None:
                         help="corresponding points (.csv x,y,z LPS mm, Slicer .fcsv or .mrk.json)")
     parser.add_argument("--force", action="store_true", help="write into an existing OUTDIR, replacing outputs")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log each stage and warp level to stderr")
 
 
 # --------------------------------------------------------------------------- helpers
