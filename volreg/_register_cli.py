@@ -145,14 +145,15 @@ def run_registration(
                         f"{lev['seconds']:.1f} s")
 
             t0 = time.perf_counter()
+            grid = fixed.grid_points()  # (X, Y, Z, 3) mm, used below for every comparison
             u = displacement_on_grid(result.warp, fixed, progress=progress)
-            points = fixed.grid_points() + u
+            points = grid + u
             warped_array = resample_labels(moving, points, method="label", progress=progress)
             jac = jacobian_determinant_on_grid(result.warp, fixed, progress=progress)
             stages.append(dict(stage="resample", seconds=time.perf_counter() - t0, peak_rss_gb=round(_peak_rss_gb(), 3)))
 
             t0 = time.perf_counter()
-            before = resample_labels(moving, fixed.grid_points(), method="nearest")
+            before = resample_labels(moving, grid, method="nearest")
             labels = sorted(set(fixed.labels().tolist()) | set(moving.labels().tolist()))
             scores_before = label_scores(fixed.array, before, labels, fixed.spacing)
             scores_after = label_scores(fixed.array, warped_array, labels, fixed.spacing)
@@ -186,8 +187,8 @@ def run_registration(
                 "versions": _versions(),
             }
             if truth is not None:
-                gp = fixed.grid_points().reshape(-1, fixed.ndim)[inside.ravel()]
-                err = np.linalg.norm(points.reshape(-1, fixed.ndim)[inside.ravel()] - truth(gp), axis=1)
+                gp = grid[inside]
+                err = np.linalg.norm(points[inside] - truth(gp), axis=1)
                 err0 = np.linalg.norm(truth(gp) - gp, axis=1)
                 report["endpoint_error_mm"] = {
                     "mean": float(err.mean()), "p95": float(np.percentile(err, 95)), "max": float(err.max()),
@@ -271,33 +272,34 @@ def _register(args: argparse.Namespace) -> int:
 def _apply(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     reference = _reference_grid(args.reference)
+    at = reference.grid_points()  # (X, Y, Z, 3) mm
     name = args.warp.name.lower()
-    if name.endswith(".npz"):
-        warp = KernelWarp.load(args.warp)
-        if warp.dim != reference.ndim:
-            raise UsageError(f"Model `{args.warp}` is {warp.dim}-D but --reference `{args.reference}` is {reference.ndim}-D.")
-        u = displacement_on_grid(warp, reference)
-    elif name.endswith(".nii") or name.endswith(".nii.gz"):
-        u_field, grid = read_displacement(args.warp)
-        if grid.ndim != reference.ndim:
-            raise UsageError(f"Warp `{args.warp}` is {grid.ndim}-D but --reference `{args.reference}` is {reference.ndim}-D.")
-        if grid.same_geometry(reference):
-            u = u_field
-        else:  # as ITK: the field is interpolated linearly at the reference voxels, zero outside it
-            pts = reference.grid_points()
-            u = np.stack([resample_image(u_field[..., d], grid, pts, order=1) for d in range(grid.ndim)], axis=-1)
-    else:
-        raise UsageError(f"MODEL_OR_WARP `{args.warp}` must be a model.npz or a displacement field .nii/.nii.gz.")
-    points = reference.grid_points() + u
-    if args.interpolation in ("label", "nearest"):
-        image = read_labels(args.image)
-        out = resample_labels(image, points, method=args.interpolation)
-        write_labels(reference.with_array(out.astype(image.array.dtype, copy=False)), args.output, force=args.force)
-    else:
-        array, origin, spacing, direction = read_image(args.image)
-        geometry = LabelVolume(np.zeros(array.shape, np.uint8), origin, spacing, direction)
-        values = resample_image(array, geometry, points, order=1 if args.interpolation == "linear" else 3)
-        write_scalar(values, reference, args.output, force=args.force)
+    with ProgressBars(quiet=args.quiet) as progress:
+        if name.endswith(".npz"):
+            warp = KernelWarp.load(args.warp)
+            if warp.dim != reference.ndim:
+                raise UsageError(f"Model `{args.warp}` is {warp.dim}-D but --reference `{args.reference}` is {reference.ndim}-D.")
+            u = displacement_on_grid(warp, reference, progress=progress)
+        elif name.endswith(".nii") or name.endswith(".nii.gz"):
+            u_field, grid = read_displacement(args.warp)
+            if grid.ndim != reference.ndim:
+                raise UsageError(f"Warp `{args.warp}` is {grid.ndim}-D but --reference `{args.reference}` is {reference.ndim}-D.")
+            if grid.same_geometry(reference):
+                u = u_field
+            else:  # as ITK: the field is interpolated linearly at the reference voxels, zero outside it
+                u = np.stack([resample_image(u_field[..., d], grid, at, order=1) for d in range(grid.ndim)], axis=-1)
+        else:
+            raise UsageError(f"MODEL_OR_WARP `{args.warp}` must be a model.npz or a displacement field .nii/.nii.gz.")
+        points = at + u
+        if args.interpolation in ("label", "nearest"):
+            image = read_labels(args.image)
+            out = resample_labels(image, points, method=args.interpolation, progress=progress)
+            write_labels(reference.with_array(out.astype(image.array.dtype, copy=False)), args.output, force=args.force)
+        else:
+            array, origin, spacing, direction = read_image(args.image)
+            geometry = LabelVolume(np.zeros(array.shape, np.uint8), origin, spacing, direction)
+            values = resample_image(array, geometry, points, order=1 if args.interpolation == "linear" else 3)
+            write_scalar(values, reference, args.output, force=args.force)
     print(f"{PROG} apply: {args.image} -> {args.output} ({args.interpolation}) in {time.perf_counter() - start:.1f} s")
     return 0
 

@@ -1,4 +1,4 @@
-"""Dense fields of a warp on a voxel grid: positions, displacements, Jacobian determinants.
+"""Dense fields of a warp on a voxel grid: displacements and Jacobian determinants.
 
 A warp (:class:`~volreg.warp.KernelWarp` or anything with ``evaluate``) is
 continuous; these functions sample it at the voxel centres of a reference grid
@@ -15,7 +15,7 @@ import numpy as np
 
 from .volume import LabelVolume
 
-__all__ = ["warp_on_grid", "displacement_on_grid", "jacobian_determinant_on_grid", "support_slices"]
+__all__ = ["displacement_on_grid", "jacobian_determinant_on_grid", "support_slices"]
 
 ProgressCallback = Callable[[str, int, int], None]
 
@@ -49,31 +49,6 @@ def _on_grid(warp, reference: LabelVolume, order: int, chunk: int, progress: Pro
         yield flat, points, warp.evaluate(points, order=order)
         if progress is not None:
             progress(stage, min(s + chunk, total), total)
-
-
-def warp_on_grid(
-    warp, reference: LabelVolume, *, chunk: int = 1 << 18, progress: ProgressCallback | None = None
-) -> np.ndarray:
-    """``tau(x)`` at every voxel centre ``x`` of ``reference``.
-
-    Parameters
-    ----------
-    warp : KernelWarp or ComposedWarp
-    reference : LabelVolume
-        The grid (shape, origin, spacing, direction); its labels are not used.
-    chunk : int
-        Points per evaluation.
-    progress : callable, optional
-        ``progress("evaluate warp", done, total)``.
-
-    Returns
-    -------
-    (*reference.shape, D) float64 ndarray, LPS mm
-    """
-    out = reference.grid_points().reshape(-1, reference.ndim)
-    for flat, _, (tau, *_) in _on_grid(warp, reference, 0, chunk, progress, "evaluate warp"):
-        out[flat] = tau
-    return out.reshape(*reference.shape, reference.ndim)
 
 
 def displacement_on_grid(

@@ -23,6 +23,7 @@ For each level, from a kernel width of half the source diameter down to
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from typing import Callable, Sequence
 
@@ -496,8 +497,6 @@ def register_labels(
             )
     stages = []
     t0 = time.perf_counter()
-    import warnings
-
     skipped = []
     clean_fixed, speckled_f = despeckle(fixed, labels)
     clean_moving, speckled_m = despeckle(moving, labels)

@@ -1,8 +1,8 @@
 """Resampling images through a warp: label-preserving for labels, linear or B-spline otherwise.
 
 All functions take the *positions* at which to sample -- world points (LPS mm),
-typically ``tau(x)`` at the voxel centres ``x`` of the fixed grid
-(:func:`volreg.field.warp_on_grid`) -- and the image to sample, with its
+typically ``tau(x) = x + u(x)`` at the voxel centres ``x`` of the fixed grid
+(:func:`volreg.field.displacement_on_grid`) -- and the image to sample, with its
 geometry.  Points outside the image get the background (0).
 
 Label interpolation
