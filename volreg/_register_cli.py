@@ -21,6 +21,7 @@ import numpy as np
 from . import __version__
 from .cli import PROG, UsageError, _make_directory, _remove_directories
 from .field import displacement_on_grid, jacobian_determinant_on_grid
+from .inverse import InverseWarp
 from .io import check_writable, read_image, read_labels, write_json, write_labels, write_scalar
 from .io.fields import read_displacement, write_displacement
 from .io.landmarks import read_landmarks
@@ -33,7 +34,9 @@ from .resample import resample_image, resample_labels
 from .volume import LabelVolume
 from .warp import KernelWarp
 
-OUTPUTS = ("warp.nii.gz", "warped.nii.gz", "model.npz", "jacobian.nii.gz", "report.json", "report.png")
+OUTPUTS = (
+    "warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz", "model.npz", "jacobian.nii.gz", "report.json", "report.png",
+)
 
 
 def _peak_rss_gb() -> float:
@@ -153,6 +156,11 @@ def run_registration(
             stages.append(dict(stage="resample", seconds=time.perf_counter() - t0, peak_rss_gb=round(_peak_rss_gb(), 3)))
 
             t0 = time.perf_counter()
+            inverse = InverseWarp(result.warp)
+            u_inverse = displacement_on_grid(inverse, moving, progress=progress, stage="invert warp")
+            stages.append(dict(stage="inverse", seconds=time.perf_counter() - t0, peak_rss_gb=round(_peak_rss_gb(), 3)))
+
+            t0 = time.perf_counter()
             before = resample_labels(moving, grid, method="nearest")
             labels = sorted(set(fixed.labels().tolist()) | set(moving.labels().tolist()))
             scores_before = label_scores(fixed.array, before, labels, fixed.spacing)
@@ -182,6 +190,12 @@ def run_registration(
                     "max": float(np.linalg.norm(u, axis=-1).max()),
                     "mean_in_labels": float(np.linalg.norm(u[inside], axis=-1).mean()) if inside.any() else 0.0,
                 },
+                "inverse": {
+                    "method": "Newton iteration with the analytic Jacobian, on the moving grid",
+                    "tolerance_mm": inverse.tol,
+                    "max_residual_mm": inverse.max_residual,
+                    "unconverged_voxels": inverse.unconverged,
+                },
                 "levels": result.log,
                 "protocol": protocol.to_dict(),
                 "versions": _versions(),
@@ -201,6 +215,8 @@ def run_registration(
             written.append(paths["model.npz"])
             write_displacement(u, fixed, paths["warp.nii.gz"], force=force)
             written.append(paths["warp.nii.gz"])
+            write_displacement(u_inverse, moving, paths["inverse_warp.nii.gz"], force=force)
+            written.append(paths["inverse_warp.nii.gz"])
             write_labels(fixed.with_array(warped_array.astype(moving.array.dtype, copy=False)), paths["warped.nii.gz"], force=force)
             written.append(paths["warped.nii.gz"])
             write_scalar(jac, fixed, paths["jacobian.nii.gz"], force=force)

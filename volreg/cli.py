@@ -170,6 +170,31 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--quiet", action="store_true", help="no progress bars")
     demo.add_argument("-v", "--verbose", action="store_true", help="log each stage and warp level to stderr")
     demo.set_defaults(run=_demo)
+
+    consistency = commands.add_parser(
+        "consistency",
+        help="the consistency test: register A->B and B->A, compose, report the error",
+        description="Register A to B and B to A (into OUTDIR/forward and OUTDIR/backward), or load both "
+        "directions saved by `volreg register` (--forward, --backward), compose tau_BA(tau_AB(x)) at every voxel "
+        "of A's padded labels and at A's surface vertices, and write consistency.json (inverse-consistency error "
+        "in mm and voxels: mean, median, p95, max; round-trip Dice per label), consistency_error.nii.gz (the error "
+        "on A's grid) and consistency.png.",
+    )
+    consistency.add_argument("a", metavar="A", type=Path, help="label volume A")
+    consistency.add_argument("b", metavar="B", type=Path, help="label volume B")
+    consistency.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
+    consistency.add_argument("--forward", metavar="RESULT_AB", type=Path, default=None,
+                             help="OUTDIR of `volreg register A B` (skip registering; needs --backward)")
+    consistency.add_argument("--backward", metavar="RESULT_BA", type=Path, default=None,
+                             help="OUTDIR of `volreg register B A` (needs --forward)")
+    consistency.add_argument("--protocol", metavar="NAME|FILE", default=None,
+                             help="protocol preset or TOML file for both registrations (default: default)")
+    consistency.add_argument("--drive-labels", metavar="IDS", type=_label_list, default=None,
+                             help="labels whose surfaces drive both warps (default: as `volreg register`)")
+    consistency.add_argument("--force", action="store_true", help="write into an existing OUTDIR, replacing outputs")
+    consistency.add_argument("--quiet", action="store_true", help="no progress bars")
+    consistency.add_argument("-v", "--verbose", action="store_true", help="log each stage and warp level to stderr")
+    consistency.set_defaults(run=_consistency)
     return parser
 
 
@@ -351,6 +376,7 @@ def _surface(args: argparse.Namespace) -> int:
 
 
 from ._register_cli import _apply, _demo, _protocols, _register  # noqa: E402  (they use the helpers above)
+from ._consistency_cli import run_consistency as _consistency  # noqa: E402
 
 
 # --------------------------------------------------------------------------- entry point

@@ -1,8 +1,9 @@
 """Dense fields of a warp on a voxel grid: displacements and Jacobian determinants.
 
-A warp (:class:`~volreg.warp.KernelWarp` or anything with ``evaluate``) is
-continuous; these functions sample it at the voxel centres of a reference grid
-(a :class:`~volreg.volume.LabelVolume`, whose array is not used).  Only the
+A warp (:class:`~volreg.warp.KernelWarp`, :class:`~volreg.inverse.InverseWarp` or
+anything with ``evaluate``) is continuous; these functions sample it at the
+voxel centres of a reference grid (a :class:`~volreg.volume.LabelVolume`,
+whose array is not used).  Only the
 voxels inside the warp's support box are evaluated -- elsewhere ``tau(x) = x``
 exactly -- in chunks, with a progress callback.
 """
@@ -52,7 +53,12 @@ def _on_grid(warp, reference: LabelVolume, order: int, chunk: int, progress: Pro
 
 
 def displacement_on_grid(
-    warp, reference: LabelVolume, *, chunk: int = 1 << 18, progress: ProgressCallback | None = None
+    warp,
+    reference: LabelVolume,
+    *,
+    chunk: int = 1 << 18,
+    progress: ProgressCallback | None = None,
+    stage: str = "evaluate warp",
 ) -> np.ndarray:
     """``u(x) = tau(x) - x`` at every voxel centre of ``reference``.
 
@@ -63,7 +69,7 @@ def displacement_on_grid(
         call a displacement field on the fixed (reference) grid.
     """
     out = np.zeros((int(np.prod(reference.shape)), reference.ndim))
-    for flat, points, (tau, *_) in _on_grid(warp, reference, 0, chunk, progress, "evaluate warp"):
+    for flat, points, (tau, *_) in _on_grid(warp, reference, 0, chunk, progress, stage):
         out[flat] = tau - points
     return out.reshape(*reference.shape, reference.ndim)
 

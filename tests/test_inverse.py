@@ -1,0 +1,87 @@
+"""The Newton inverse of kernel warps (volreg.inverse) on points and on grids."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volreg import LabelVolume
+from volreg.field import displacement_on_grid
+from volreg.inverse import InverseWarp, invert_points
+from volreg.warp import KernelWarp, WarpLevel
+
+
+def smooth_warp(dim: int, seed: int = 0, strength: float = 1.0) -> KernelWarp:
+    """A random three-level kernel warp on [0, 100]^dim mm (max displacement a few mm, det J > 0.5)."""
+    rng = np.random.default_rng(seed)
+    levels = []
+    for width, amp in ((40.0, 0.25), (20.0, 0.12), (10.0, 0.05)):
+        n = 60 if dim == 2 else 200
+        levels.append(WarpLevel(rng.uniform(0, 100, (n, dim)), strength * rng.normal(0, amp, (n, dim)), width=width))
+    return KernelWarp(levels, dim=dim)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_newton_inverse_round_trips(dim):
+    """tau(tau^-1(y)) = y and tau^-1(tau(x)) = x to <= 1e-3 voxel (1 mm voxels) on the support."""
+    warp = smooth_warp(dim)
+    rng = np.random.default_rng(1)
+    y = rng.uniform(0, 100, (20000, dim))
+    assert np.linalg.det(warp.jacobian(y)).min() > 0.3  # the warp is invertible here
+    assert np.linalg.norm(warp.displacement(y), axis=1).max() > 2.0  # and moves points by millimetres
+    sol = invert_points(warp, y)
+    assert sol.converged.all() and sol.residual.max() <= 1e-6
+    assert np.abs(warp(sol.points) - y).max() <= 1e-3
+    x = rng.uniform(0, 100, (20000, dim))
+    assert np.abs(invert_points(warp, warp(x)).points - x).max() <= 1e-3
+    assert sol.iterations <= 10  # Newton converges in a few steps
+
+
+def test_outside_support_and_identity_are_exact():
+    warp = smooth_warp(3)
+    lo, hi = warp.bounds()
+    far = np.array([hi + 1.0, lo - 5.0, [hi[0] + 2.0, 50.0, 50.0]])
+    sol = invert_points(warp, far)
+    assert np.array_equal(sol.points, far) and np.all(sol.residual == 0.0)
+    pts = np.random.default_rng(2).uniform(0, 100, (100, 3))
+    assert np.array_equal(invert_points(KernelWarp.identity(3), pts).points, pts)
+
+
+def test_inverse_jacobian_is_inverse_matrix_and_matches_differences():
+    warp = smooth_warp(3)
+    inv = InverseWarp(warp)
+    y = np.random.default_rng(3).uniform(20, 80, (50, 3))
+    x, jinv = inv.evaluate(y, order=1)
+    assert np.allclose(jinv @ warp.jacobian(x), np.eye(3), atol=1e-10)
+    h = 1e-4
+    fd = np.stack([(inv(y + h * e) - inv(y - h * e)) / (2 * h) for e in np.eye(3)], axis=-1)
+    assert np.abs(fd - jinv).max() < 1e-5
+    assert inv.max_residual <= 1e-6 and inv.unconverged == 0
+
+
+def test_inverse_on_grid_composes_to_identity():
+    """displacement_on_grid(InverseWarp) is the ANTs InverseWarp field: y + v(y) = tau^-1(y)."""
+    warp = smooth_warp(3, seed=4)
+    grid = LabelVolume(np.zeros((26, 24, 22), np.uint8), origin=(-5.0, 0.0, 3.0),
+                       spacing=(4.0, 4.5, 5.0), direction=np.eye(3))
+    v = displacement_on_grid(InverseWarp(warp), grid)
+    y = grid.grid_points().reshape(-1, 3)
+    assert np.abs(warp(y + v.reshape(-1, 3)) - y).max() <= 1e-3 * 4.0
+    assert np.abs(v).max() > 1.0
+
+
+def test_folding_warp_reports_residual():
+    """A warp that folds has no inverse everywhere: the solver stops, and says so per point."""
+    warp = smooth_warp(3, strength=12.0)
+    y = np.random.default_rng(5).uniform(0, 100, (5000, 3))
+    assert np.linalg.det(warp.jacobian(y)).min() < 0  # folds
+    sol = invert_points(warp, y, max_iter=20)
+    assert np.array_equal(sol.converged, sol.residual <= 1e-6)
+    assert np.allclose(sol.residual, np.linalg.norm(warp(sol.points) - y, axis=1))
+    assert sol.converged.mean() > 0.5  # most points still have a preimage
+
+
+@pytest.mark.parametrize("kwargs, match", [({"tol": 0.0}, "tol"), ({"max_iter": 0}, "max_iter")])
+def test_bad_arguments(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        invert_points(smooth_warp(2), np.zeros((1, 2)), **kwargs)
