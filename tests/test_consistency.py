@@ -158,3 +158,21 @@ def test_round_trip_labels_through_exact_inverse():
     on_b, back = round_trip_labels(a, a, warp, InverseWarp(warp))
     assert set(np.unique(back)) <= {0, 1, 2} and not np.array_equal(on_b, a.array)
     assert (back != a.array).mean() < 0.002
+
+
+def test_symmetric_option_lowers_the_error(both_ways, tmp_path):
+    """lambda_consistency > 0 pulls the backward fit towards the forward warp's inverse: the error at
+    least halves (measured 0.155 -> 0.038 voxel mean at 1000) and the backward Dice does not drop."""
+    d, *_ = both_ways
+    (tmp_path / "sym.toml").write_text(TEST_PROTOCOL + "lambda_consistency = 1000.0\n")
+    assert run(["consistency", d / "a.nii.gz", d / "b.nii.gz", "-o", tmp_path / "sym", "--protocol",
+                tmp_path / "sym.toml", "--quiet"]) == 0
+    plain = json.loads((d / "out" / "consistency.json").read_text())
+    sym = json.loads((tmp_path / "sym" / "consistency.json").read_text())
+    assert (plain["lambda_consistency"], sym["lambda_consistency"]) == (0.0, 1000.0)
+    assert sym["region"]["mean_mm"] <= 0.5 * plain["region"]["mean_mm"]
+    assert sym["region"]["p95_mm"] <= 0.5 * plain["region"]["p95_mm"]
+    back_plain = plain["directions"]["backward"]["mean_dice"]["after"]
+    assert sym["directions"]["backward"]["mean_dice"]["after"] >= back_plain - 0.005
+    # the forward direction is registered exactly as without the option
+    assert sym["directions"]["forward"]["mean_dice"] == plain["directions"]["forward"]["mean_dice"]

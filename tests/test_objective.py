@@ -47,16 +47,22 @@ def _objective(dim, rng, **kw):
 @pytest.mark.parametrize(
     "kw",
     [dict(lambda_loc=3.0, alpha=0.0), dict(lambda_loc=3.0, alpha=2.0, lambda_p=0.7),
-     dict(lambda_loc=1.0, alpha=1.0, neighbourhood=simplex_vertices(2, 0.5))],
-    ids=["distance-only", "distance+gradient+landmarks", "neighbourhood"],
+     dict(lambda_loc=1.0, alpha=1.0, neighbourhood=simplex_vertices(2, 0.5)),
+     dict(lambda_loc=2.0, alpha=1.0, lambda_target=5.0)],
+    ids=["distance-only", "distance+gradient+landmarks", "neighbourhood", "consistency"],
 )
 def test_gradient_matches_finite_differences(dim, kw):
     rng = np.random.default_rng(20 + dim)
     if "neighbourhood" in kw:
         kw = dict(kw, neighbourhood=simplex_vertices(dim, 0.5))
+    if "lambda_target" in kw:
+        kw = dict(kw, sample_targets=rng.uniform(-6, 6, (150, dim)))
     obj = _objective(dim, rng, **kw)
     c = rng.normal(0, 0.05, obj.n_centres * dim)
     value, grad = obj(c)
+    if "lambda_target" in kw:
+        resid = obj.warp_samples(c.reshape(-1, dim)) - kw["sample_targets"]
+        assert obj.last_terms["consistency"] == pytest.approx(kw["lambda_target"] * np.mean(np.sum(resid**2, axis=1)))
     h = 1e-6
     idx = rng.choice(len(c), 25, replace=False)
     fd = np.array([(obj(c + h * np.eye(len(c))[i])[0] - obj(c - h * np.eye(len(c))[i])[0]) / (2 * h) for i in idx])

@@ -85,7 +85,7 @@ def test_log_records_every_level(warps):
     for entry in log:
         assert entry["samples"] > 0 and entry["seconds"] > 0
         assert entry["objective"] <= entry["objective_start"]
-        assert set(entry["terms"]) == {"regulariser", "landmarks", "distance", "gradient", "folding"}
+        assert set(entry["terms"]) == {"regulariser", "landmarks", "distance", "gradient", "folding", "consistency"}
 
 
 def test_registering_a_surface_to_itself_is_the_identity(shapes):

@@ -17,6 +17,7 @@ from .cli import PROG, UsageError, _remove_directories
 from .consistency import error_on_grid, error_summary, padded_region, round_trip_dice, round_trip_labels
 from .io import check_writable, read_labels, write_json, write_scalar
 from .io.fields import read_displacement
+from .inverse import InverseWarp
 from .io.report_figure import write_error_figure
 from .progress import ProgressBars
 from .protocol import load_protocol
@@ -128,12 +129,15 @@ def run_consistency(args: argparse.Namespace) -> int:
         inputs = {"A": {"path": str(args.a), "sha256": _sha256(args.a)}, "B": {"path": str(args.b), "sha256": _sha256(args.b)}}
         if not saved:
             directions = {}
+            symmetric = protocol.warp.lambda_consistency > 0
             for name, fixed, moving, fixed_key, moving_key in (("forward", a, b, "A", "B"), ("backward", b, a, "B", "A")):
                 sub = outdir / name
+                # symmetric option: the backward fit is pulled towards the forward warp's inverse
+                prior = InverseWarp(KernelWarp.load(outdir / "forward" / "model.npz")) if symmetric and name == "backward" else None
                 rep = run_registration(
                     fixed, moving, sub, protocol=protocol, drive_labels=args.drive_labels, force=args.force,
                     quiet=args.quiet, verbose=args.verbose, command="consistency",
-                    inputs={"fixed": inputs[fixed_key], "moving": inputs[moving_key]},
+                    inputs={"fixed": inputs[fixed_key], "moving": inputs[moving_key]}, prior=prior,
                 )
                 registered.append(sub)  # complete: removed again if a later step fails
                 directions[name] = {"outdir": str(sub), "mean_dice": rep["mean_dice"], "seconds": rep["seconds"]}
@@ -148,6 +152,8 @@ def run_consistency(args: argparse.Namespace) -> int:
             "command": "consistency",
             "inputs": inputs,
             "directions": directions,
+            # the symmetric option's weight, as recorded in the backward warp's settings
+            "lambda_consistency": backward.settings.get("lambda_consistency", 0.0),
             **figures,
             "seconds": time.perf_counter() - start,
             "versions": _versions(),

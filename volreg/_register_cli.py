@@ -118,6 +118,7 @@ def run_registration(
     truth=None,
     verbose: bool = False,
     command: str = "register",
+    prior=None,
 ) -> dict:
     """Register, write every output atomically into ``outdir`` (created), return the report."""
     created = _prepare_outdir(outdir, force)
@@ -129,7 +130,7 @@ def run_registration(
         with ProgressBars(quiet=quiet) as progress:
             t_all = time.perf_counter()
             result = register_labels(fixed, moving, drive_labels=drive_labels, landmarks=landmarks,
-                                     protocol=protocol, progress=progress)
+                                     protocol=protocol, prior=prior, progress=progress)
             for st in result.stages:
                 stages.append(dict(st, peak_rss_gb=round(_peak_rss_gb(), 3)))
             if verbose:

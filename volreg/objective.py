@@ -15,6 +15,10 @@ a level is sampled):
          + lambda_loc mean_x sum_l w_l [ (f1_l(x) - f2_l(tau(x)))^2    (3), (6)
                                   + alpha |grad f1_l(x) - grad f2_l(tau(x))|^2 ]   (4)
 
+Optionally (not in the paper) a consistency term ``lambda_target mean_x |tau(x) - t(x)|^2``
+pulls the warp towards given positions ``t(x)`` of the samples, e.g. the
+inverse of a registration in the opposite direction (the symmetric option).
+
 ``f1_l``, ``f2_l`` are feature functions (one implicit surface per label and
 object, (6)); ``alpha`` (mm^2) weighs the gradient term, ``alpha = 0`` giving
 the distance-only cost (3).  Optionally the neighbourhood cost (5) replaces
@@ -99,6 +103,11 @@ class LevelObjective:
     lambda_fold, fold_margin : float
         Fold barrier (not in the paper): ``lambda_fold mean_p max(0, fold_margin
         - det J(y_p))^2`` keeps the warp orientation-preserving.
+    sample_targets : (N, D) float ndarray, mm, optional
+        ``t(x)``: positions the samples should map to (consistency term).
+    lambda_target : float
+        Weight of the consistency term ``lambda_target mean_x |tau(x) - t(x)|^2``
+        (mm^-2 times the locational cost's units); 0 = off.
     feature_samples : list of (N_l,) int ndarrays or None, optional
         For each feature pair, the indices of the samples where it can be
         non-constant (``None``: all).  Elsewhere both ``f1`` and ``f2(tau)`` sit
@@ -124,6 +133,8 @@ class LevelObjective:
     lambda_fold: float = 0.0
     fold_margin: float = 0.2
     feature_samples: Sequence[np.ndarray | None] | None = None
+    sample_targets: np.ndarray | None = None
+    lambda_target: float = 0.0
     _f1: list = field(default_factory=list, init=False, repr=False)
     last_terms: dict = field(default_factory=dict, init=False, repr=False)
 
@@ -155,6 +166,8 @@ class LevelObjective:
             self.landmark_kernel = sp.csr_matrix(self.landmark_kernel)
             self.landmark_kernel_t = self.landmark_kernel.T.tocsr()
         self.n_centres = m
+        if self.lambda_target > 0 and (self.sample_targets is None or np.shape(self.sample_targets) != self.samples.shape):
+            raise ValueError(f"Expected `sample_targets` of shape {self.samples.shape} when `lambda_target` > 0.")
         if self.lambda_fold > 0:
             if self.fold_gradients is None or self.fold_base is None:
                 raise ValueError("Expected `fold_gradients` and `fold_base` when `lambda_fold` > 0.")
@@ -194,6 +207,11 @@ class LevelObjective:
                 g_tau += g_l
             else:
                 g_tau[idx] += g_l  # the indices of one feature are distinct
+        consistency = 0.0
+        if self.lambda_target > 0:
+            resid = tau - self.sample_targets
+            consistency = self.lambda_target * float(np.einsum("nd,nd->", resid, resid)) / n
+            g_tau += (2.0 * self.lambda_target / n) * resid
         grad += self.kernel_t @ g_tau
         loc = scale * (dist_term + grad_term)
         land = 0.0
@@ -214,8 +232,8 @@ class LevelObjective:
             for b, gt in enumerate(self.fold_gradients_t):
                 grad += gt @ w[:, :, b]
         self.last_terms = dict(regulariser=reg, landmarks=land, distance=scale * dist_term,
-                               gradient=scale * grad_term, folding=fold)
-        return reg + land + loc + fold, grad.ravel()
+                               gradient=scale * grad_term, folding=fold, consistency=consistency)
+        return reg + land + loc + fold + consistency, grad.ravel()
 
 
 def _det_cofactor(jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -82,6 +82,12 @@ class WarpSettings:
         The locational cost of a feature counts only at samples within this
         distance of its source surface; default half the finest kernel width
         of that feature's ``f1`` (see ``_feature_samples``).
+    lambda_consistency : float
+        Symmetric option (not in the paper): weight of ``mean_x |tau(x) - t(x)|^2`` over
+        the locational-cost samples, where ``t`` is the inverse of a registration in the
+        opposite direction (``fit_warp(prior=...)``; ``volreg consistency`` passes the
+        forward warp's Newton inverse to the backward fit).  0 = off; ignored when no
+        ``prior`` is given.
     min_det : float
         Last-resort fold guard: after each level, its coefficients are shrunk (by 0.7 at a
         time) until ``det d tau / dx >= min_det`` at every sample point (or, where
@@ -103,9 +109,11 @@ class WarpSettings:
     band: float | None = None
     sample_spacing: float | None = None
     sample_scale: float = 1.0
+    lambda_consistency: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("lambda_loc", "alpha", "lambda_p", "neighbourhood", "lambda_fold", "fold_margin", "min_det"):
+        for name in ("lambda_loc", "alpha", "lambda_p", "neighbourhood", "lambda_fold", "fold_margin", "min_det",
+                     "lambda_consistency"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"Expected `{name}` >= 0, got {value}.")
@@ -196,6 +204,7 @@ def fit_warp(
     *,
     landmarks: tuple[np.ndarray, np.ndarray] | None = None,
     settings: WarpSettings = WarpSettings(),
+    prior: Callable[[np.ndarray], np.ndarray] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> RegistrationResult:
     """Fit the kernel warp coarse to fine (paper Sections 3.4-3.5).
@@ -210,6 +219,11 @@ def fit_warp(
     landmarks : pair of (L, D) float ndarrays, optional
         Source landmarks and their target positions, mm.
     settings : WarpSettings
+    prior : callable, optional
+        ``prior(points) -> (N, D)`` positions the warp should map the points to, e.g.
+        :class:`~volreg.inverse.InverseWarp` of the opposite registration; with
+        ``settings.lambda_consistency > 0`` the objective gains
+        ``lambda_consistency mean_x |tau(x) - prior(x)|^2`` over the samples.
     progress : callable, optional
         ``progress(stage, done, total)`` after each level.
 
@@ -239,6 +253,9 @@ def fit_warp(
     spacing = settings.sample_scale * min_width if settings.sample_spacing is None else settings.sample_spacing
     samples = octree_sample(pts, pad, spacing, fraction=settings.fraction)
     check = _with_children(samples)  # fold-check points: the samples and their octree children
+    consistency = {}
+    if prior is not None and settings.lambda_consistency > 0:
+        consistency = dict(sample_targets=np.asarray(prior(samples), float), lambda_target=settings.lambda_consistency)
     warp = KernelWarp(dim=dim, settings=dict(asdict(settings), pad=pad, min_width=min_width))
     log = []
     for li, width in enumerate(widths):
@@ -267,7 +284,7 @@ def fit_warp(
         subsets = _feature_samples(features, samples, settings.band, reach=settings.neighbourhood)
         objective = LevelObjective(kernel=k_xc, kernel_centres=k_cc, base=base, samples=samples,
                                    features=features, lambda_loc=settings.lambda_loc, alpha=settings.alpha,
-                                   neighbourhood=neighbourhood, feature_samples=subsets, **kw)
+                                   neighbourhood=neighbourhood, feature_samples=subsets, **consistency, **kw)
         c0 = np.zeros((len(centres), dim))
         if use_landmarks:
             c0 = _landmark_init(sp.csr_matrix(k_cc), kw["landmark_kernel"], kw["landmark_base"], dst_l,
@@ -436,6 +453,7 @@ def register_labels(
     drive_labels: Sequence[int] | None = None,
     landmarks: tuple[np.ndarray, np.ndarray] | None = None,
     protocol=None,
+    prior: Callable[[np.ndarray], np.ndarray] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> LabelRegistration:
     """Register two label volumes: ``result.warp`` maps fixed points to moving points (pull-back).
@@ -459,6 +477,9 @@ def register_labels(
         Fixed-space points and their moving-space partners, LPS mm.
     protocol : Protocol, optional
         Default :func:`volreg.protocol.load_protocol` ``("default")``.
+    prior : callable, optional
+        Target positions for the symmetric option (see :func:`fit_warp`), e.g. the
+        inverse of a registration of ``moving`` to ``fixed``.
     progress : callable, optional
         ``progress(stage, done, total)``.
 
@@ -541,6 +562,6 @@ def register_labels(
 
     t0 = time.perf_counter()
     points = np.concatenate([s_fixed[v].vertices for v in used])
-    result = fit_warp(pairs, points, landmarks=landmarks, settings=protocol.warp, progress=progress)
+    result = fit_warp(pairs, points, landmarks=landmarks, settings=protocol.warp, prior=prior, progress=progress)
     stages.append(dict(stage="fit warp", seconds=time.perf_counter() - t0))
     return LabelRegistration(result.warp, result.log, labels=used, skipped=skipped, stages=stages)
