@@ -195,6 +195,29 @@ def build_parser() -> argparse.ArgumentParser:
     consistency.add_argument("--quiet", action="store_true", help="no progress bars")
     consistency.add_argument("-v", "--verbose", action="store_true", help="log each stage and warp level to stderr")
     consistency.set_defaults(run=_consistency)
+
+    tune = commands.add_parser(
+        "tune",
+        help="choose warp settings by consistency and hold-out",
+        description="Register A to B and B to A for every combination of the --grid values (replacing the "
+        "protocol's [warp] settings), score each by the inverse-consistency error plus the hold-out surface "
+        "distance (plus the landmark error with --landmarks), all in mm, and write OUTDIR/tune.csv (one row per "
+        "setting) and OUTDIR/tuned.toml (the protocol with the best setting).",
+    )
+    tune.add_argument("a", metavar="A", type=Path, help="label volume A")
+    tune.add_argument("b", metavar="B", type=Path, help="label volume B")
+    tune.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
+    tune.add_argument("--grid", metavar="KEY=V1,V2,...", action="append", required=True,
+                      help="[warp] settings and their candidate values, e.g. lambda_loc=10,100,alpha=0,10 (repeatable)")
+    tune.add_argument("--protocol", metavar="NAME|FILE", default="default",
+                      help="protocol giving every other setting (default: default)")
+    tune.add_argument("--drive-labels", metavar="IDS", type=_label_list, default=None,
+                      help="labels whose surfaces drive the warps (default: as `volreg register`)")
+    tune.add_argument("--landmarks", metavar=("A_PTS", "B_PTS"), nargs=2, type=Path, default=None,
+                      help="corresponding points of A and B (.csv x,y,z LPS mm, .fcsv, .mrk.json)")
+    tune.add_argument("--force", action="store_true", help="write into an existing OUTDIR, replacing outputs")
+    tune.add_argument("--quiet", action="store_true", help="no per-setting lines on stderr")
+    tune.set_defaults(run=_tune)
     return parser
 
 
@@ -377,6 +400,7 @@ def _surface(args: argparse.Namespace) -> int:
 
 from ._register_cli import _apply, _demo, _protocols, _register  # noqa: E402  (they use the helpers above)
 from ._consistency_cli import run_consistency as _consistency  # noqa: E402
+from ._tune_cli import run_tune as _tune  # noqa: E402
 
 
 # --------------------------------------------------------------------------- entry point

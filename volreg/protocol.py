@@ -25,7 +25,15 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 
 from .pipeline import WarpSettings
 
-__all__ = ["Protocol", "ProtocolError", "SurfaceSettings", "load_protocol", "PROTOCOL_DIR"]
+__all__ = [
+    "Protocol",
+    "ProtocolError",
+    "SurfaceSettings",
+    "load_protocol",
+    "PROTOCOL_DIR",
+    "replace_settings",
+    "protocol_to_toml",
+]
 
 def _protocol_dir() -> Path:
     """The shipped presets: ``volreg/protocols`` in an installed wheel (package data,
@@ -138,3 +146,39 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
         )
     except ProtocolError as exc:
         raise ProtocolError(f"{exc} (in `{path}`)") from None
+
+
+def replace_settings(protocol: Protocol, warp: Mapping[str, Any], *, name: str | None = None) -> Protocol:
+    """A copy of ``protocol`` with some ``[warp]`` settings replaced, validated as a file's would be.
+
+    Raises
+    ------
+    ProtocolError
+        An unknown key or a bad value, named.
+    """
+    current = {k: v for k, v in dataclasses.asdict(protocol.warp).items() if v is not None}
+    current.update(warp)
+    return dataclasses.replace(protocol, name=protocol.name if name is None else name,
+                               warp=_section(WarpSettings, current, "warp"))
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def protocol_to_toml(protocol: Protocol, *, comment: str = "") -> str:
+    """The protocol as TOML text that :func:`load_protocol` reads back to an equal ``Protocol``.
+
+    Settings that are ``None`` (derived from the data) are written as comments.
+    """
+    lines = [f"# {line}" for line in comment.splitlines()] if comment else []
+    lines += ["[protocol]", f"name = {_toml_value(protocol.name)}", f"description = {_toml_value(protocol.description)}"]
+    for section in ("surface", "warp"):
+        lines += ["", f"[{section}]"]
+        for key, value in dataclasses.asdict(getattr(protocol, section)).items():
+            lines.append(f"# {key}: default (derived from the data)" if value is None else f"{key} = {_toml_value(value)}")
+    return "\n".join(lines) + "\n"

@@ -9,7 +9,7 @@ to overwrite unless ``force=True``.
 from ._atomic import VolregIOError, atomic_output, check_writable
 from .images import read_image, read_labels, write_labels, write_scalar
 from .meshes import read_mesh, write_mesh
-from .summary import write_json
+from .summary import write_json, write_text
 
 __all__ = [
     "VolregIOError",
@@ -22,4 +22,5 @@ __all__ = [
     "write_labels",
     "write_mesh",
     "write_scalar",
+    "write_text",
 ]
