@@ -69,7 +69,7 @@ def run_tune(args: argparse.Namespace) -> int:
     a = read_labels(args.a)
     b = read_labels(args.b)
     _check_pair(a, b, args.a, args.b)
-    landmarks = _load_landmarks(args)
+    landmarks = _load_landmarks(args, a, b)
     outdir: Path = args.output
     created = _prepare_outdir(outdir, args.force)
     paths = {name: outdir / name for name in OUTPUTS}

@@ -18,7 +18,9 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import signal
 import sys
+import threading
 import time
 import warnings
 from collections.abc import Sequence
@@ -26,7 +28,7 @@ from pathlib import Path
 
 from . import __version__
 from .io import VolregIOError, check_writable, read_labels, write_json, write_mesh, write_scalar
-from .pipeline import RegistrationInputError
+from .pipeline import RegistrationDiverged, RegistrationInputError
 from .progress import ProgressBars
 from .protocol import ProtocolError
 from .surfaces import SurfaceError, implicit_on_grid, implicit_surfaces, label_surfaces
@@ -42,7 +44,9 @@ class UsageError(ValueError):
 
 
 #: Errors that are the user's input, not volreg's bug: reported in one line, exit status 2.
-EXPECTED_ERRORS = (VolregIOError, SurfaceError, GeometryError, UsageError, ProtocolError, RegistrationInputError)
+EXPECTED_ERRORS = (
+    VolregIOError, SurfaceError, GeometryError, UsageError, ProtocolError, RegistrationInputError, RegistrationDiverged,
+)
 
 #: How many label values an error message lists before eliding the rest.
 _MAX_LISTED = 30
@@ -406,6 +410,17 @@ from ._tune_cli import run_tune as _tune  # noqa: E402
 # --------------------------------------------------------------------------- entry point
 
 
+def _raise_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def _install_sigterm():
+    """Make SIGTERM raise KeyboardInterrupt("SIGTERM"); return the previous handler (None off the main thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_interrupt)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``volreg`` command line.
 
@@ -418,8 +433,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     -------
     int
         Exit status: 0 on success, 2 for a usage error or invalid input
-        (reported as one line on stderr).  ``--help`` and ``--version``
-        return 0.
+        (reported as one line on stderr), 130 after Ctrl-C (SIGINT) and 143
+        after SIGTERM (the run's outputs removed).  ``--help`` and
+        ``--version`` return 0.
 
     Raises
     ------
@@ -433,9 +449,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(None if argv is None else list(argv))
     except SystemExit as exc:  # argparse exits for --help, --version and usage errors
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    # SIGTERM (a scheduler or `kill` stopping the job) unwinds like Ctrl-C, so every command's
+    # clean-up runs: outputs written so far are removed and temporary files deleted.
+    previous = _install_sigterm()
     try:
+        output = getattr(args, "output", None)
+        if output is not None and ".." in Path(output).parts:
+            raise UsageError(
+                f"-o `{output}` contains '..'; expected an output path without '..' components "
+                f"(e.g. `{Path(os.path.normpath(os.path.abspath(output)))}`), so outputs stay where they are named."
+            )
         return args.run(args)
     except EXPECTED_ERRORS as exc:
         message = " ".join(str(exc).split("\n")).strip() or type(exc).__name__
         print(f"{PROG} {args.command}: error: {message}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:
+        name = str(exc) or "SIGINT"
+        print(f"{PROG} {args.command}: interrupted by {name}; the outputs of this run were removed.", file=sys.stderr)
+        return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)

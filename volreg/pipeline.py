@@ -39,7 +39,19 @@ from .objective import FeaturePair, LevelObjective, simplex_vertices
 from .sampling import octree_sample
 from .warp import KernelWarp, WarpLevel
 
-__all__ = ["WarpSettings", "RegistrationResult", "LabelRegistration", "register_surfaces", "register_labels", "fit_warp"]
+__all__ = [
+    "WarpSettings",
+    "RegistrationResult",
+    "LabelRegistration",
+    "RegistrationDiverged",
+    "register_surfaces",
+    "register_labels",
+    "fit_warp",
+]
+
+
+class RegistrationDiverged(RuntimeError):
+    """The optimisation of a level failed (NaN/Inf objective or coefficients): no warp is returned."""
 
 
 @dataclass(frozen=True)
@@ -293,6 +305,12 @@ def fit_warp(
         terms0 = dict(objective.last_terms)
         res = scipy.optimize.minimize(objective, c0.ravel(), jac=True, method="L-BFGS-B",
                                       options=dict(maxiter=settings.max_iter))
+        if not (np.isfinite(res.fun) and np.all(np.isfinite(res.x))):
+            raise RegistrationDiverged(
+                f"Warp level {li} (kernel width {width:.3g} mm) diverged: its objective became {float(res.fun)!r} "
+                f"(started at {float(e0)!r}); expected finite values. Check the inputs, or change the protocol: "
+                "lower lambda_loc or alpha, or raise min_width."
+            )
         coeffs = res.x.reshape(-1, dim)
         # Fold guard: tau must stay orientation-preserving, checked at the samples
         # and at the centres of their octree children (the next level's samples).

@@ -458,8 +458,10 @@ class KernelWarp(_PointMap):
             try:
                 data = np.load(fh, allow_pickle=False)
             except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+                # numpy falls back to unpickling non-zip bytes and, refused, suggests allow_pickle: never do that
+                reason = "not a zip archive" if "pickle" in str(exc) else _one_line(exc)
                 raise VolregIOError(
-                    f"Warp model `{name}` is not a readable .npz file: {_one_line(exc)}."
+                    f"Warp model `{name}` is not a readable .npz file: {reason}."
                 ) from None
             if not isinstance(data, np.lib.npyio.NpzFile):
                 raise VolregIOError(

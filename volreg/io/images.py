@@ -45,6 +45,72 @@ _QS_TOL_MM = 1e-3
 _DIR_TOL = 1e-6
 
 
+def max_image_bytes() -> int:
+    """Largest image (bytes in memory) a reader accepts: ``VOLREG_MAX_IMAGE_GB`` if set, else half the RAM."""
+    value = os.environ.get("VOLREG_MAX_IMAGE_GB")
+    if value:
+        try:
+            gb = float(value)
+        except ValueError:
+            raise VolregIOError(f"Environment variable VOLREG_MAX_IMAGE_GB={value!r} is not a number of GB.") from None
+        return int(gb * 1024**3)
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
+        return 8 * 1024**3
+
+
+def _check_size(path: Path, shape: tuple[int, ...], itemsize: int, what: str) -> None:
+    """Refuse, before anything is allocated, an image larger than :func:`max_image_bytes`."""
+    voxels = int(np.prod([max(int(n), 0) for n in shape], dtype=object))
+    need = voxels * int(itemsize)
+    limit = max_image_bytes()
+    if need > limit:
+        raise VolregIOError(
+            f"{what} `{path}` has shape {tuple(int(n) for n in shape)} ({voxels:,} voxels, {need / 1024**3:.3g} GB in "
+            f"memory); expected at most {limit / 1024**3:.3g} GB (set VOLREG_MAX_IMAGE_GB to change the limit)."
+        )
+
+
+def _raw_pixdim(path: Path, suffix: str) -> np.ndarray:
+    """``pixdim[0:8]`` exactly as stored in a NIfTI-1 header (bytes 76-108), either byte order."""
+    opener = gzip.open if suffix == ".nii.gz" else open
+    with opener(path, "rb") as fh:
+        block = fh.read(108)
+    little = int.from_bytes(block[:4], "little") == 348
+    return np.frombuffer(block[76:108], dtype="<f4" if little else ">f4").astype(float)
+
+
+def _check_text_header_spacing(path: Path, suffix: str, what: str) -> None:
+    """Refuse a MetaImage ``ElementSpacing`` or NRRD ``spacings`` with a negative value.
+
+    ITK silently turns a negative spacing into a flipped axis; the header is
+    ambiguous (a flip belongs in the direction matrix), so volreg refuses it.
+    """
+    key = "elementspacing" if suffix in (".mha", ".mhd") else "spacings"
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16)
+    except OSError:
+        return  # SimpleITK reports unreadable files
+    for raw in head.split(b"\n")[:200]:
+        line = raw.decode("latin-1").strip()
+        name, sep, value = line.partition("=" if suffix in (".mha", ".mhd") else ":")
+        if sep and name.strip().lower() == key:
+            try:
+                values = [float(v) for v in value.split()]
+            except ValueError:
+                return
+            if any(v < 0 for v in values):
+                raise VolregIOError(
+                    f"{what} `{path}` has negative spacing ({name.strip()} = {value.strip()}); expected positive "
+                    "voxel spacings (a flipped axis belongs in the direction matrix)."
+                )
+            return
+        if line.lower().startswith("elementdatafile"):
+            return
+
+
 def _suffix(path: Path) -> str:
     name = path.name.lower()
     if name.endswith(".nii.gz"):
@@ -75,19 +141,27 @@ def _first_line(exc: BaseException) -> str:
 def _sitk_reason(exc: BaseException) -> str:
     """Condense SimpleITK's multi-line exception text to its most specific line."""
     lines = str(exc).splitlines()[1:]  # the first line is "Exception thrown in ...: file.cxx:NN:"
-    prefix = re.compile(r"^\s*(sitk::ERROR:|ITK ERROR: \w+\(0x[0-9a-fA-F]+\):|\[\w+\] \w+:)\s*")
+    prefix = re.compile(r"^\s*(sitk::ERROR:|ITK ERROR:( \w+\(0x[0-9a-fA-F]+\):)?|\[\w+\] \w+:)\s*")
     candidates = []
+    flagged = []  # lines that carry an "ITK ERROR:" / "sitk::ERROR:" prefix: the message proper
     for line in lines:
+        is_error = bool(prefix.match(line))
         line = prefix.sub("", line).strip()
         # MetaIO appends the C errno ("Reason: No such file or directory"), which is misleading.
         if not line or line.startswith("Reason:") or line.rstrip(":") in {"trouble", ""}:
             continue
         candidates.append(line)
+        if is_error:
+            flagged.append(line)
     if not candidates:
         return _first_line(exc)
-    reason = candidates[-1]
+    reason = flagged[-1] if flagged else candidates[-1]
     if "Unable to determine ImageIO reader" in reason:
         return "unrecognised file format"
+    if "orthonormal direction cosines" in reason:
+        return "its axes are not orthogonal (a sheared affine; ITK supports only orthonormal directions)"
+    if "Bad direction, determinant is 0" in reason:
+        return "its direction matrix is singular (determinant 0); expected independent axis directions"
     return reason.rstrip(".")
 
 
@@ -110,6 +184,13 @@ def _check_nifti(path: Path, suffix: str, what: str) -> nib.Nifti1Image:
     except Exception as exc:  # nibabel raises many types for garbage input
         raise VolregIOError(f"{what} `{path}` is not a readable NIfTI file: {_first_line(exc)}.") from exc
 
+    _check_size(path, shape, itemsize, what)  # before decompressing: a header may claim terabytes
+    pixdim = _raw_pixdim(path, suffix)[1 : len(shape) + 1]  # nibabel's loader silently makes them positive
+    spatial = np.asarray(shape[: len(pixdim)]) > 1  # a singleton axis may carry pixdim 0
+    if np.any(~np.isfinite(pixdim)) or np.any((pixdim <= 0) & spatial):
+        raise VolregIOError(
+            f"{what} `{path}` has voxel sizes (pixdim) {pixdim.tolist()}; expected positive, finite spacings."
+        )
     needed = offset + int(np.prod(shape, dtype=np.int64)) * itemsize
     if suffix == ".nii.gz":
         # SimpleITK silently zero-fills a truncated gzip stream, so decompress it
@@ -121,7 +202,8 @@ def _check_nifti(path: Path, suffix: str, what: str) -> nib.Nifti1Image:
                     have += len(chunk)
         except EOFError as exc:
             raise VolregIOError(
-                f"{what} `{path}` is truncated: its gzip stream ends early ({have} of {needed} bytes decompressed)."
+                f"{what} `{path}` is truncated: its gzip stream ends before the {needed} bytes its header describes "
+                "(an interrupted copy or download?)."
             ) from exc
         except (OSError, zlib.error) as exc:
             raise VolregIOError(f"{what} `{path}` is a corrupt gzip file: {_first_line(exc)}.") from exc
@@ -200,10 +282,15 @@ def _read_sitk(path: str | os.PathLike[str], what: str) -> tuple[np.ndarray, np.
     if suffix == ".vti":
         return read_vti(p, what)
     nimg = _check_nifti(p, suffix, what) if suffix in (".nii", ".nii.gz") else None
+    if suffix in (".mha", ".mhd", ".nrrd", ".nhdr"):
+        _check_text_header_spacing(p, suffix, what)
 
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(p))
     try:
+        reader.ReadImageInformation()
+        itemsize = np.dtype(sitk.GetArrayViewFromImage(sitk.Image([1] * reader.GetDimension(), reader.GetPixelID())).dtype).itemsize
+        _check_size(p, reader.GetSize(), itemsize * reader.GetNumberOfComponents(), what)
         img = reader.Execute()
     except RuntimeError as exc:
         raise VolregIOError(f"{what} `{p}` could not be read as an image: {_sitk_reason(exc)}.") from exc

@@ -1,0 +1,75 @@
+"""Property-based tests (hypothesis) of warps and label resampling."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from volreg import LabelVolume
+from volreg.inverse import invert_points
+from volreg.resample import resample_labels
+from volreg.warp import KernelWarp, WarpLevel
+
+FAST = settings(max_examples=25, deadline=None)
+
+
+@st.composite
+def label_volumes(draw):
+    """Small 3-D label volumes with a few arbitrary label values (0 = background) on a random grid."""
+    shape = tuple(draw(st.integers(3, 9)) for _ in range(3))
+    values = draw(st.lists(st.integers(1, 60000), min_size=1, max_size=4, unique=True))
+    dtype = np.uint16
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    arr = rng.choice(np.array([0, *values], dtype=dtype), size=shape)
+    spacing = tuple(draw(st.floats(0.5, 3.0)) for _ in range(3))
+    origin = tuple(draw(st.floats(-50, 50)) for _ in range(3))
+    return LabelVolume(arr, origin, spacing, np.eye(3))
+
+
+@st.composite
+def smooth_warps(draw, invertible: bool = True):
+    """Kernel warps with a few centres; coefficients small enough (|c| k'(0) < 1) to stay invertible."""
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    width = draw(st.floats(5.0, 30.0))
+    n = draw(st.integers(1, 6))
+    centres = rng.uniform(-20, 20, (n, 3))
+    # the Wu kernel's gradient is at most ~ 6 / width; keep sum |c| * that below 1/2
+    scale = 0.5 * width / (6.0 * n) if invertible else width
+    coeffs = rng.uniform(-1, 1, (n, 3)) * scale
+    return KernelWarp([WarpLevel(centres, coeffs, width=width)], dim=3)
+
+
+@FAST
+@given(label_volumes())
+def test_identity_in_identity_out(volume):
+    """A warp with zero coefficients maps every point to itself and reproduces the labels exactly."""
+    warp = KernelWarp([WarpLevel(np.zeros((2, 3)), np.zeros((2, 3)), width=10.0)], dim=3)
+    points = volume.grid_points().reshape(-1, 3)
+    assert np.array_equal(warp(points), points)
+    assert np.array_equal(resample_labels(volume, points.reshape(*volume.shape, 3)), volume.array)
+
+
+@FAST
+@given(label_volumes(), smooth_warps(invertible=False))
+def test_warping_preserves_the_label_set(volume, warp):
+    """Label resampling through any warp yields only labels of the input, in its dtype."""
+    points = warp(volume.grid_points().reshape(-1, 3)).reshape(*volume.shape, 3)
+    for method in ("label", "nearest"):
+        out = resample_labels(volume, points, method=method)
+        assert set(np.unique(out).tolist()) <= set(np.unique(volume.array).tolist()) | {0}
+        assert out.dtype == volume.array.dtype or np.can_cast(out.dtype, volume.array.dtype)
+
+
+@FAST
+@given(smooth_warps())
+def test_composition_with_the_inverse_is_near_identity(warp):
+    """tau(tau^-1(y)) = y and tau^-1(tau(x)) = x to 1e-5 mm wherever tau does not fold."""
+    pts = np.random.default_rng(0).uniform(-40, 40, (500, 3))
+    assert np.linalg.det(warp.jacobian(pts)).min() > 0
+    sol = invert_points(warp, pts)
+    assert sol.converged.all()
+    assert np.abs(warp(sol.points) - pts).max() <= 1e-5
+    assert np.abs(invert_points(warp, warp(pts)).points - pts).max() <= 1e-5
