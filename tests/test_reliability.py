@@ -386,3 +386,15 @@ def test_no_unsafe_loaders_in_the_package():
     for name in loads:
         text = next((REPO / "volreg").rglob(name)).read_text()
         assert text.count("np.load(") == text.count("allow_pickle=False"), name
+
+
+def test_header_without_orientation_is_reported(tmp_path, capsys):
+    """qform_code = sform_code = 0: SimpleITK and nibabel disagree on the geometry; volreg reads it as
+    ITK does and says so in one warning line."""
+    img = nib.Nifti1Image(_cube().array, np.diag([2.0, 3.0, 4.0, 1.0]))
+    img.set_qform(None, code=0)
+    img.set_sform(None, code=0)
+    nib.save(img, str(tmp_path / "nocode.nii.gz"))
+    assert main(["surface", str(tmp_path / "nocode.nii.gz"), "-o", str(tmp_path / "out"), "--quiet"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("volreg surface: warning: ") and "sform_code = 0" in err[0]

@@ -27,7 +27,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from . import __version__
-from .io import VolregIOError, check_writable, read_labels, write_json, write_mesh, write_scalar
+from .io import VolregIOError, VolregWarning, check_writable, read_labels, write_json, write_mesh, write_scalar
 from .pipeline import RegistrationDiverged, RegistrationInputError
 from .progress import ProgressBars
 from .protocol import ProtocolError
@@ -452,6 +452,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     # SIGTERM (a scheduler or `kill` stopping the job) unwinds like Ctrl-C, so every command's
     # clean-up runs: outputs written so far are removed and temporary files deleted.
     previous = _install_sigterm()
+    show = warnings.showwarning
+
+    def one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+        _warn(args.command, " ".join(str(message).split()))
+
+    warnings.showwarning = one_line_warning
+    filters = warnings.catch_warnings()
+    filters.__enter__()
+    warnings.simplefilter("always", VolregWarning)  # shown (one line each) whatever the global filters say
     try:
         output = getattr(args, "output", None)
         if output is not None and ".." in Path(output).parts:
@@ -469,5 +478,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{PROG} {args.command}: interrupted by {name}; the outputs of this run were removed.", file=sys.stderr)
         return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
     finally:
+        filters.__exit__(None, None, None)
+        warnings.showwarning = show
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

@@ -6,13 +6,14 @@ with one line naming the file and the problem; writers are atomic and refuse
 to overwrite unless ``force=True``.
 """
 
-from ._atomic import VolregIOError, atomic_output, check_writable
+from ._atomic import VolregIOError, VolregWarning, atomic_output, check_writable
 from .images import read_image, read_labels, write_labels, write_scalar
 from .meshes import read_mesh, write_mesh
 from .summary import write_json, write_text
 
 __all__ = [
     "VolregIOError",
+    "VolregWarning",
     "atomic_output",
     "check_writable",
     "read_image",

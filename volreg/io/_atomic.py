@@ -20,6 +20,10 @@ class VolregIOError(ValueError):
     """Raised when a file cannot be read or written; the message names the file."""
 
 
+class VolregWarning(UserWarning):
+    """An input that is read, but not unambiguously (the command line prints it as one line)."""
+
+
 def _exists_message(path: Path) -> str:
     return f"Output `{path}` exists; pass --force to overwrite."
 

@@ -27,7 +27,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..volume import GeometryError, LabelVolume
-from ._atomic import VolregIOError, atomic_output
+from ._atomic import VolregIOError, VolregWarning, atomic_output
 from .vti import read_vti
 
 __all__ = ["read_labels", "write_labels", "write_scalar", "read_image"]
@@ -215,6 +215,14 @@ def _check_nifti(path: Path, suffix: str, what: str) -> nib.Nifti1Image:
             f"{itemsize}-byte voxels), file holds {have}."
         )
 
+    if qform is None and sform is None:
+        warnings.warn(
+            f"{what} `{path}` has no orientation in its header (qform_code = sform_code = 0): read as ITK does "
+            "(identity direction, origin 0; nibabel would give a flipped, centred affine); set an sform or qform "
+            "to make it unambiguous.",
+            VolregWarning,
+            stacklevel=3,
+        )
     if qform is not None and sform is not None:
         diff = float(np.max(np.abs(np.asarray(qform) - np.asarray(sform))))
         if diff > _QS_TOL_MM:
