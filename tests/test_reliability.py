@@ -280,9 +280,16 @@ MESH_CASES = [("empty mesh", "empty", "empty"), ("NaN vertices", "nan", "NaN"),
 
 
 @pytest.mark.parametrize("case", MESH_CASES, ids=[c[0] for c in MESH_CASES])
-def test_hostile_mesh_refused(tmp_path, case):
+def test_hostile_mesh_refused(tmp_path, capsys, case):
+    """Through `volreg register-surfaces` (exit 2, one line, nothing written) and `read_mesh`."""
     _, name, word = case
     path = _mesh_file(tmp_path, name)
+    pv.Sphere().save(str(tmp_path / "good.vtk"))
+    out = tmp_path / "out"
+    assert main(["register-surfaces", str(path), str(tmp_path / "good.vtk"), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("volreg register-surfaces: error: ") and path.name in err and word in err, err
+    assert _outputs(out) == []
     with pytest.raises(VolregIOError) as info:
         read_mesh(path)
     message = str(info.value)

@@ -222,6 +222,8 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--force", action="store_true", help="write into an existing OUTDIR, replacing outputs")
     tune.add_argument("--quiet", action="store_true", help="no per-setting lines on stderr")
     tune.set_defaults(run=_tune)
+
+    add_surface_commands(commands)
     return parser
 
 
@@ -405,6 +407,7 @@ def _surface(args: argparse.Namespace) -> int:
 from ._register_cli import _apply, _demo, _protocols, _register  # noqa: E402  (they use the helpers above)
 from ._consistency_cli import run_consistency as _consistency  # noqa: E402
 from ._tune_cli import run_tune as _tune  # noqa: E402
+from ._surface_cli import add_surface_commands  # noqa: E402
 
 
 # --------------------------------------------------------------------------- entry point

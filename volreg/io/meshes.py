@@ -6,10 +6,12 @@ else in volreg; the files carry no frame of their own.
 
 from __future__ import annotations
 
+import logging
 import os
 import warnings
 from collections.abc import Mapping
-from contextlib import nullcontext
+from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +19,7 @@ import pyvista as pv
 
 from ._atomic import VolregIOError, atomic_output
 
-__all__ = ["write_mesh", "read_mesh"]
+__all__ = ["write_mesh", "read_mesh", "read_surface", "write_gifti", "SurfaceData"]
 
 #: Suffixes the mesh reader and writer accept (lower case).
 MESH_SUFFIXES = (".vtk", ".vtp", ".ply", ".stl", ".obj")
@@ -25,6 +27,17 @@ MESH_SUFFIXES = (".vtk", ".vtp", ".ply", ".stl", ".obj")
 _LINE_SUFFIXES = (".vtk", ".vtp", ".obj")
 _NORMAL_SUFFIXES = (".vtk", ".vtp", ".ply", ".obj")
 _POINT_DATA_SUFFIXES = (".vtk", ".vtp")
+
+
+@contextmanager
+def _no_vtk_logging():
+    """Silence VTK reader errors that pyvista forwards to Python logging (volreg reports one line itself)."""
+    previous = logging.root.manager.disable
+    logging.disable(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logging.disable(previous)
 
 
 def _mesh_suffix(path: Path, what: str) -> str:
@@ -58,8 +71,9 @@ def write_mesh(
     normals: np.ndarray | None = None,
     point_data: Mapping[str, np.ndarray] | None = None,
     force: bool = False,
+    allow_points: bool = False,
 ) -> None:
-    """Write a triangle mesh or a set of line segments, atomically.
+    """Write a triangle mesh or a set of line segments (or, with ``allow_points``, a point cloud), atomically.
 
     Parameters
     ----------
@@ -79,6 +93,8 @@ def write_mesh(
         Extra per-vertex arrays, stored under their names.
     force : bool, default False
         Overwrite an existing ``path``.
+    allow_points : bool, default False
+        Accept ``cells`` of shape (0, 3) and write the vertices alone (a point cloud).
 
     Raises
     ------
@@ -94,9 +110,9 @@ def write_mesh(
     c = np.asarray(cells)
     if c.ndim != 2 or c.shape[1] not in (2, 3) or not (np.issubdtype(c.dtype, np.integer) or c.size == 0):
         raise VolregIOError(f"Expected integer `cells` of shape (F, 3) or (F, 2), got {c.shape} {c.dtype}.")
-    if c.shape[0] == 0:
+    if c.shape[0] == 0 and not allow_points:
         raise VolregIOError(f"Expected at least one cell in `cells`; refusing to write an empty mesh to `{p}`.")
-    if c.min() < 0 or c.max() >= n:
+    if c.size and (c.min() < 0 or c.max() >= n):
         raise VolregIOError(f"Expected `cells` to index vertices in [0, {n}), got values in [{c.min()}, {c.max()}].")
     c = c.astype(np.int64)
     is_lines = c.shape[1] == 2
@@ -114,7 +130,10 @@ def write_mesh(
         )
 
     connectivity = np.column_stack([np.full(len(c), c.shape[1], dtype=np.int64), c]).ravel()
-    mesh = pv.PolyData(points, lines=connectivity) if is_lines else pv.PolyData(points, faces=connectivity)
+    if c.shape[0] == 0:
+        mesh = pv.PolyData(points)  # a point cloud: one vertex cell per point
+    else:
+        mesh = pv.PolyData(points, lines=connectivity) if is_lines else pv.PolyData(points, faces=connectivity)
     for name, values in (point_data or {}).items():
         values = np.asarray(values)
         if name == "Normals":
@@ -171,7 +190,7 @@ def read_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            with quiet:
+            with quiet, _no_vtk_logging():
                 mesh = pv.read(p)
         except Exception as exc:  # pyvista/VTK raise assorted types for bad files
             raise VolregIOError(f"Mesh `{p}` could not be read: {str(exc).strip().splitlines()[0]}") from exc
@@ -206,3 +225,145 @@ def read_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.
         if normals.shape != vertices.shape:
             normals = None
     return vertices, triangles, normals
+
+
+# ----------------------------------------------------------------------------- surfaces with data
+
+#: Suffixes :func:`read_surface` accepts: pyvista's formats and GIFTI surfaces.
+SURFACE_SUFFIXES = MESH_SUFFIXES + (".gii",)
+
+
+@dataclass
+class SurfaceData:
+    """A surface read from a file: a triangle mesh or a bare point cloud, with its per-vertex arrays.
+
+    Attributes
+    ----------
+    vertices : (N, 3) float ndarray, mm (LPS)
+    triangles : (F, 3) int ndarray
+        Empty (F = 0) for a point cloud.
+    normals : (N, 3) float ndarray or None
+        Stored vertex normals, if any.
+    arrays : dict of str to (N, ...) ndarray
+        Other per-vertex arrays (scalars, colours, labels), by name.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    normals: np.ndarray | None
+    arrays: dict = field(default_factory=dict)
+
+
+def _read_gifti(p: Path) -> SurfaceData:
+    """A GIFTI surface: the POINTSET (RAS mm, as FreeSurfer and Connectome Workbench write it) and TRIANGLE arrays."""
+    import nibabel as nib
+
+    try:
+        img = nib.load(str(p))
+        points = img.agg_data("pointset")
+        triangles = img.agg_data("triangle")
+    except Exception as exc:  # nibabel raises assorted types for bad files
+        raise VolregIOError(f"Surface `{p}` is not a readable GIFTI surface: {str(exc).strip().splitlines()[0]}.") from exc
+    if points is None or np.size(points) == 0:
+        raise VolregIOError(f"Surface `{p}` has no POINTSET data array; expected a GIFTI surface (.surf.gii).")
+    vertices = np.array(points, dtype=float) * np.array([-1.0, -1.0, 1.0])  # RAS -> LPS
+    tri = np.zeros((0, 3), np.int64) if triangles is None else np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    return SurfaceData(vertices, tri, None, {})
+
+
+def read_surface(path: str | os.PathLike[str]) -> SurfaceData:
+    """Read a surface mesh or point cloud with its per-vertex arrays.
+
+    Parameters
+    ----------
+    path : path-like
+        ``.vtk``, ``.vtp``, ``.ply``, ``.stl``, ``.obj`` (through pyvista; a
+        file with vertices only is a point cloud) or a GIFTI surface ``.gii``
+        (its coordinates are taken as RAS and converted to LPS).
+
+    Returns
+    -------
+    SurfaceData
+
+    Raises
+    ------
+    VolregIOError
+        Missing, unreadable or empty file, NaN/Inf vertices, faces that are
+        not polygons, or triangle indices out of range.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise VolregIOError(f"Surface `{p}` does not exist.")
+    if not p.is_file():
+        raise VolregIOError(f"Surface `{p}` is not a regular file.")
+    suffix = p.suffix.lower()
+    if suffix not in SURFACE_SUFFIXES:
+        raise VolregIOError(f"Surface `{p}` has unsupported suffix {suffix!r}; expected one of {', '.join(SURFACE_SUFFIXES)}.")
+    if suffix == ".gii":
+        out = _read_gifti(p)
+    else:
+        quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else nullcontext()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                with quiet, _no_vtk_logging():
+                    mesh = pv.read(p)
+            except Exception as exc:  # pyvista/VTK raise assorted types for bad files
+                raise VolregIOError(f"Surface `{p}` could not be read: {str(exc).strip().splitlines()[0]}") from exc
+        problems = [w for w in caught if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning))]
+        if problems:
+            raise VolregIOError(f"Surface `{p}` could not be read: {str(problems[0].message).strip().splitlines()[0]}")
+        if mesh is None or not isinstance(mesh, pv.DataSet):
+            raise VolregIOError(f"Surface `{p}` holds {type(mesh).__name__}; expected a single surface mesh.")
+        if not isinstance(mesh, pv.PolyData):
+            mesh = mesh.extract_surface()
+        triangles = np.zeros((0, 3), np.int64)
+        if mesh.faces.size:  # polygons (a point cloud has none)
+            tri = mesh.triangulate()
+            faces = np.asarray(tri.faces, dtype=np.int64).reshape(-1, 4)
+            if tri.n_points != mesh.n_points or not np.all(faces[:, 0] == 3):
+                raise VolregIOError(f"Surface `{p}` could not be triangulated; expected polygonal faces.")
+            triangles = faces[:, 1:].copy()
+            mesh = tri
+        normals = mesh.point_data.active_normals
+        if normals is None and "Normals" in mesh.point_data:
+            normals = mesh.point_data["Normals"]
+        normals = None if normals is None else np.array(normals, dtype=float)
+        arrays = {name: np.array(mesh.point_data[name]) for name in mesh.point_data.keys()
+                  if name != "Normals" and len(mesh.point_data[name]) == mesh.n_points}
+        out = SurfaceData(np.array(mesh.points, dtype=float), triangles, normals, arrays)
+    if len(out.vertices) == 0:
+        raise VolregIOError(f"Surface `{p}` is empty (no vertices).")
+    if not np.all(np.isfinite(out.vertices)):
+        bad = int((~np.isfinite(out.vertices)).any(axis=1).sum())
+        raise VolregIOError(f"Surface `{p}` has {bad} vertices with NaN/Inf coordinates; expected finite points.")
+    if out.triangles.size and (out.triangles.min() < 0 or out.triangles.max() >= len(out.vertices)):
+        raise VolregIOError(f"Surface `{p}` has triangles indexing missing vertices; expected indices below {len(out.vertices)}.")
+    if out.normals is not None and (out.normals.shape != out.vertices.shape or not np.all(np.isfinite(out.normals))):
+        out.normals = None  # unusable normals are estimated again
+    return out
+
+
+def write_gifti(vertices: np.ndarray, triangles: np.ndarray, path: str | os.PathLike[str], *, force: bool = False) -> None:
+    """Write a GIFTI surface (POINTSET in RAS mm, float32; TRIANGLE int32), atomically.
+
+    ``vertices`` are LPS mm like everything in volreg; they are stored as RAS,
+    the frame FreeSurfer and Connectome Workbench expect.
+    """
+    import nibabel as nib
+    from nibabel.gifti import GiftiDataArray, GiftiImage
+
+    p = Path(path)
+    pts = _points3(vertices, None, "vertices") * np.array([-1.0, -1.0, 1.0])
+    tri = np.asarray(triangles)
+    if tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0 or tri.min() < 0 or tri.max() >= len(pts):
+        raise VolregIOError(f"Expected `triangles` of shape (F, 3) indexing {len(pts)} vertices, got {tri.shape}.")
+    img = GiftiImage(darrays=[
+        GiftiDataArray(pts.astype(np.float32), intent="NIFTI_INTENT_POINTSET", datatype="NIFTI_TYPE_FLOAT32"),
+        GiftiDataArray(tri.astype(np.int32), intent="NIFTI_INTENT_TRIANGLE", datatype="NIFTI_TYPE_INT32"),
+    ])
+    with atomic_output(p, force=force) as tmp:
+        try:
+            nib.save(img, str(tmp))
+        except Exception as exc:
+            raise VolregIOError(f"Surface `{p}` could not be written: {exc}".splitlines()[0]) from exc

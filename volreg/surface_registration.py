@@ -1,0 +1,135 @@
+"""Surface-to-surface registration helpers: normals, correspondence, morphs and transfer (paper Section 5).
+
+Pure functions on arrays (vertices in LPS mm).  A registration of SOURCE to
+TARGET gives ``tau`` (:class:`~volreg.warp.KernelWarp`) mapping each source
+point to its target partner; the correspondence of a source vertex ``v`` is
+the target-surface point nearest to ``tau(v)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyvista as pv
+from scipy.spatial import cKDTree
+
+from .implicit import estimate_normals
+
+__all__ = ["surface_normals", "closest_points", "morph_vertices", "transfer_values"]
+
+
+def _polydata(vertices: np.ndarray, triangles: np.ndarray) -> pv.PolyData:
+    faces = np.column_stack([np.full(len(triangles), 3), triangles]).ravel()
+    return pv.PolyData(np.asarray(vertices, float), faces=faces)
+
+
+def surface_normals(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray | None = None) -> np.ndarray:
+    """Outward unit normals, (N, 3): the given ones, else from the triangles, else from neighbours.
+
+    Triangle normals are made consistent and outward (VTK's
+    ``auto_orient_normals``); a point cloud gets normals by local PCA with
+    orientation propagated along a spanning tree (paper Section 4,
+    :func:`volreg.implicit.estimate_normals`).
+    """
+    if normals is not None:
+        n = np.asarray(normals, float)
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    if len(triangles):
+        mesh = _polydata(vertices, triangles).compute_normals(
+            point_normals=True, cell_normals=False, auto_orient_normals=True, consistent_normals=True, split_vertices=False
+        )
+        return np.array(mesh.point_data["Normals"], float)
+    return estimate_normals(np.asarray(vertices, float))
+
+
+def closest_points(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray):
+    """Nearest points of a surface (or point cloud) to ``points``.
+
+    Returns
+    -------
+    closest : (M, 3) float ndarray, mm
+        On the triangles (exact point-to-triangle distance) or, for a point
+        cloud, the nearest vertex.
+    distance : (M,) float ndarray, mm
+    cell : (M,) int ndarray
+        Index of the triangle (or vertex, for a cloud) holding ``closest``.
+    """
+    points = np.asarray(points, float)
+    if len(triangles):
+        mesh = _polydata(vertices, triangles)
+        cell, closest = mesh.find_closest_cell(points, return_closest_point=True)
+        closest = np.asarray(closest, float).reshape(-1, 3)
+        cell = np.asarray(cell).reshape(-1)
+    else:
+        _, cell = cKDTree(vertices).query(points)
+        closest = np.asarray(vertices, float)[cell]
+    return closest, np.linalg.norm(closest - points, axis=1), cell
+
+
+def morph_vertices(vertices: np.ndarray, warped: np.ndarray, frames: int) -> list[np.ndarray]:
+    """Vertices along the straight paths ``v + t (tau(v) - v)``, ``t = 0, 1/(frames-1), ..., 1``."""
+    if frames < 2:
+        raise ValueError(f"Expected `frames` >= 2, got {frames}.")
+    return [vertices + t * (warped - vertices) for t in np.linspace(0.0, 1.0, frames)]
+
+
+def _barycentric(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Barycentric weights (M, 3) of points ``p`` in triangles ``(a, b, c)`` (clipped to the triangle)."""
+    v0, v1, v2 = b - a, c - a, p - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(np.abs(den) > 1e-30, den, 1.0)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    weights = np.clip(np.column_stack([1.0 - v - w, v, w]), 0.0, 1.0)
+    return weights / np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
+
+
+def transfer_values(
+    warped: np.ndarray,
+    target_vertices: np.ndarray,
+    target_triangles: np.ndarray,
+    values: np.ndarray,
+    *,
+    method: str = "barycentric",
+) -> np.ndarray:
+    """Carry per-vertex ``values`` of the target onto warped source vertices (paper Figure 5).
+
+    Parameters
+    ----------
+    warped : (M, 3) float ndarray, mm
+        ``tau(v)`` for the source vertices.
+    target_vertices, target_triangles
+        The target surface ((N, 3) mm, (F, 3) indices; F = 0 for a cloud).
+    values : (N, ...) ndarray
+        Per-vertex array of the target (scalars, colours, labels).
+    method : {"nearest", "barycentric"}
+        ``nearest``: the value of the target vertex nearest to ``tau(v)``.
+        ``barycentric``: interpolated in the closest triangle; integer arrays
+        (labels) take the value of that triangle's vertex with the largest
+        weight, so only input values come out.
+
+    Returns
+    -------
+    (M, ...) ndarray, the dtype of ``values``
+    """
+    values = np.asarray(values)
+    if method not in ("nearest", "barycentric"):
+        raise ValueError(f"Expected `method` 'nearest' or 'barycentric', got {method!r}.")
+    if method == "nearest" or len(target_triangles) == 0:
+        _, idx = cKDTree(target_vertices).query(warped)
+        return values[idx]
+    closest, _, cell = closest_points(warped, target_vertices, target_triangles)
+    tri = np.asarray(target_triangles)[cell]
+    tv = np.asarray(target_vertices, float)
+    weights = _barycentric(closest, tv[tri[:, 0]], tv[tri[:, 1]], tv[tri[:, 2]])
+    if values.dtype.kind in "iub":
+        return values[tri[np.arange(len(tri)), np.argmax(weights, axis=1)]]
+    a, b, c = (values[tri[:, i]].astype(float) for i in range(3))
+    shape = (-1,) + (1,) * (a.ndim - 1)
+    # a + w_b (b - a) + w_c (c - a): exact where the three values agree (a constant comes back as itself)
+    out = a + weights[:, 1].reshape(shape) * (b - a) + weights[:, 2].reshape(shape) * (c - a)
+    return out.astype(values.dtype, copy=False)
