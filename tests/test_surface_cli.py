@@ -155,3 +155,22 @@ def test_bad_inputs(pair, tmp_path, capsys):
     (tmp_path / "full" / "keep").write_text("k")
     assert run(["register-surfaces", d / "src.vtk", d / "tgt.vtk", "-o", tmp_path / "full"]) == 2
     assert [p.name for p in (tmp_path / "full").iterdir()] == ["keep"]
+
+
+def test_non_manifold_mesh_is_reported(pair, tmp_path, capsys):
+    """Three triangles on one edge: read with a one-line warning (the registration still runs)."""
+    import warnings
+
+    from volreg.io import VolregWarning
+
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], float)
+    fan = pv.PolyData(pts, faces=np.array([3, 0, 1, 2, 3, 0, 1, 3, 3, 0, 1, 4]))
+    fan.save(tmp_path / "fan.vtk")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read_surface(tmp_path / "fan.vtk")
+    assert [w.category for w in caught] == [VolregWarning] and "1 non-manifold edges" in str(caught[0].message)
+    assert run(["transfer", tmp_path / "fan.vtk", pair[0] / "tgt.vtk", "--result", pair[0] / "out", "--array", "height",
+                "-o", tmp_path / "t.vtk"]) == 2  # too few vertices to be a surface: refused after the warning
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[0].startswith("volreg transfer: warning: ") and "non-manifold" in err[0]

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-from ._atomic import VolregIOError, atomic_output
+from ._atomic import VolregIOError, VolregWarning, atomic_output
 
 __all__ = ["write_mesh", "read_mesh", "read_surface", "write_gifti", "SurfaceData"]
 
@@ -341,6 +341,17 @@ def read_surface(path: str | os.PathLike[str]) -> SurfaceData:
         raise VolregIOError(f"Surface `{p}` has triangles indexing missing vertices; expected indices below {len(out.vertices)}.")
     if out.normals is not None and (out.normals.shape != out.vertices.shape or not np.all(np.isfinite(out.normals))):
         out.normals = None  # unusable normals are estimated again
+    if len(out.triangles):
+        edges = np.sort(out.triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        _, counts = np.unique(edges, axis=0, return_counts=True)
+        bad = int(np.count_nonzero(counts > 2))
+        if bad:
+            warnings.warn(
+                f"Surface `{p}` has {bad} non-manifold edges (shared by more than two triangles); its normals and "
+                "implicit surface may be unreliable there (repair the mesh, e.g. with pymeshfix or MeshLab).",
+                VolregWarning,
+                stacklevel=2,
+            )
     return out
 
 
