@@ -73,3 +73,15 @@ def test_composition_with_the_inverse_is_near_identity(warp):
     assert sol.converged.all()
     assert np.abs(warp(sol.points) - pts).max() <= 1e-5
     assert np.abs(invert_points(warp, warp(pts)).points - pts).max() <= 1e-5
+
+
+def test_a_label_filling_the_whole_volume_is_kept():
+    """A label with no boundary in the array (every voxel the label) survives label resampling.
+
+    Its signed distance is -inf everywhere; linear interpolation of infinities gives NaN, which
+    used to make every voxel background.
+    """
+    for array in (np.full((5, 6, 7), 7, np.uint8), np.pad(np.full((5, 6, 7), 3, np.int16), 1)[1:, 1:, 1:]):
+        volume = LabelVolume(array, (0, 0, 0), (1.0, 2.0, 0.5), np.eye(3))
+        for shift in (0.0, 0.1):  # on the voxel centres and between them
+            assert np.array_equal(resample_labels(volume, volume.grid_points() + shift), array)

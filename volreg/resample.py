@@ -34,6 +34,10 @@ __all__ = ["resample_labels", "resample_image", "signed_distance_map"]
 ProgressCallback = Callable[[str, int, int], None]
 
 
+#: Stand-in for an infinite distance (mm): no boundary within the array.
+FAR_MM = 1e9
+
+
 def signed_distance_map(mask: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     """Signed distance (mm) of each voxel centre to the mask's boundary: negative inside.
 
@@ -54,7 +58,9 @@ def signed_distance_map(mask: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     mask = np.asarray(mask, dtype=bool)
     outside = ndimage.distance_transform_edt(~mask, sampling=spacing) if mask.any() else np.full(mask.shape, np.inf)
     inside = ndimage.distance_transform_edt(mask, sampling=spacing) if (~mask).any() else np.full(mask.shape, np.inf)
-    return (outside - inside).astype(np.float32)
+    # A mask that is empty or fills the whole array has no boundary: a large finite distance
+    # (not +-inf, which linear interpolation turns into NaN, so that the label would never win).
+    return np.clip(outside - inside, -FAR_MM, FAR_MM).astype(np.float32)
 
 
 def _indices(image: LabelVolume, points: np.ndarray) -> np.ndarray:
