@@ -94,6 +94,13 @@ def files(tmp_path_factory):
     _nifti(d / "full.nii", good.array)
     (d / "truncated.nii").write_bytes((d / "full.nii").read_bytes()[:-500])
     f["truncated_nii"] = d / "truncated.nii"
+    from volreg.io.fields import write_displacement
+
+    u = np.random.default_rng(1).normal(0, 1, (*good.shape, 3))  # compresses poorly
+    write_displacement(u, good, d / "warp.nii.gz")
+    whole = (d / "warp.nii.gz").read_bytes()
+    (d / "truncated_warp.nii.gz").write_bytes(whole[: len(whole) // 2])
+    f["truncated_warp"] = d / "truncated_warp.nii.gz"
     f["bomb"] = _bomb(d / "bomb.nii.gz")
     f["4d"] = _nifti(d / "4d.nii.gz", np.zeros((8, 8, 8, 3), np.uint8))
     twod = LabelVolume(np.pad(np.ones((6, 6), np.uint8), 5), (0.0, 0.0), (1.0, 1.0), np.eye(2))
@@ -209,6 +216,8 @@ CASES = [
     ("protocol unknown preset", "register {good} {good2} -o {out} --protocol fastest", ["fastest", "not found"]),
     ("pickled model", "apply {pickled_model} {good} --reference {good} -o {out}/x.nii.gz",
      ["pickled.npz", "not a valid volreg kernel warp"]),
+    ("truncated warp", "apply {truncated_warp} {good} --reference {good} -o {out}/x.nii.gz",
+     ["truncated_warp.nii.gz", "is truncated"]),
     ("garbage model", "apply {garbage_model} {good} --reference {good} -o {out}/x.nii.gz",
      ["garbage.npz", "not a zip archive"]),
     ("output path with ..", "register {good} {good2} -o {out}/../escape", ["..", "expected an output path"]),

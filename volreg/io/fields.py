@@ -21,7 +21,7 @@ import SimpleITK as sitk
 
 from ..volume import LabelVolume
 from ._atomic import VolregIOError, atomic_output
-from .images import _check_input, _sitk_reason
+from .images import _check_input, _check_nifti, _sitk_reason
 
 __all__ = ["write_displacement", "read_displacement"]
 
@@ -102,7 +102,10 @@ def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, LabelVo
         If the file is unreadable or not a vector image with D components on a D-D grid.
     """
     p = Path(path)
-    _check_input(p, "Displacement field")
+    suffix = _check_input(p, "Displacement field")
+    if suffix in (".nii", ".nii.gz"):
+        # SimpleITK zero-fills a truncated file: a warp that silently becomes the identity there.
+        _check_nifti(p, suffix, "Displacement field")
     try:
         img = sitk.ReadImage(str(p))
     except RuntimeError as exc:

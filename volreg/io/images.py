@@ -185,7 +185,8 @@ def _check_nifti(path: Path, suffix: str, what: str) -> nib.Nifti1Image:
         raise VolregIOError(f"{what} `{path}` is not a readable NIfTI file: {_first_line(exc)}.") from exc
 
     _check_size(path, shape, itemsize, what)  # before decompressing: a header may claim terabytes
-    pixdim = _raw_pixdim(path, suffix)[1 : len(shape) + 1]  # nibabel's loader silently makes them positive
+    # Spatial axes only (a displacement field's 4th and 5th axes are time and vector components).
+    pixdim = _raw_pixdim(path, suffix)[1 : min(len(shape), 3) + 1]  # nibabel's loader silently makes them positive
     spatial = np.asarray(shape[: len(pixdim)]) > 1  # a singleton axis may carry pixdim 0
     if np.any(~np.isfinite(pixdim)) or np.any((pixdim <= 0) & spatial):
         raise VolregIOError(
