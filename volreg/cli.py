@@ -224,6 +224,28 @@ def build_parser() -> argparse.ArgumentParser:
     tune.set_defaults(run=_tune)
 
     add_surface_commands(commands)
+
+    batch = commands.add_parser(
+        "batch",
+        help="register a cohort, one Dask task per pair, on this machine or a cluster",
+        description="Register the label volumes listed in MANIFEST (CSV with columns id,path) to --template, or in "
+        "pairs (all ordered pairs, or consecutive ones), one Dask task per registration: on a LocalCluster of "
+        "--workers processes, or on the cluster at --scheduler. Every pair gets a full `volreg register` (or, with "
+        "--consistency, `volreg consistency`) OUTDIR under OUTDIR/pairs/FIXED__MOVING; a rerun skips pairs that are "
+        "complete with unchanged inputs. Writes OUTDIR/batch.csv (one row per pair, failures with their error) and "
+        "OUTDIR/batch.png. Exit status 1 if any pair failed.",
+    )
+    batch.add_argument("manifest", metavar="MANIFEST", type=Path, help="CSV with columns id,path")
+    batch.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
+    batch.add_argument("--template", metavar="T", type=Path, default=None, help="register every subject to this volume")
+    batch.add_argument("--pairs", choices=("all", "consecutive"), default="all",
+                       help="without --template: every ordered pair (default) or consecutive subjects")
+    batch.add_argument("--consistency", action="store_true", help="register both ways and report consistency")
+    batch.add_argument("--scheduler", metavar="ADDRESS", default=None, help="connect to this Dask scheduler")
+    batch.add_argument("--workers", type=int, default=None, help="LocalCluster worker processes (default 2)")
+    batch.add_argument("--protocol", metavar="NAME|FILE", default="default", help="protocol for every registration")
+    batch.add_argument("--quiet", action="store_true", help="no progress bar")
+    batch.set_defaults(run=_batch)
     return parser
 
 
@@ -408,6 +430,13 @@ from ._register_cli import _apply, _demo, _protocols, _register  # noqa: E402  (
 from ._consistency_cli import run_consistency as _consistency  # noqa: E402
 from ._tune_cli import run_tune as _tune  # noqa: E402
 from ._surface_cli import add_surface_commands  # noqa: E402
+
+
+def _batch(args: argparse.Namespace) -> int:
+    # Imported when run: Dask workers import volreg._batch_cli (its task) before volreg.cli.
+    from ._batch_cli import run_batch
+
+    return run_batch(args)
 
 
 # --------------------------------------------------------------------------- entry point

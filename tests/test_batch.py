@@ -1,0 +1,116 @@
+"""``volreg batch`` on a Dask LocalCluster of 2 workers: small generated subjects."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from volreg.cli import main
+from volreg.io import write_labels
+from volreg.synthetic import GaussianBumps, deform_labels
+
+from test_register import blob_volume
+
+distributed = pytest.importorskip("dask.distributed")
+
+#: Two warp levels (32 and 16 mm) on these 24^3 volumes of 2.5 mm voxels: a few seconds per pair.
+PROTOCOL = "[protocol]\nname = \"batch-test\"\n[warp]\nmin_width = 12.0\npad = 6.0\nmax_iter = 40\n"
+
+
+def _rows(path):
+    return list(csv.DictReader(path.read_text().splitlines()))
+
+
+@pytest.fixture(scope="module")
+def cohort(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cohort")
+    base = blob_volume(shape=(24, 24, 24), spacing=np.array([2.5, 2.5, 2.5]))
+    write_labels(base, d / "template.nii.gz")
+    lines = ["id,path"]
+    for i in range(6):
+        bump = GaussianBumps(np.array([[0.0, 0.0, 0.0]]), np.array([[0.8 * i - 2.0, 1.0, 0.5 * (i % 2)]]), 30.0)
+        write_labels(deform_labels(base, bump), d / f"s{i}.nii.gz")
+        lines.append(f"s{i},s{i}.nii.gz")
+    (d / "corrupt.nii.gz").write_bytes(b"\x1f\x8b" + os.urandom(300))
+    lines.append("bad,corrupt.nii.gz")
+    (d / "manifest.csv").write_text("\n".join(lines) + "\n")
+    (d / "p.toml").write_text(PROTOCOL)
+    args = ["batch", str(d / "manifest.csv"), "-o", str(d / "out"), "--template", str(d / "template.nii.gz"),
+            "--protocol", str(d / "p.toml"), "--workers", "2", "--quiet"]
+    assert main(args) == 1  # one pair failed
+    return d, args
+
+
+def test_all_pairs_complete_and_the_corrupt_one_fails_alone(cohort):
+    d, _ = cohort
+    rows = _rows(d / "out" / "batch.csv")
+    assert [(r["fixed_id"], r["moving_id"]) for r in rows] == [("template", f"s{i}") for i in range(6)] + [("template", "bad")]
+    assert [r["status"] for r in rows] == ["done"] * 6 + ["failed"]
+    assert "corrupt.nii.gz" in rows[-1]["error"] and "\n" not in rows[-1]["error"]
+    for r in rows[:6]:
+        assert float(r["mean_dice_after"]) >= float(r["mean_dice_before"]) - 1e-9
+        assert (d / "out" / "pairs" / f"template__{r['moving_id']}" / "warp.nii.gz").is_file()
+    assert (d / "out" / "batch.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_rerun_recomputes_nothing(cohort, capsys):
+    d, args = cohort
+    warp = d / "out" / "pairs" / "template__s3" / "warp.nii.gz"
+    before = warp.stat().st_mtime_ns
+    assert main(args) == 1
+    assert "(6 already done, skipped), 1 failed" in capsys.readouterr().out
+    assert warp.stat().st_mtime_ns == before
+
+
+def test_results_equal_volreg_register(cohort, tmp_path):
+    d, _ = cohort
+    assert main(["register", str(d / "template.nii.gz"), str(d / "s4.nii.gz"), "-o", str(tmp_path / "one"),
+                 "--protocol", str(d / "p.toml"), "--quiet"]) == 0
+    for name in ("warp.nii.gz", "warped.nii.gz", "model.npz"):
+        assert (tmp_path / "one" / name).read_bytes() == (d / "out" / "pairs" / "template__s4" / name).read_bytes()
+
+
+def test_killed_worker_is_retried(cohort, tmp_path):
+    """A worker process killed mid-run: Dask restarts it and reruns its task; every pair completes."""
+    d, _ = cohort
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0")
+    killed = []
+
+    def kill_one():
+        for nanny in list(cluster.workers.values()):
+            pid = getattr(getattr(nanny, "process", None), "pid", None)
+            if pid:
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+                return
+
+    try:
+        timer = threading.Timer(2.0, kill_one)
+        timer.start()
+        rc = main(["batch", str(d / "manifest.csv"), "-o", str(tmp_path / "out"), "--pairs", "consecutive",
+                   "--protocol", str(d / "p.toml"), "--scheduler", cluster.scheduler_address, "--quiet"])
+        timer.join()
+    finally:
+        cluster.close()
+    assert killed, "no worker was killed"
+    rows = _rows(tmp_path / "out" / "batch.csv")
+    assert [r["status"] for r in rows] == ["done"] * 5 + ["failed"] and rc == 1  # s5 -> bad fails as it should
+
+
+@pytest.mark.parametrize("content, words", [
+    ("id,file\ns0,a.nii.gz\n", "columns id,path"),
+    ("id,path\ns0,s0.nii.gz\ns0,s1.nii.gz\n", "listed twice"),
+    ("id,path\ns0,s0.nii.gz\n", "no pair"),
+])
+def test_bad_manifest(cohort, tmp_path, capsys, content, words):
+    d, _ = cohort
+    (d / "m.csv").write_text(content)
+    assert main(["batch", str(d / "m.csv"), "-o", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and words in err

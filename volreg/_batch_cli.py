@@ -1,0 +1,220 @@
+"""``volreg batch``: cohorts of registrations as Dask tasks, on this machine or on a cluster.
+
+Each registration is one task that reads its two label volumes from their paths (nothing large
+goes through the scheduler) and writes a complete ``volreg register`` (or ``consistency``) OUTDIR
+under ``OUTDIR/pairs/``.  A pair whose outputs are complete and whose inputs' checksums are those
+recorded in its report is skipped on a rerun; a failing pair is recorded with its error and does not
+stop the others; Dask retries the task of a worker that dies.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import sys
+import time
+from pathlib import Path
+
+from .cli import EXPECTED_ERRORS, PROG, UsageError, _make_directory
+from .io import write_text
+
+__all__ = ["read_manifest", "plan_pairs", "run_pair", "run_batch"]
+
+COLUMNS = ["fixed_id", "moving_id", "status", "error", "mean_dice_before", "mean_dice_after", "consistency_mean_mm",
+           "consistency_p95_mm", "folded_fraction", "seconds", "outdir"]
+
+
+def read_manifest(path: Path) -> list[tuple[str, Path]]:
+    """``id,path`` rows (header required; relative paths are relative to the manifest)."""
+    if not path.is_file():
+        raise UsageError(f"MANIFEST `{path}` does not exist or is not a file.")
+    try:
+        rows = list(csv.DictReader(path.read_text(encoding="utf-8").splitlines()))
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise UsageError(f"MANIFEST `{path}` is not a CSV file: {exc}.") from None
+    if not rows or not {"id", "path"} <= set(rows[0]):
+        raise UsageError(f"MANIFEST `{path}` needs a header with the columns id,path and at least one row.")
+    subjects, seen = [], set()
+    for i, row in enumerate(rows, start=2):
+        sid, p = (row.get("id") or "").strip(), (row.get("path") or "").strip()
+        if not sid or not p:
+            raise UsageError(f"MANIFEST `{path}` line {i}: expected an id and a path, got {row}.")
+        if sid in seen:
+            raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` is listed twice; expected unique ids.")
+        if any(c in sid for c in "/\\") or sid in (".", ".."):
+            raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` must not contain path separators.")
+        seen.add(sid)
+        q = Path(p)
+        subjects.append((sid, q if q.is_absolute() else path.parent / q))
+    return subjects
+
+
+def plan_pairs(subjects, template: tuple[str, Path] | None, mode: str) -> list[tuple[tuple[str, Path], tuple[str, Path]]]:
+    """(fixed, moving) pairs: every subject to the template, or all ordered pairs, or consecutive ones."""
+    if template is not None:
+        return [(template, s) for s in subjects]
+    if mode == "consecutive":
+        return [(subjects[i], subjects[i + 1]) for i in range(len(subjects) - 1)]
+    return [(a, b) for a in subjects for b in subjects if a[0] != b[0]]
+
+
+def _done(outdir: Path, fixed: Path, moving: Path, consistency: bool) -> dict | None:
+    """The saved row of a complete pair whose inputs are unchanged, else None."""
+    from ._register_cli import _sha256
+
+    row_file = outdir / "batch_row.json"
+    if not row_file.is_file():
+        return None
+    try:
+        row = json.loads(row_file.read_text())
+    except (OSError, ValueError):
+        return None
+    if row.get("status") != "done" or row.get("fixed_sha256") != _sha256(fixed) or row.get("moving_sha256") != _sha256(moving):
+        return None
+    needed = ["consistency.json"] if consistency else ["warp.nii.gz", "warped.nii.gz", "model.npz", "report.json"]
+    return row if all((outdir / n).is_file() for n in needed) else None
+
+
+def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str, protocol: str,
+             consistency: bool = False) -> dict:
+    """One task: register MOVING to FIXED (or both ways with ``consistency``) into ``outdir``; return its row.
+
+    Runs on a worker; reads its inputs from their paths.  Input errors become a
+    ``failed`` row with the one-line message; anything else propagates (a bug).
+    """
+    from ._register_cli import _check_pair, _sha256, run_registration
+    from .io import read_labels, write_json
+    from .protocol import load_protocol
+
+    start = time.perf_counter()
+    out, fpath, mpath = Path(outdir), Path(fixed), Path(moving)
+    row = {"fixed_id": fixed_id, "moving_id": moving_id, "outdir": str(out)}
+    saved = _done(out, fpath, mpath, consistency)
+    if saved is not None:
+        return dict(saved, skipped=True)
+    try:
+        proto = load_protocol(protocol)
+        a, b = read_labels(fpath), read_labels(mpath)
+        _check_pair(a, b, fpath, mpath)
+        if consistency:
+            from ._consistency_cli import run_consistency
+
+            args = argparse.Namespace(a=fpath, b=mpath, output=out, forward=None, backward=None, protocol=protocol,
+                                      drive_labels=None, force=True, quiet=True, verbose=False)
+            run_consistency(args)
+            rep = json.loads((out / "consistency.json").read_text())
+            fwd = rep["directions"]["forward"]["mean_dice"]
+            row.update(mean_dice_before=fwd["before"], mean_dice_after=fwd["after"],
+                       consistency_mean_mm=rep["region"]["mean_mm"], consistency_p95_mm=rep["region"]["p95_mm"])
+        else:
+            inputs = {"fixed": {"path": str(fpath), "sha256": _sha256(fpath)},
+                      "moving": {"path": str(mpath), "sha256": _sha256(mpath)}}
+            rep = run_registration(a, b, out, protocol=proto, force=True, quiet=True, inputs=inputs, command="batch")
+            row.update(mean_dice_before=rep["mean_dice"]["before"], mean_dice_after=rep["mean_dice"]["after"],
+                       folded_fraction=rep["jacobian"]["folded_fraction"])
+        row.update(status="done", error="", seconds=time.perf_counter() - start,
+                   fixed_sha256=_sha256(fpath), moving_sha256=_sha256(mpath))
+        write_json(row, out / "batch_row.json", force=True)
+    except EXPECTED_ERRORS as exc:
+        row.update(status="failed", error=" ".join(str(exc).split()), seconds=time.perf_counter() - start)
+    return row
+
+
+def _write_table(rows: list[dict], path: Path) -> None:
+    table = io.StringIO()
+    writer = csv.DictWriter(table, fieldnames=COLUMNS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: ("" if row.get(k) is None else row.get(k, "")) for k in COLUMNS})
+    write_text(table.getvalue(), path, force=True)
+
+
+def _write_plot(rows: list[dict], path: Path) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from .io import atomic_output
+
+    done = [r for r in rows if r.get("status") == "done"]
+    fig = Figure(figsize=(9, 4), dpi=90, facecolor="white")
+    canvas = FigureCanvasAgg(fig)
+    ax1, ax2 = fig.subplots(1, 2)
+    before = [r["mean_dice_before"] for r in done]
+    after = [r["mean_dice_after"] for r in done]
+    if done:
+        ax1.boxplot([before, after])
+        ax1.set_xticks([1, 2], ["before", "after"])
+    ax1.set_title(f"mean Dice per pair ({len(done)} done, {len(rows) - len(done)} failed)")
+    secs = [r["seconds"] for r in done]
+    if secs:
+        ax2.hist(secs, bins=min(10, len(secs)))
+    ax2.set_title("seconds per registration")
+    with atomic_output(path, force=True) as tmp:
+        canvas.print_png(str(tmp))
+
+
+def run_batch(args: argparse.Namespace) -> int:
+    try:
+        from dask.distributed import Client, LocalCluster, as_completed
+    except ImportError:
+        raise UsageError("volreg batch needs Dask: pip install 'dask[distributed]' (or volreg[batch]).") from None
+    from .progress import ProgressBars
+    from .protocol import load_protocol
+
+    start = time.perf_counter()
+    load_protocol(args.protocol)  # validate before starting a cluster
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers {args.workers}: expected at least 1.")
+    subjects = read_manifest(args.manifest)
+    template = None
+    if args.template is not None:
+        if not args.template.is_file():
+            raise UsageError(f"--template `{args.template}` does not exist or is not a file.")
+        template = ("template", args.template)
+    pairs = plan_pairs(subjects, template, args.pairs)
+    if not pairs:
+        raise UsageError(f"MANIFEST `{args.manifest}` gives no pair to register; expected at least two subjects "
+                         "(or --template).")
+    outdir: Path = args.output
+    _make_directory(outdir)
+    if args.scheduler:
+        client = Client(args.scheduler)
+        cluster = None
+    else:
+        cluster = LocalCluster(n_workers=args.workers or 2, threads_per_worker=1, processes=True,
+                               dashboard_address=":0")
+        client = Client(cluster)
+    rows: list[dict] = []
+    try:
+        if client.dashboard_link and not args.quiet:
+            print(f"{PROG} batch: Dask dashboard {client.dashboard_link}", file=sys.stderr)
+        futures = {}
+        for (fid, fpath), (mid, mpath) in pairs:
+            pair_dir = outdir / "pairs" / f"{fid}__{mid}"
+            fut = client.submit(run_pair, fid, str(fpath.resolve()), mid, str(mpath.resolve()), str(pair_dir.resolve()),
+                                str(args.protocol), args.consistency, key=f"volreg-{fid}__{mid}", pure=False, retries=2)
+            futures[fut] = (fid, mid)
+        with ProgressBars(quiet=args.quiet) as progress:
+            for n, fut in enumerate(as_completed(futures), start=1):
+                fid, mid = futures[fut]
+                try:
+                    rows.append(fut.result())
+                except Exception as exc:  # a bug or a worker lost more often than the retries allow
+                    rows.append({"fixed_id": fid, "moving_id": mid, "status": "failed",
+                                 "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"})
+                progress("registrations", n, len(futures))
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    order = {(f[0], m[0]): i for i, (f, m) in enumerate(pairs)}
+    rows.sort(key=lambda r: order[(r["fixed_id"], r["moving_id"])])
+    _write_table(rows, outdir / "batch.csv")
+    _write_plot(rows, outdir / "batch.png")
+    failed = [r for r in rows if r.get("status") != "done"]
+    skipped = sum(1 for r in rows if r.get("skipped"))
+    print(f"{PROG} batch: {len(rows) - len(failed)} of {len(rows)} pairs done ({skipped} already done, skipped), "
+          f"{len(failed)} failed; {outdir / 'batch.csv'} ({time.perf_counter() - start:.0f} s)")
+    return 1 if failed else 0
