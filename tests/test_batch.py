@@ -114,3 +114,18 @@ def test_bad_manifest(cohort, tmp_path, capsys, content, words):
     assert main(["batch", str(d / "m.csv"), "-o", str(tmp_path / "out"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and words in err
+
+
+def test_consistency_pairs(cohort, tmp_path):
+    """--consistency runs `volreg consistency` per pair; its error figures land in batch.csv."""
+    d, _ = cohort
+    (d / "two.csv").write_text("id,path\ns1,s1.nii.gz\ns5,s5.nii.gz\n")
+    assert main(["batch", str(d / "two.csv"), "-o", str(tmp_path / "out"), "--pairs", "consecutive", "--consistency",
+                 "--protocol", str(d / "p.toml"), "--workers", "1", "--quiet"]) == 0
+    (row,) = _rows(tmp_path / "out" / "batch.csv")
+    assert (row["fixed_id"], row["moving_id"], row["status"]) == ("s1", "s5", "done")
+    pair = tmp_path / "out" / "pairs" / "s1__s5"
+    assert (pair / "consistency.json").is_file() and (pair / "forward" / "warp.nii.gz").is_file()
+    # the blobs differ by a few mm: the two registrations agree to well under a voxel (2.5 mm)
+    assert 0.0 < float(row["consistency_mean_mm"]) < 1.25
+    assert float(row["consistency_p95_mm"]) >= float(row["consistency_mean_mm"])

@@ -22,6 +22,7 @@ from volreg import LabelVolume
 from volreg.cli import main
 from volreg.io import VolregIOError, read_mesh, write_labels
 from volreg.pipeline import RegistrationDiverged, fit_warp
+from volreg.warp import KernelWarp
 from volreg.objective import FeaturePair
 
 from test_register import TEST_PROTOCOL
@@ -388,6 +389,51 @@ def test_divergence_stops_with_the_level_named():
     pts = np.random.default_rng(0).uniform(-10, 10, (200, 3))
     with pytest.raises(RegistrationDiverged, match=r"Warp level 0 \(kernel width .* mm\) diverged.*protocol"):
         fit_warp([FeaturePair(_NaNFeature(), _NaNFeature())], pts, settings=WarpSettings(min_width=8.0, max_iter=5))
+
+
+def _folding_warp(volume: LabelVolume) -> KernelWarp:
+    """Level 0: a gentle 1 mm shift bump; level 1: a 6 mm-wide bump of 10 mm that folds around the centre."""
+    from volreg.warp import WarpLevel
+
+    centre = volume.index_to_world((np.array(volume.shape)[None] - 1) / 2.0)
+    gentle = WarpLevel(centre, np.array([[1.0, 0.0, 0.0]]), width=40.0)
+    folding = WarpLevel(centre, np.array([[10.0, 0.0, 0.0]]), width=6.0)
+    return KernelWarp([gentle, folding], dim=3)
+
+
+def test_a_warp_folding_the_grid_stops_with_the_level_named():
+    from volreg.field import jacobian_determinant_on_grid
+    from volreg.pipeline import check_folding
+
+    volume = _cube()
+    warp = _folding_warp(volume)
+    det = jacobian_determinant_on_grid(warp, volume)
+    assert 0.0 < np.mean(det <= 0) < 0.5  # it folds, locally
+    with pytest.raises(RegistrationDiverged, match=r"Warp level 1 \(kernel width 6 mm\) folds space.*min_width"):
+        check_folding(warp, volume, det, 0.001)
+    check_folding(warp, volume, det, 0.5)  # tolerated above its folded fraction
+    gentle = KernelWarp(warp.levels[:1], dim=3)
+    check_folding(gentle, volume, jacobian_determinant_on_grid(gentle, volume), 0.0)
+
+
+def test_register_writes_nothing_when_the_warp_folds(files, tmp_path, capsys, monkeypatch):
+    import volreg._register_cli as rc
+
+    real = rc.register_labels
+
+    def folding(fixed, moving, **kwargs):
+        result = real(fixed, moving, **kwargs)
+        result.warp = _folding_warp(fixed)
+        return result
+
+    monkeypatch.setattr(rc, "register_labels", folding)
+    (tmp_path / "p.toml").write_text(TEST_PROTOCOL)
+    out = tmp_path / "out"
+    assert main(["register", str(files["good"]), str(files["good2"]), "-o", str(out), "--protocol",
+                 str(tmp_path / "p.toml"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "folds space" in err and "max_folded_fraction" in err
+    assert _outputs(out) == []
 
 
 # ----------------------------------------------------------------------------- safe loading

@@ -27,7 +27,7 @@ from .io.fields import read_displacement, write_displacement
 from .io.landmarks import read_landmarks
 from .io.report_figure import write_report_figure
 from .metrics import folded_fraction, label_scores
-from .pipeline import register_labels
+from .pipeline import check_folding, register_labels
 from .progress import ProgressBars
 from .protocol import PROTOCOL_DIR, Protocol, load_protocol
 from .resample import resample_image, resample_labels
@@ -191,6 +191,7 @@ def run_registration(
             points = grid + u
             warped_array = resample_labels(moving, points, method="label", progress=progress)
             jac = jacobian_determinant_on_grid(result.warp, fixed, progress=progress)
+            check_folding(result.warp, fixed, jac, protocol.warp.max_folded_fraction)
             stages.append(dict(stage="resample", seconds=time.perf_counter() - t0, peak_rss_gb=round(_peak_rss_gb(), 3)))
 
             t0 = time.perf_counter()

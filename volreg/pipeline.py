@@ -44,6 +44,7 @@ __all__ = [
     "RegistrationResult",
     "LabelRegistration",
     "RegistrationDiverged",
+    "check_folding",
     "register_surfaces",
     "register_labels",
     "fit_warp",
@@ -51,7 +52,52 @@ __all__ = [
 
 
 class RegistrationDiverged(RuntimeError):
-    """The optimisation of a level failed (NaN/Inf objective or coefficients): no warp is returned."""
+    """The optimisation of a level failed (NaN/Inf objective or coefficients, or a warp that folds
+    too much of the output grid): no warp is returned or written."""
+
+
+def check_folding(warp: KernelWarp, reference, det: np.ndarray, max_fraction: float) -> None:
+    """Stop a registration whose warp folds too much of the output grid.
+
+    The fold barrier and guard keep ``det d tau / dx`` positive at the octree samples;
+    between them, on a finer voxel grid, a warp can still fold.  This checks the grid.
+
+    Parameters
+    ----------
+    warp : KernelWarp
+        The fitted warp.
+    reference : LabelVolume
+        The grid ``det`` was computed on (the fixed image).
+    det : (*reference.shape) float ndarray
+        ``det d tau / dx`` of ``warp`` at every voxel (``jacobian_determinant_on_grid``).
+    max_fraction : float
+        Largest acceptable fraction of voxels with ``det <= 0``.
+
+    Raises
+    ------
+    RegistrationDiverged
+        If more than ``max_fraction`` of the voxels fold; the message names the first
+        level whose addition crossed the threshold (found by re-evaluating the partial
+        sums of the levels, only on this failure path) and suggests protocol changes.
+    """
+    from .field import jacobian_determinant_on_grid
+
+    folded = float(np.count_nonzero(np.asarray(det) <= 0)) / max(np.asarray(det).size, 1)
+    if folded <= max_fraction:
+        return
+    levels = warp.levels
+    first = len(levels) - 1
+    for k in range(1, len(levels)):
+        partial = jacobian_determinant_on_grid(KernelWarp(levels[: k], dim=warp.dim), reference)
+        if np.count_nonzero(partial <= 0) / partial.size > max_fraction:
+            first = k - 1
+            break
+    raise RegistrationDiverged(
+        f"Warp level {first} (kernel width {levels[first].width:.3g} mm) folds space: det(d tau/dx) <= 0 at "
+        f"{100 * folded:.2f} % of the fixed grid's voxels, more than max_folded_fraction = {100 * max_fraction:.2g} %. "
+        "Change the protocol: raise min_width (or set it to a larger kernel width), lower lambda_loc or alpha, "
+        "or raise lambda_fold."
+    )
 
 
 @dataclass(frozen=True)
@@ -100,6 +146,11 @@ class WarpSettings:
         opposite direction (``fit_warp(prior=...)``; ``volreg consistency`` passes the
         forward warp's Newton inverse to the backward fit).  0 = off; ignored when no
         ``prior`` is given.
+    max_folded_fraction : float
+        Health check on the output grid (:func:`check_folding`): if the warp folds space
+        (``det d tau / dx <= 0``) at more than this fraction of the fixed grid's voxels,
+        the registration stops with :class:`RegistrationDiverged` naming the first level
+        that crossed it, instead of writing a folded warp.
     min_det : float
         Last-resort fold guard: after each level, its coefficients are shrunk (by 0.7 at a
         time) until ``det d tau / dx >= min_det`` at every sample point (or, where
@@ -122,6 +173,7 @@ class WarpSettings:
     sample_spacing: float | None = None
     sample_scale: float = 1.0
     lambda_consistency: float = 0.0
+    max_folded_fraction: float = 0.01
 
     def __post_init__(self) -> None:
         for name in ("lambda_loc", "alpha", "lambda_p", "neighbourhood", "lambda_fold", "fold_margin", "min_det",
@@ -135,6 +187,8 @@ class WarpSettings:
                 raise ValueError(f"Expected a positive `{name}` (mm), got {value}.")
         if not (np.isfinite(self.sample_scale) and 0 < self.sample_scale <= 16):
             raise ValueError(f"Expected `sample_scale` in (0, 16], got {self.sample_scale}.")
+        if not (np.isfinite(self.max_folded_fraction) and 0 <= self.max_folded_fraction <= 1):
+            raise ValueError(f"Expected `max_folded_fraction` in [0, 1], got {self.max_folded_fraction}.")
         if not 0 < self.fraction <= 1:
             raise ValueError(f"Expected `fraction` in (0, 1], got {self.fraction}.")
         if self.max_iter < 0:
