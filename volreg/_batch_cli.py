@@ -60,10 +60,8 @@ def plan_pairs(subjects, template: tuple[str, Path] | None, mode: str) -> list[t
     return [(a, b) for a in subjects for b in subjects if a[0] != b[0]]
 
 
-def _done(outdir: Path, fixed: Path, moving: Path, consistency: bool) -> dict | None:
-    """The saved row of a complete pair whose inputs are unchanged, else None."""
-    from ._register_cli import _sha256
-
+def _done(outdir: Path, sha: tuple[str, str], consistency: bool) -> dict | None:
+    """The saved row of a complete pair whose inputs still have the checksums ``sha``, else None."""
     row_file = outdir / "batch_row.json"
     if not row_file.is_file():
         return None
@@ -71,7 +69,7 @@ def _done(outdir: Path, fixed: Path, moving: Path, consistency: bool) -> dict | 
         row = json.loads(row_file.read_text())
     except (OSError, ValueError):
         return None
-    if row.get("status") != "done" or row.get("fixed_sha256") != _sha256(fixed) or row.get("moving_sha256") != _sha256(moving):
+    if row.get("status") != "done" or (row.get("fixed_sha256"), row.get("moving_sha256")) != sha:
         return None
     needed = ["consistency.json"] if consistency else ["warp.nii.gz", "warped.nii.gz", "model.npz", "report.json"]
     return row if all((outdir / n).is_file() for n in needed) else None
@@ -82,7 +80,8 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
     """One task: register MOVING to FIXED (or both ways with ``consistency``) into ``outdir``; return its row.
 
     Runs on a worker; reads its inputs from their paths.  Input errors become a
-    ``failed`` row with the one-line message; anything else propagates (a bug).
+    ``failed`` row with the one-line message (not an exception, which Dask would
+    retry); anything else propagates (a bug).
     """
     from ._register_cli import _check_pair, _sha256, run_registration
     from .io import read_labels, write_json
@@ -91,12 +90,13 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
     start = time.perf_counter()
     out, fpath, mpath = Path(outdir), Path(fixed), Path(moving)
     row = {"fixed_id": fixed_id, "moving_id": moving_id, "outdir": str(out)}
-    saved = _done(out, fpath, mpath, consistency)
-    if saved is not None:
-        return dict(saved, skipped=True)
     try:
+        a, b = read_labels(fpath), read_labels(mpath)  # validates both; a clear error for a missing file
+        sha = (_sha256(fpath), _sha256(mpath))
+        saved = _done(out, sha, consistency)
+        if saved is not None:
+            return dict(saved, skipped=True)
         proto = load_protocol(protocol)
-        a, b = read_labels(fpath), read_labels(mpath)
         _check_pair(a, b, fpath, mpath)
         if consistency:
             from ._consistency_cli import run_consistency
@@ -109,13 +109,11 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
             row.update(mean_dice_before=fwd["before"], mean_dice_after=fwd["after"],
                        consistency_mean_mm=rep["region"]["mean_mm"], consistency_p95_mm=rep["region"]["p95_mm"])
         else:
-            inputs = {"fixed": {"path": str(fpath), "sha256": _sha256(fpath)},
-                      "moving": {"path": str(mpath), "sha256": _sha256(mpath)}}
+            inputs = {"fixed": {"path": str(fpath), "sha256": sha[0]}, "moving": {"path": str(mpath), "sha256": sha[1]}}
             rep = run_registration(a, b, out, protocol=proto, force=True, quiet=True, inputs=inputs, command="batch")
             row.update(mean_dice_before=rep["mean_dice"]["before"], mean_dice_after=rep["mean_dice"]["after"],
                        folded_fraction=rep["jacobian"]["folded_fraction"])
-        row.update(status="done", error="", seconds=time.perf_counter() - start,
-                   fixed_sha256=_sha256(fpath), moving_sha256=_sha256(mpath))
+        row.update(status="done", error="", seconds=time.perf_counter() - start, fixed_sha256=sha[0], moving_sha256=sha[1])
         write_json(row, out / "batch_row.json", force=True)
     except EXPECTED_ERRORS as exc:
         row.update(status="failed", error=" ".join(str(exc).split()), seconds=time.perf_counter() - start)

@@ -189,9 +189,9 @@ def run_registration(
             grid = fixed.grid_points()  # (X, Y, Z, 3) mm, used below for every comparison
             u = displacement_on_grid(result.warp, fixed, progress=progress)
             points = grid + u
-            warped_array = resample_labels(moving, points, method="label", progress=progress)
             jac = jacobian_determinant_on_grid(result.warp, fixed, progress=progress)
-            check_folding(result.warp, fixed, jac, protocol.warp.max_folded_fraction)
+            check_folding(result.warp, fixed, jac, protocol.warp.max_folded_fraction)  # before more work
+            warped_array = resample_labels(moving, points, method="label", progress=progress)
             stages.append(dict(stage="resample", seconds=time.perf_counter() - t0, peak_rss_gb=round(_peak_rss_gb(), 3)))
 
             t0 = time.perf_counter()

@@ -81,15 +81,15 @@ def check_folding(warp: KernelWarp, reference, det: np.ndarray, max_fraction: fl
         sums of the levels, only on this failure path) and suggests protocol changes.
     """
     from .field import jacobian_determinant_on_grid
+    from .metrics import folded_fraction
 
-    folded = float(np.count_nonzero(np.asarray(det) <= 0)) / max(np.asarray(det).size, 1)
+    folded = folded_fraction(det)
     if folded <= max_fraction:
         return
     levels = warp.levels
     first = len(levels) - 1
     for k in range(1, len(levels)):
-        partial = jacobian_determinant_on_grid(KernelWarp(levels[: k], dim=warp.dim), reference)
-        if np.count_nonzero(partial <= 0) / partial.size > max_fraction:
+        if folded_fraction(jacobian_determinant_on_grid(KernelWarp(levels[:k], dim=warp.dim), reference)) > max_fraction:
             first = k - 1
             break
     raise RegistrationDiverged(
