@@ -131,6 +131,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="smaller sizes, one repeat")
+    ap.add_argument("--only", choices=("all", "eval"), default="all",
+                    help="'eval': only the evaluation and kernel-sum rows")
     ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -143,6 +145,9 @@ def main() -> None:
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
           f"median of {reps} runs, each in a fresh process\n")
     print("| task | size | median s | runs (s) | peak RSS GB | notes |\n|---|---|---|---|---|---|")
+    if args.only == "eval":
+        _eval_rows(args, reps)
+        return
     r = run("mesh", 0, reps)
     print(f"| frog body outline: smoothing + marching cubes + curvature correction | {r['vertices']} vertices "
           f"| {r['seconds']:.2f} | {r['seconds_all']} | {r['peak_rss_gb']:.2f} | 500x470x136 grid |")
@@ -162,6 +167,10 @@ def main() -> None:
     print(f"| fit, min width 4 voxels (as `volreg surface`) | {r['vertices']} vertices | {r['seconds']:.2f} "
           f"| {r['seconds_all']} | {r['peak_rss_gb']:.2f} | {r['levels']} levels, finest width "
           f"{r['min_width']:.1f} mm, {r['finest_training']} finest training points |")
+    _eval_rows(args, reps)
+
+
+def _eval_rows(args: argparse.Namespace, reps: int) -> None:
     n_eval = 1_000_000 if args.quick else 10_000_000
     for task, what in (("eval-near", "within ~2 voxels of the surface"), ("eval-box", "uniform in the bounding box")):
         r = run(task, n_eval, reps)

@@ -5,6 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from volreg.kernels import _MIN_MEAN_BLOCK, _QBLOCK, _query_blocks
 from volreg.kernels import (
     CellGrid,
     kernel_matrix,
@@ -74,6 +75,32 @@ def test_hessian_is_symmetric_and_finite_at_a_centre():
     value, _, h0 = wu_derivatives(np.zeros((1, 3)), 1.0)
     assert value[0] == pytest.approx(4.0)
     np.testing.assert_allclose(h0[0], -56.0 * np.eye(3))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("order", [0, 1])
+@pytest.mark.parametrize("grid_radius", [1.7, 3.0])
+@pytest.mark.parametrize("m", [None, 2, 3])
+def test_blocked_sum_of_spatially_sorted_queries_matches_reference(dim, order, grid_radius, m):
+    # Many queries visited cell by cell take the blocked path (one gathered candidate
+    # list per block of nearby queries); some blocks lie partly or wholly off the grid.
+    # Scalar coefficients (implicit surfaces) and 2-/3-vectors (warps).
+    rng = np.random.default_rng(4)
+    centres = rng.uniform(0, 10, (900, dim))
+    coeffs = rng.normal(size=900 if m is None else (900, m))
+    queries = rng.uniform(-2, 12, (6000 if dim == 2 else 40000, dim))
+    queries = queries[CellGrid.build(queries, 0.5 * 1.7).order]  # cell by cell, as spatial_order
+    blocks = _query_blocks(queries, 0.5 * 1.7, _QBLOCK)
+    assert len(queries) >= _MIN_MEAN_BLOCK * (len(blocks) - 1)  # the blocked path is taken
+    fast = kernel_sum(queries, CellGrid.build(centres, grid_radius), coeffs, 1.7, order=order)
+    slow = kernel_sum_reference(queries, centres, coeffs, 1.7, order=order)
+    assert np.any(fast[0] == 0) and np.any(fast[0] != 0)
+    for a, b in zip(fast, slow):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-11)
+    # The same values whatever the query order (within rounding).
+    shuffled = rng.permutation(len(queries))
+    np.testing.assert_allclose(kernel_sum(queries[shuffled], centres, coeffs, 1.7)[0], fast[0][shuffled],
+                               rtol=0, atol=1e-11)
 
 
 def test_queries_beyond_the_support_get_zero():

@@ -245,9 +245,11 @@ def test_chunking_does_not_change_results():
     assert [c[1] for c in calls] == sorted(c[1] for c in calls)
     composed = warp.compose(random_warp(rng, 3))
     np.testing.assert_array_equal(composed.jacobian(x, chunk=7), composed.jacobian(x))
-    # Large chunks are visited in spatial order; the result must not change.
+    # Large chunks are visited in spatial order and summed block by block (the SIMD
+    # reduction groups terms differently): the result changes by rounding only.
     big = rng.uniform(-35, 35, (60_000, 3))
-    np.testing.assert_array_equal(warp.jacobian(big), warp.jacobian(big, chunk=20_000))
+    np.testing.assert_allclose(warp.jacobian(big), warp.jacobian(big, chunk=20_000), rtol=0, atol=1e-13)
+    np.testing.assert_array_equal(warp.jacobian(big), warp.jacobian(big))
     assert warp(np.zeros((0, 3))).shape == (0, 3) and warp.jacobian(np.zeros((0, 3))).shape == (0, 3, 3)
 
 

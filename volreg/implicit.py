@@ -34,7 +34,7 @@ from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 import scipy.sparse as sp
 
-from .kernels import CellGrid, _check_points, kernel_matrix, kernel_sum, spatial_order
+from .kernels import CellGrid, _check_points, kernel_matrix, kernel_sum, put_rows, spatial_order, take_rows
 
 __all__ = ["ImplicitSurface", "ImplicitLevel", "estimate_normals", "thin_points"]
 
@@ -382,8 +382,8 @@ class ImplicitSurface:
         """
         x = _check_points("x", x, self.dim)
         n = len(x)
-        perm = spatial_order(x, self.levels[-1].width) if self.levels else None
-        xs = x if perm is None else x[perm]
+        perm = spatial_order(x, 0.5 * self.levels[-1].width) if self.levels else None
+        xs = x if perm is None else take_rows(x, perm)
         outs = tuple(
             np.zeros(s) for s in [(n, 1), (n, 1, self.dim), (n, 1, self.dim, self.dim)][: order + 1]
         )
@@ -392,11 +392,10 @@ class ImplicitSurface:
         outs[0][:] += self.offset
         result = []
         for o in outs:
+            shape = (n,) + o.shape[2:]
             if perm is not None:
-                unsorted = np.empty_like(o)
-                unsorted[perm] = o
-                o = unsorted
-            result.append(o.reshape((n,) + o.shape[2:]))
+                o = put_rows(o.reshape(n, -1), perm)
+            result.append(o.reshape(shape))
         return tuple(result)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:

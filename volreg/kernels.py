@@ -159,26 +159,48 @@ class CellGrid:
             raise ValueError(f"Expected `points` of shape (M, D) with M > 0, got {points.shape}.")
         if not radius > 0:
             raise ValueError(f"Expected a positive `radius`, got {radius}.")
-        lo = points.min(axis=0)
-        extent = points.max(axis=0) - lo
-        cell = float(radius) / max(1, int(subdivisions))
-        while True:
-            dims = np.floor(extent / cell).astype(np.int64) + 1
-            if np.prod(dims.astype(float)) <= _MAX_CELLS:  # float: no int64 overflow
-                break
-            cell *= 1.25
-        key = _cell_keys(points, lo, cell, dims)
-        order = np.argsort(key, kind="stable")
-        start = np.searchsorted(key[order], np.arange(np.prod(dims) + 1)).astype(np.int32)
-        return cls(points[order], order, start, lo, cell, dims, float(radius))
+        lo, cell, dims = _cell_layout(points, float(radius) / max(1, int(subdivisions)))
+        order, start = _cell_sort(points, lo, cell, dims)
+        return cls(points[order], order, start.astype(np.int32), lo, cell, dims, float(radius))
 
 
-def _cell_keys(points: np.ndarray, lo: np.ndarray, cell: float, dims: np.ndarray) -> np.ndarray:
-    idx = np.clip(np.floor((points - lo) / cell).astype(np.int64), 0, dims - 1)
-    key = np.zeros(len(points), dtype=np.int64)
-    for a in range(points.shape[1]):
-        key = key * dims[a] + idx[:, a]
-    return key
+def _cell_layout(points: np.ndarray, cell: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """Corner, edge (``cell``, grown until there are at most 2^24 cells) and cells per axis
+    of a uniform grid covering ``points`` (M, D)."""
+    lo = points.min(axis=0)
+    extent = points.max(axis=0) - lo
+    while True:
+        dims = np.floor(extent / cell).astype(np.int64) + 1
+        if np.prod(dims.astype(float)) <= _MAX_CELLS:  # float: no int64 overflow
+            return lo, cell, dims
+        cell *= 1.25
+
+
+@numba.njit(cache=True)
+def _cell_sort(points, lo, cell, dims):
+    """Stable counting sort of ``points`` by row-major cell index: the permutation
+    (M,) and the start of every cell's run, (n_cells + 1,).  O(M + n_cells)."""
+    n, dim = points.shape
+    n_cells = 1
+    for a in range(dim):
+        n_cells *= dims[a]
+    keys = np.empty(n, dtype=np.int64)
+    start = np.zeros(n_cells + 1, dtype=np.int64)
+    for i in range(n):
+        k = 0
+        for a in range(dim):
+            c = np.int64(np.floor((points[i, a] - lo[a]) / cell))
+            k = k * dims[a] + min(max(c, 0), dims[a] - 1)
+        keys[i] = k
+        start[k + 1] += 1
+    for c in range(n_cells):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        order[fill[keys[i]]] = i
+        fill[keys[i]] += 1
+    return order, start
 
 
 @numba.njit(cache=True, inline="always")
@@ -335,7 +357,7 @@ def _run_value_grad(x0, x1, x2, px, py, pz, gcoef, begin, end, inv_s2):
     return v, g0, g1, g2
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, fastmath=True)
 def _grid_sum_scalar(queries, px, py, pz, gcoef, start, lo, cell, dims, max_runs, sigma, val, grad):
     """Hot path of :func:`_grid_sum` for scalar coefficients, order <= 1, D <= 3;
     point coordinates as separate arrays (``pz`` zeros in 2-D) for SIMD loads."""
@@ -376,6 +398,260 @@ def _grid_sum_scalar(queries, px, py, pz, gcoef, start, lo, cell, dims, max_runs
                 val[q, 0] += v
 
 
+#: Most queries of one block of :func:`_blocked_sum_scalar`.
+_QBLOCK = 256
+
+#: The blocked kernel sum is used when query blocks hold at least this many queries on average.
+_MIN_MEAN_BLOCK = 8.0
+
+
+@numba.njit(cache=True)
+def _query_blocks(queries, width, max_size):
+    """Split consecutive queries into runs (at most ``max_size`` long) whose bounding box
+    is at most ``width`` wide along every axis.  Returns block starts, (n_blocks + 1,)."""
+    n, dim = queries.shape
+    starts = np.empty(n + 1, dtype=np.int64)
+    lo = np.empty(dim)
+    hi = np.empty(dim)
+    nb = 0
+    i = 0
+    while i < n:
+        starts[nb] = i
+        nb += 1
+        for a in range(dim):
+            lo[a] = queries[i, a]
+            hi[a] = queries[i, a]
+        j = i + 1
+        while j < n and j - i < max_size:
+            fits = True
+            for a in range(dim):
+                v = queries[j, a]
+                if max(hi[a], v) - min(lo[a], v) > width:
+                    fits = False
+                    break
+            if not fits:
+                break
+            for a in range(dim):
+                v = queries[j, a]
+                lo[a] = min(lo[a], v)
+                hi[a] = max(hi[a], v)
+            j += 1
+        i = j
+    starts[nb] = n
+    return starts[: nb + 1]
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _blocked_sum_scalar(queries, bstarts, px, py, pz, gcoef, start, lo, cell, dims, sigma, val, grad):
+    """:func:`_grid_sum_scalar` with the neighbour search amortised over blocks of nearby
+    queries: the centres within ``sigma`` of a block's bounding box are gathered once into
+    contiguous arrays, then every query of the block runs one branch-free SIMD loop over them
+    (4-8x fewer ns per kernel term than one search per query on the frog body)."""
+    n, dim = queries.shape
+    dim3 = dim == 3
+    s2 = sigma * sigma
+    inv_s2 = 1.0 / s2
+    want_grad = grad.shape[0] == n
+    for b in numba.prange(bstarts.shape[0] - 1):
+        q0 = bstarts[b]
+        q1 = bstarts[b + 1]
+        l0, h0, l1, h1, l2, h2 = _block_box(queries, q0, q1, dim3)
+        i0, i1, j0, j1, k0, k1 = _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3)
+        if i0 > i1 or j0 > j1 or k0 > k1:
+            continue
+        nz = dims[2] if dim3 else dims[1]
+        ny = dims[1] if dim3 else 1
+        count = 0
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                base = (i * ny + j) * nz
+                count += start[base + k1 + 1] - start[base + k0]
+        cx = np.empty(count)
+        cy = np.empty(count)
+        cz = np.empty(count)
+        ca = np.empty(count)
+        m = 0
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                base = (i * ny + j) * nz
+                for p in range(start[base + k0], start[base + k1 + 1]):
+                    g = _gap2(px[p], l0, h0 - l0) + _gap2(py[p], l1, h1 - l1) + _gap2(pz[p], l2, h2 - l2)
+                    if g < s2:
+                        cx[m] = px[p]
+                        cy[m] = py[p]
+                        cz[m] = pz[p]
+                        ca[m] = gcoef[p]
+                        m += 1
+        for q in range(q0, q1):
+            x0 = queries[q, 0]
+            x1 = queries[q, 1]
+            x2 = queries[q, 2] if dim3 else 0.0
+            if want_grad:
+                v, g0, g1, g2 = _run_value_grad(x0, x1, x2, cx, cy, cz, ca, 0, m, inv_s2)
+                val[q, 0] += v
+                grad[q, 0, 0] += g0
+                grad[q, 0, 1] += g1
+                if dim3:
+                    grad[q, 0, 2] += g2
+            else:
+                val[q, 0] += _run_value(x0, x1, x2, cx, cy, cz, ca, 0, m, inv_s2)
+
+
+@numba.njit(cache=True, inline="always")
+def _block_box(queries, q0, q1, dim3):
+    """Bounding box (l0, h0, l1, h1, l2, h2) of queries[q0:q1] (z = 0 in 2-D)."""
+    l0 = queries[q0, 0]
+    h0 = l0
+    l1 = queries[q0, 1]
+    h1 = l1
+    l2 = queries[q0, 2] if dim3 else 0.0
+    h2 = l2
+    for q in range(q0 + 1, q1):
+        l0 = min(l0, queries[q, 0])
+        h0 = max(h0, queries[q, 0])
+        l1 = min(l1, queries[q, 1])
+        h1 = max(h1, queries[q, 1])
+        if dim3:
+            l2 = min(l2, queries[q, 2])
+            h2 = max(h2, queries[q, 2])
+    return l0, h0, l1, h1, l2, h2
+
+
+@numba.njit(cache=True, inline="always")
+def _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3):
+    """Cell ranges (i0, i1, j0, j1, k0, k1) of the box dilated by sigma; in 2-D the
+    contiguous axis is axis 1 and (j0, j1) = (0, 0).  Empty when a first > its last."""
+    i0 = _axis_range(l0, sigma, lo[0], cell, dims[0])[0]
+    i1 = _axis_range(h0, sigma, lo[0], cell, dims[0])[1]
+    j0 = _axis_range(l1, sigma, lo[1], cell, dims[1])[0]
+    j1 = _axis_range(h1, sigma, lo[1], cell, dims[1])[1]
+    if dim3:
+        k0 = _axis_range(l2, sigma, lo[2], cell, dims[2])[0]
+        k1 = _axis_range(h2, sigma, lo[2], cell, dims[2])[1]
+        return i0, i1, j0, j1, k0, k1
+    return i0, i1, np.int64(0), np.int64(0), j0, j1
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _blocked_sum_vector(queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigma, val, grad):
+    """:func:`_blocked_sum_scalar` for 2- or 3-vector coefficients (warps): value
+    (N, m) and, when ``grad`` has N rows, gradient (N, m, D)."""
+    n, dim = queries.shape
+    m = coef.shape[1]
+    dim3 = dim == 3
+    s2 = sigma * sigma
+    inv_s2 = 1.0 / s2
+    want_grad = grad.shape[0] == n
+    nz = dims[2] if dim3 else dims[1]
+    ny = dims[1] if dim3 else 1
+    for b in numba.prange(bstarts.shape[0] - 1):
+        q0 = bstarts[b]
+        q1 = bstarts[b + 1]
+        l0, h0, l1, h1, l2, h2 = _block_box(queries, q0, q1, dim3)
+        i0, i1, j0, j1, k0, k1 = _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3)
+        if i0 > i1 or j0 > j1 or k0 > k1:
+            continue
+        count = 0
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                base = (i * ny + j) * nz
+                count += start[base + k1 + 1] - start[base + k0]
+        cx = np.empty(count)
+        cy = np.empty(count)
+        cz = np.empty(count)
+        c0 = np.empty(count)
+        c1 = np.empty(count)
+        c2 = np.zeros(count)
+        c = 0
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                base = (i * ny + j) * nz
+                for p in range(start[base + k0], start[base + k1 + 1]):
+                    g = _gap2(px[p], l0, h0 - l0) + _gap2(py[p], l1, h1 - l1) + _gap2(pz[p], l2, h2 - l2)
+                    if g < s2:
+                        cx[c] = px[p]
+                        cy[c] = py[p]
+                        cz[c] = pz[p]
+                        c0[c] = coef[p, 0]
+                        c1[c] = coef[p, 1]
+                        if m == 3:
+                            c2[c] = coef[p, 2]
+                        c += 1
+        for q in range(q0, q1):
+            x0 = queries[q, 0]
+            x1 = queries[q, 1]
+            x2 = queries[q, 2] if dim3 else 0.0
+            v0 = 0.0
+            v1 = 0.0
+            v2 = 0.0
+            g00 = 0.0
+            g01 = 0.0
+            g02 = 0.0
+            g10 = 0.0
+            g11 = 0.0
+            g12 = 0.0
+            g20 = 0.0
+            g21 = 0.0
+            g22 = 0.0
+            if want_grad:
+                for p in range(c):
+                    d0 = x0 - cx[p]
+                    d1 = x1 - cy[p]
+                    d2 = x2 - cz[p]
+                    r = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2) * inv_s2)
+                    t = max(1.0 - r, 0.0)
+                    t2 = t * t
+                    k = t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+                    g = -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
+                    a0 = c0[p]
+                    a1 = c1[p]
+                    a2 = c2[p]
+                    v0 += a0 * k
+                    v1 += a1 * k
+                    v2 += a2 * k
+                    e0 = g * d0
+                    e1 = g * d1
+                    e2 = g * d2
+                    g00 += a0 * e0
+                    g01 += a0 * e1
+                    g02 += a0 * e2
+                    g10 += a1 * e0
+                    g11 += a1 * e1
+                    g12 += a1 * e2
+                    g20 += a2 * e0
+                    g21 += a2 * e1
+                    g22 += a2 * e2
+            else:
+                for p in range(c):
+                    d0 = x0 - cx[p]
+                    d1 = x1 - cy[p]
+                    d2 = x2 - cz[p]
+                    r = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2) * inv_s2)
+                    t = max(1.0 - r, 0.0)
+                    t2 = t * t
+                    k = t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+                    v0 += c0[p] * k
+                    v1 += c1[p] * k
+                    v2 += c2[p] * k
+            val[q, 0] += v0
+            val[q, 1] += v1
+            if m == 3:
+                val[q, 2] += v2
+            if want_grad:
+                grad[q, 0, 0] += g00
+                grad[q, 0, 1] += g01
+                grad[q, 1, 0] += g10
+                grad[q, 1, 1] += g11
+                if dim3:
+                    grad[q, 0, 2] += g02
+                    grad[q, 1, 2] += g12
+                if m == 3:
+                    grad[q, 2, 0] += g20
+                    grad[q, 2, 1] += g21
+                    if dim3:
+                        grad[q, 2, 2] += g22
+
+
 #: Evaluations of more points than this visit them in spatial order first.
 SORT_ABOVE = 50_000
 
@@ -389,7 +665,28 @@ def spatial_order(points: np.ndarray, cell: float) -> np.ndarray | None:
     """
     if len(points) <= SORT_ABOVE or not cell > 0:
         return None
-    return CellGrid.build(points, cell).order
+    points = np.ascontiguousarray(points, dtype=float)
+    return _cell_sort(points, *_cell_layout(points, float(cell)))[0]
+
+
+@numba.njit(parallel=True, cache=True)
+def take_rows(x, perm):
+    """``x[perm]`` for a 2-D array, in parallel: (N, k) from (M, k) and (N,) indices."""
+    out = np.empty((perm.shape[0], x.shape[1]), dtype=x.dtype)
+    for i in numba.prange(perm.shape[0]):
+        for a in range(x.shape[1]):
+            out[i, a] = x[perm[i], a]
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def put_rows(src, perm):
+    """The inverse of :func:`take_rows`: ``out[perm] = src`` for (N, k) ``src``."""
+    out = np.empty_like(src)
+    for i in numba.prange(perm.shape[0]):
+        for a in range(src.shape[1]):
+            out[perm[i], a] = src[i, a]
+    return out
 
 
 def _as_coefficients(coeffs: np.ndarray, m_centres: int) -> tuple[np.ndarray, bool]:
@@ -470,10 +767,22 @@ def kernel_sum(
     grad = bufs[1] if order >= 1 else np.zeros((0, 1, dim))
     hess = bufs[2] if order >= 2 else np.zeros((1, 1, 1, 1))
     runs = _max_runs(grid)
-    if m == 1 and order <= 1:
+    blocks = _query_blocks(queries, 0.5 * sigma, _QBLOCK) if n >= _QBLOCK and order <= 1 else None
+    if blocks is not None and n < _MIN_MEAN_BLOCK * (len(blocks) - 1):
+        blocks = None  # queries not in spatial order: one neighbour search per query
+    if blocks is not None and m in (2, 3):
         px, py, pz = grid.columns
-        _grid_sum_scalar(queries, px, py, pz, np.ascontiguousarray(coef[:, 0]), grid.start, grid.lo,
-                         grid.cell, grid.dims, runs, float(sigma), val, grad)
+        _blocked_sum_vector(queries, blocks, px, py, pz, coef, grid.start, grid.lo, grid.cell, grid.dims,
+                            float(sigma), val, grad)
+    elif m == 1 and order <= 1:
+        px, py, pz = grid.columns
+        a = np.ascontiguousarray(coef[:, 0])
+        if blocks is not None:
+            _blocked_sum_scalar(queries, blocks, px, py, pz, a, grid.start, grid.lo, grid.cell, grid.dims,
+                                float(sigma), val, grad)
+        else:
+            _grid_sum_scalar(queries, px, py, pz, a, grid.start, grid.lo, grid.cell, grid.dims, runs,
+                             float(sigma), val, grad)
     else:
         _grid_sum(queries, grid.points, coef, grid.start, grid.lo, grid.cell, grid.dims,
                   runs, float(sigma), order, val, grad, hess)
