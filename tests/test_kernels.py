@@ -2,15 +2,19 @@
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from volreg.kernels import _MIN_MEAN_BLOCK, _QBLOCK, _query_blocks
 from volreg.kernels import (
+    _MIN_MEAN_BLOCK,
+    _QBLOCK,
     CellGrid,
+    SharedPatternCSR,
     kernel_matrix,
     kernel_sum,
     kernel_sum_reference,
+    _query_blocks,
     wu,
     wu_derivatives,
 )
@@ -78,7 +82,7 @@ def test_hessian_is_symmetric_and_finite_at_a_centre():
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-@pytest.mark.parametrize("order", [0, 1])
+@pytest.mark.parametrize("order", [0, 1, 2])
 @pytest.mark.parametrize("grid_radius", [1.7, 3.0])
 @pytest.mark.parametrize("m", [None, 2, 3])
 def test_blocked_sum_of_spatially_sorted_queries_matches_reference(dim, order, grid_radius, m):
@@ -89,6 +93,7 @@ def test_blocked_sum_of_spatially_sorted_queries_matches_reference(dim, order, g
     centres = rng.uniform(0, 10, (900, dim))
     coeffs = rng.normal(size=900 if m is None else (900, m))
     queries = rng.uniform(-2, 12, (6000 if dim == 2 else 40000, dim))
+    queries = np.concatenate([queries, centres[:50]])  # r = 0 in the Hessian's h / r
     queries = queries[CellGrid.build(queries, 0.5 * 1.7).order]  # cell by cell, as spatial_order
     blocks = _query_blocks(queries, 0.5 * 1.7, _QBLOCK)
     assert len(queries) >= _MIN_MEAN_BLOCK * (len(blocks) - 1)  # the blocked path is taken
@@ -164,3 +169,22 @@ def test_bad_arguments_are_named():
         kernel_sum(np.zeros((4, 3)), c, np.ones(5), 1.0, order=3)
     with pytest.raises(ValueError, match="finite values in `queries`"):
         kernel_sum(np.full((1, 3), np.nan), c, np.ones(5), 1.0)
+
+
+def test_shared_pattern_products_match_scipy():
+    rng = np.random.default_rng(7)
+    pattern = sp.random(300, 200, density=0.05, random_state=8, format="csr")
+    mats = [sp.csr_matrix((rng.normal(size=pattern.nnz), pattern.indices, pattern.indptr), shape=pattern.shape)
+            for _ in range(3)]
+    shared = SharedPatternCSR(mats)
+    for k in (1, 2, 3):
+        x = rng.normal(size=(200, k))
+        y = rng.normal(size=(300, k, 3))
+        np.testing.assert_allclose(shared.matmul(x), np.stack([a @ x for a in mats], axis=2), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(shared.rmatmul_sum(y), sum(a.T @ y[:, :, b] for b, a in enumerate(mats)),
+                                   rtol=0, atol=1e-12)
+    one = SharedPatternCSR(mats[:1])
+    np.testing.assert_allclose(one.matmul(x)[:, :, 0], mats[0] @ x, rtol=0, atol=1e-12)
+    other = sp.random(300, 200, density=0.05, random_state=9, format="csr")
+    with pytest.raises(ValueError, match="share one sparsity pattern"):
+        SharedPatternCSR([mats[0], other])

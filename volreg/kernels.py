@@ -401,6 +401,9 @@ def _grid_sum_scalar(queries, px, py, pz, gcoef, start, lo, cell, dims, max_runs
 #: Most queries of one block of :func:`_blocked_sum_scalar`.
 _QBLOCK = 256
 
+#: Blocks per parallel work item (one gather buffer per work item).
+_SUPER = 32
+
 #: The blocked kernel sum is used when query blocks hold at least this many queries on average.
 _MIN_MEAN_BLOCK = 8.0
 
@@ -452,49 +455,54 @@ def _blocked_sum_scalar(queries, bstarts, px, py, pz, gcoef, start, lo, cell, di
     s2 = sigma * sigma
     inv_s2 = 1.0 / s2
     want_grad = grad.shape[0] == n
-    for b in numba.prange(bstarts.shape[0] - 1):
-        q0 = bstarts[b]
-        q1 = bstarts[b + 1]
-        l0, h0, l1, h1, l2, h2 = _block_box(queries, q0, q1, dim3)
-        i0, i1, j0, j1, k0, k1 = _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3)
-        if i0 > i1 or j0 > j1 or k0 > k1:
-            continue
-        nz = dims[2] if dim3 else dims[1]
-        ny = dims[1] if dim3 else 1
-        count = 0
-        for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
-                base = (i * ny + j) * nz
-                count += start[base + k1 + 1] - start[base + k0]
-        cx = np.empty(count)
-        cy = np.empty(count)
-        cz = np.empty(count)
-        ca = np.empty(count)
-        m = 0
-        for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
-                base = (i * ny + j) * nz
-                for p in range(start[base + k0], start[base + k1 + 1]):
-                    g = _gap2(px[p], l0, h0 - l0) + _gap2(py[p], l1, h1 - l1) + _gap2(pz[p], l2, h2 - l2)
-                    if g < s2:
-                        cx[m] = px[p]
-                        cy[m] = py[p]
-                        cz[m] = pz[p]
-                        ca[m] = gcoef[p]
-                        m += 1
-        for q in range(q0, q1):
-            x0 = queries[q, 0]
-            x1 = queries[q, 1]
-            x2 = queries[q, 2] if dim3 else 0.0
-            if want_grad:
-                v, g0, g1, g2 = _run_value_grad(x0, x1, x2, cx, cy, cz, ca, 0, m, inv_s2)
-                val[q, 0] += v
-                grad[q, 0, 0] += g0
-                grad[q, 0, 1] += g1
-                if dim3:
-                    grad[q, 0, 2] += g2
-            else:
-                val[q, 0] += _run_value(x0, x1, x2, cx, cy, cz, ca, 0, m, inv_s2)
+    n_blocks = bstarts.shape[0] - 1
+    for sb in numba.prange((n_blocks + _SUPER - 1) // _SUPER):
+        buf = np.empty((6, 256))  # gathered candidates, grown as needed
+        for b in range(sb * _SUPER, min(n_blocks, (sb + 1) * _SUPER)):
+            q0 = bstarts[b]
+            q1 = bstarts[b + 1]
+            l0, h0, l1, h1, l2, h2 = _block_box(queries, q0, q1, dim3)
+            i0, i1, j0, j1, k0, k1 = _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3)
+            if i0 > i1 or j0 > j1 or k0 > k1:
+                continue
+            nz = dims[2] if dim3 else dims[1]
+            ny = dims[1] if dim3 else 1
+            count = 0
+            for i in range(i0, i1 + 1):
+                for j in range(j0, j1 + 1):
+                    base = (i * ny + j) * nz
+                    count += start[base + k1 + 1] - start[base + k0]
+            if count > buf.shape[1]:
+                buf = np.empty((6, 2 * count))
+            cx = buf[0]
+            cy = buf[1]
+            cz = buf[2]
+            ca = buf[3]
+            m = 0
+            for i in range(i0, i1 + 1):
+                for j in range(j0, j1 + 1):
+                    base = (i * ny + j) * nz
+                    for p in range(start[base + k0], start[base + k1 + 1]):
+                        g = _gap2(px[p], l0, h0 - l0) + _gap2(py[p], l1, h1 - l1) + _gap2(pz[p], l2, h2 - l2)
+                        if g < s2:
+                            cx[m] = px[p]
+                            cy[m] = py[p]
+                            cz[m] = pz[p]
+                            ca[m] = gcoef[p]
+                            m += 1
+            for q in range(q0, q1):
+                x0 = queries[q, 0]
+                x1 = queries[q, 1]
+                x2 = queries[q, 2] if dim3 else 0.0
+                if want_grad:
+                    v, g0, g1, g2 = _run_value_grad(x0, x1, x2, cx, cy, cz, ca, 0, m, inv_s2)
+                    val[q, 0] += v
+                    grad[q, 0, 0] += g0
+                    grad[q, 0, 1] += g1
+                    if dim3:
+                        grad[q, 0, 2] += g2
+                else:
+                    val[q, 0] += _run_value(x0, x1, x2, cx, cy, cz, ca, 0, m, inv_s2)
 
 
 @numba.njit(cache=True, inline="always")
@@ -544,112 +552,214 @@ def _blocked_sum_vector(queries, bstarts, px, py, pz, coef, start, lo, cell, dim
     want_grad = grad.shape[0] == n
     nz = dims[2] if dim3 else dims[1]
     ny = dims[1] if dim3 else 1
-    for b in numba.prange(bstarts.shape[0] - 1):
-        q0 = bstarts[b]
-        q1 = bstarts[b + 1]
-        l0, h0, l1, h1, l2, h2 = _block_box(queries, q0, q1, dim3)
-        i0, i1, j0, j1, k0, k1 = _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3)
-        if i0 > i1 or j0 > j1 or k0 > k1:
-            continue
-        count = 0
-        for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
-                base = (i * ny + j) * nz
-                count += start[base + k1 + 1] - start[base + k0]
-        cx = np.empty(count)
-        cy = np.empty(count)
-        cz = np.empty(count)
-        c0 = np.empty(count)
-        c1 = np.empty(count)
-        c2 = np.zeros(count)
-        c = 0
-        for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
-                base = (i * ny + j) * nz
-                for p in range(start[base + k0], start[base + k1 + 1]):
-                    g = _gap2(px[p], l0, h0 - l0) + _gap2(py[p], l1, h1 - l1) + _gap2(pz[p], l2, h2 - l2)
-                    if g < s2:
-                        cx[c] = px[p]
-                        cy[c] = py[p]
-                        cz[c] = pz[p]
-                        c0[c] = coef[p, 0]
-                        c1[c] = coef[p, 1]
-                        if m == 3:
-                            c2[c] = coef[p, 2]
-                        c += 1
-        for q in range(q0, q1):
-            x0 = queries[q, 0]
-            x1 = queries[q, 1]
-            x2 = queries[q, 2] if dim3 else 0.0
-            v0 = 0.0
-            v1 = 0.0
-            v2 = 0.0
-            g00 = 0.0
-            g01 = 0.0
-            g02 = 0.0
-            g10 = 0.0
-            g11 = 0.0
-            g12 = 0.0
-            g20 = 0.0
-            g21 = 0.0
-            g22 = 0.0
-            if want_grad:
-                for p in range(c):
-                    d0 = x0 - cx[p]
-                    d1 = x1 - cy[p]
-                    d2 = x2 - cz[p]
-                    r = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2) * inv_s2)
-                    t = max(1.0 - r, 0.0)
-                    t2 = t * t
-                    k = t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
-                    g = -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
-                    a0 = c0[p]
-                    a1 = c1[p]
-                    a2 = c2[p]
-                    v0 += a0 * k
-                    v1 += a1 * k
-                    v2 += a2 * k
-                    e0 = g * d0
-                    e1 = g * d1
-                    e2 = g * d2
-                    g00 += a0 * e0
-                    g01 += a0 * e1
-                    g02 += a0 * e2
-                    g10 += a1 * e0
-                    g11 += a1 * e1
-                    g12 += a1 * e2
-                    g20 += a2 * e0
-                    g21 += a2 * e1
-                    g22 += a2 * e2
-            else:
-                for p in range(c):
-                    d0 = x0 - cx[p]
-                    d1 = x1 - cy[p]
-                    d2 = x2 - cz[p]
-                    r = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2) * inv_s2)
-                    t = max(1.0 - r, 0.0)
-                    t2 = t * t
-                    k = t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
-                    v0 += c0[p] * k
-                    v1 += c1[p] * k
-                    v2 += c2[p] * k
-            val[q, 0] += v0
-            val[q, 1] += v1
-            if m == 3:
-                val[q, 2] += v2
-            if want_grad:
-                grad[q, 0, 0] += g00
-                grad[q, 0, 1] += g01
-                grad[q, 1, 0] += g10
-                grad[q, 1, 1] += g11
-                if dim3:
-                    grad[q, 0, 2] += g02
-                    grad[q, 1, 2] += g12
+    n_blocks = bstarts.shape[0] - 1
+    for sb in numba.prange((n_blocks + _SUPER - 1) // _SUPER):
+        buf = np.empty((6, 256))  # gathered candidates, grown as needed
+        for b in range(sb * _SUPER, min(n_blocks, (sb + 1) * _SUPER)):
+            q0 = bstarts[b]
+            q1 = bstarts[b + 1]
+            l0, h0, l1, h1, l2, h2 = _block_box(queries, q0, q1, dim3)
+            i0, i1, j0, j1, k0, k1 = _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3)
+            if i0 > i1 or j0 > j1 or k0 > k1:
+                continue
+            count = 0
+            for i in range(i0, i1 + 1):
+                for j in range(j0, j1 + 1):
+                    base = (i * ny + j) * nz
+                    count += start[base + k1 + 1] - start[base + k0]
+            if count > buf.shape[1]:
+                buf = np.empty((6, 2 * count))
+            cx = buf[0]
+            cy = buf[1]
+            cz = buf[2]
+            c0 = buf[3]
+            c1 = buf[4]
+            c2 = buf[5]
+            c = 0
+            for i in range(i0, i1 + 1):
+                for j in range(j0, j1 + 1):
+                    base = (i * ny + j) * nz
+                    for p in range(start[base + k0], start[base + k1 + 1]):
+                        g = _gap2(px[p], l0, h0 - l0) + _gap2(py[p], l1, h1 - l1) + _gap2(pz[p], l2, h2 - l2)
+                        if g < s2:
+                            cx[c] = px[p]
+                            cy[c] = py[p]
+                            cz[c] = pz[p]
+                            c0[c] = coef[p, 0]
+                            c1[c] = coef[p, 1]
+                            c2[c] = coef[p, 2] if m == 3 else 0.0
+                            c += 1
+            for q in range(q0, q1):
+                x0 = queries[q, 0]
+                x1 = queries[q, 1]
+                x2 = queries[q, 2] if dim3 else 0.0
+                v0 = 0.0
+                v1 = 0.0
+                v2 = 0.0
+                g00 = 0.0
+                g01 = 0.0
+                g02 = 0.0
+                g10 = 0.0
+                g11 = 0.0
+                g12 = 0.0
+                g20 = 0.0
+                g21 = 0.0
+                g22 = 0.0
+                if want_grad:
+                    for p in range(c):
+                        d0 = x0 - cx[p]
+                        d1 = x1 - cy[p]
+                        d2 = x2 - cz[p]
+                        r = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2) * inv_s2)
+                        t = max(1.0 - r, 0.0)
+                        t2 = t * t
+                        k = t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+                        g = -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
+                        a0 = c0[p]
+                        a1 = c1[p]
+                        a2 = c2[p]
+                        v0 += a0 * k
+                        v1 += a1 * k
+                        v2 += a2 * k
+                        e0 = g * d0
+                        e1 = g * d1
+                        e2 = g * d2
+                        g00 += a0 * e0
+                        g01 += a0 * e1
+                        g02 += a0 * e2
+                        g10 += a1 * e0
+                        g11 += a1 * e1
+                        g12 += a1 * e2
+                        g20 += a2 * e0
+                        g21 += a2 * e1
+                        g22 += a2 * e2
+                else:
+                    for p in range(c):
+                        d0 = x0 - cx[p]
+                        d1 = x1 - cy[p]
+                        d2 = x2 - cz[p]
+                        r = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2) * inv_s2)
+                        t = max(1.0 - r, 0.0)
+                        t2 = t * t
+                        k = t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+                        v0 += c0[p] * k
+                        v1 += c1[p] * k
+                        v2 += c2[p] * k
+                val[q, 0] += v0
+                val[q, 1] += v1
                 if m == 3:
-                    grad[q, 2, 0] += g20
-                    grad[q, 2, 1] += g21
+                    val[q, 2] += v2
+                if want_grad:
+                    grad[q, 0, 0] += g00
+                    grad[q, 0, 1] += g01
+                    grad[q, 1, 0] += g10
+                    grad[q, 1, 1] += g11
                     if dim3:
-                        grad[q, 2, 2] += g22
+                        grad[q, 0, 2] += g02
+                        grad[q, 1, 2] += g12
+                    if m == 3:
+                        grad[q, 2, 0] += g20
+                        grad[q, 2, 1] += g21
+                        if dim3:
+                            grad[q, 2, 2] += g22
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _blocked_sum_scalar_hessian(queries, bstarts, px, py, pz, gcoef, start, lo, cell, dims, sigma, val, grad,
+                                hess):
+    """:func:`_blocked_sum_scalar` with the Hessian (order 2): value (N, 1), gradient
+    (N, 1, D) and Hessian (N, 1, D, D), as the objective's gradient term needs for f2."""
+    n, dim = queries.shape
+    dim3 = dim == 3
+    s2 = sigma * sigma
+    inv_s2 = 1.0 / s2
+    inv_s4 = inv_s2 * inv_s2
+    nz = dims[2] if dim3 else dims[1]
+    ny = dims[1] if dim3 else 1
+    n_blocks = bstarts.shape[0] - 1
+    for sb in numba.prange((n_blocks + _SUPER - 1) // _SUPER):
+        buf = np.empty((6, 256))  # gathered candidates, grown as needed
+        for b in range(sb * _SUPER, min(n_blocks, (sb + 1) * _SUPER)):
+            q0 = bstarts[b]
+            q1 = bstarts[b + 1]
+            l0, h0, l1, h1, l2, h2 = _block_box(queries, q0, q1, dim3)
+            i0, i1, j0, j1, k0, k1 = _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3)
+            if i0 > i1 or j0 > j1 or k0 > k1:
+                continue
+            count = 0
+            for i in range(i0, i1 + 1):
+                for j in range(j0, j1 + 1):
+                    base = (i * ny + j) * nz
+                    count += start[base + k1 + 1] - start[base + k0]
+            if count > buf.shape[1]:
+                buf = np.empty((6, 2 * count))
+            cx = buf[0]
+            cy = buf[1]
+            cz = buf[2]
+            ca = buf[3]
+            c = 0
+            for i in range(i0, i1 + 1):
+                for j in range(j0, j1 + 1):
+                    base = (i * ny + j) * nz
+                    for p in range(start[base + k0], start[base + k1 + 1]):
+                        g = _gap2(px[p], l0, h0 - l0) + _gap2(py[p], l1, h1 - l1) + _gap2(pz[p], l2, h2 - l2)
+                        if g < s2:
+                            cx[c] = px[p]
+                            cy[c] = py[p]
+                            cz[c] = pz[p]
+                            ca[c] = gcoef[p]
+                            c += 1
+            for q in range(q0, q1):
+                x0 = queries[q, 0]
+                x1 = queries[q, 1]
+                x2 = queries[q, 2] if dim3 else 0.0
+                v = 0.0
+                g0 = 0.0
+                g1 = 0.0
+                g2 = 0.0
+                a00 = 0.0
+                a01 = 0.0
+                a02 = 0.0
+                a11 = 0.0
+                a12 = 0.0
+                a22 = 0.0
+                gs = 0.0
+                for p in range(c):
+                    d0 = x0 - cx[p]
+                    d1 = x1 - cy[p]
+                    d2 = x2 - cz[p]
+                    r = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2) * inv_s2)
+                    t = max(1.0 - r, 0.0)
+                    t2 = t * t
+                    a = ca[p]
+                    v += a * t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+                    g = a * -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
+                    # r = 0 only where d = 0, which zeroes h's terms: the floor only avoids 0/0.
+                    h = a * 105.0 * t2 * (1.0 + r) * (1.0 + r) / max(r, 1e-12) * inv_s4
+                    gs += g
+                    g0 += g * d0
+                    g1 += g * d1
+                    g2 += g * d2
+                    a00 += h * d0 * d0
+                    a01 += h * d0 * d1
+                    a02 += h * d0 * d2
+                    a11 += h * d1 * d1
+                    a12 += h * d1 * d2
+                    a22 += h * d2 * d2
+                val[q, 0] += v
+                grad[q, 0, 0] += g0
+                grad[q, 0, 1] += g1
+                hess[q, 0, 0, 0] += gs + a00
+                hess[q, 0, 0, 1] += a01
+                hess[q, 0, 1, 0] += a01
+                hess[q, 0, 1, 1] += gs + a11
+                if dim3:
+                    grad[q, 0, 2] += g2
+                    hess[q, 0, 0, 2] += a02
+                    hess[q, 0, 2, 0] += a02
+                    hess[q, 0, 1, 2] += a12
+                    hess[q, 0, 2, 1] += a12
+                    hess[q, 0, 2, 2] += gs + a22
 
 
 #: Evaluations of more points than this visit them in spatial order first.
@@ -767,10 +877,14 @@ def kernel_sum(
     grad = bufs[1] if order >= 1 else np.zeros((0, 1, dim))
     hess = bufs[2] if order >= 2 else np.zeros((1, 1, 1, 1))
     runs = _max_runs(grid)
-    blocks = _query_blocks(queries, 0.5 * sigma, _QBLOCK) if n >= _QBLOCK and order <= 1 else None
+    blocks = _query_blocks(queries, 0.5 * sigma, _QBLOCK) if n >= _QBLOCK and (order <= 1 or m == 1) else None
     if blocks is not None and n < _MIN_MEAN_BLOCK * (len(blocks) - 1):
         blocks = None  # queries not in spatial order: one neighbour search per query
-    if blocks is not None and m in (2, 3):
+    if blocks is not None and m == 1 and order == 2:
+        px, py, pz = grid.columns
+        _blocked_sum_scalar_hessian(queries, blocks, px, py, pz, np.ascontiguousarray(coef[:, 0]), grid.start,
+                                    grid.lo, grid.cell, grid.dims, float(sigma), val, grad, hess)
+    elif blocks is not None and m in (2, 3):
         px, py, pz = grid.columns
         _blocked_sum_vector(queries, blocks, px, py, pz, coef, grid.start, grid.lo, grid.cell, grid.dims,
                             float(sigma), val, grad)
@@ -905,6 +1019,112 @@ def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float) -
     mat = sp.csr_matrix((data, indices, indptr), shape=(len(rows), len(grid.points)))
     mat.sort_indices()
     return mat
+
+
+@numba.njit(parallel=True, cache=True)
+def _csr_matmul_shared(indptr, indices, data, x):
+    """``out[i, a, b] = sum_e data[e, b] x[indices[e], a]`` over row i's entries: B <= 3
+    sparse matrices sharing one CSR pattern (``data`` (nnz, B)) times ``x`` (M, k <= 3).
+    Rows in parallel, nine scalar accumulators per row."""
+    n = indptr.shape[0] - 1
+    nb = data.shape[1]
+    k = x.shape[1]
+    out = np.zeros((n, k, nb))
+    for i in numba.prange(n):
+        s00 = s01 = s02 = s10 = s11 = s12 = s20 = s21 = s22 = 0.0
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            x0 = x[j, 0]
+            x1 = x[j, 1] if k > 1 else 0.0
+            x2 = x[j, 2] if k > 2 else 0.0
+            d0 = data[e, 0]
+            s00 += d0 * x0
+            s10 += d0 * x1
+            s20 += d0 * x2
+            if nb > 1:
+                d1 = data[e, 1]
+                s01 += d1 * x0
+                s11 += d1 * x1
+                s21 += d1 * x2
+            if nb > 2:
+                d2 = data[e, 2]
+                s02 += d2 * x0
+                s12 += d2 * x1
+                s22 += d2 * x2
+        acc = ((s00, s01, s02), (s10, s11, s12), (s20, s21, s22))
+        for a in range(k):
+            for b in range(nb):
+                out[i, a, b] = acc[a][b]
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _csr_matmul_shared_sum(indptr, indices, data, y):
+    """``out[i, a] = sum_e sum_b data[e, b] y[indices[e], a, b]``: ``sum_b A_b @ y[:, :, b]``
+    for B <= 3 matrices sharing one CSR pattern (``data`` (nnz, B)), ``y`` (M, k <= 3, B)."""
+    n = indptr.shape[0] - 1
+    nb = data.shape[1]
+    k = y.shape[1]
+    out = np.zeros((n, k))
+    for i in numba.prange(n):
+        s0 = s1 = s2 = 0.0
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            for b in range(nb):
+                d = data[e, b]
+                s0 += d * y[j, 0, b]
+                if k > 1:
+                    s1 += d * y[j, 1, b]
+                if k > 2:
+                    s2 += d * y[j, 2, b]
+        out[i, 0] = s0
+        if k > 1:
+            out[i, 1] = s1
+        if k > 2:
+            out[i, 2] = s2
+    return out
+
+
+class SharedPatternCSR:
+    """Up to 3 sparse (N, M) matrices with one sparsity pattern (e.g. the D gradient
+    matrices of :func:`kernel_gradient_matrices`), and their transposes, for products
+    with up to 3 columns that read the pattern once and run over rows in parallel
+    (scipy's ``csr_matvecs`` is single-threaded and reads the pattern once per matrix).
+
+    Parameters
+    ----------
+    matrices : sequence of 1 to 3 scipy.sparse matrices, all (N, M) with the same pattern
+    """
+
+    def __init__(self, matrices) -> None:
+        mats = [sp.csr_matrix(a) for a in matrices]
+        if not 1 <= len(mats) <= 3:
+            raise ValueError(f"Expected 1 to 3 matrices, got {len(mats)}.")
+        first = mats[0]
+        first.sort_indices()
+        for a in mats[1:]:
+            a.sort_indices()
+            if a.shape != first.shape or not (np.array_equal(a.indptr, first.indptr)
+                                              and np.array_equal(a.indices, first.indices)):
+                raise ValueError("Expected matrices that share one sparsity pattern.")
+        self.shape = first.shape
+        self.indptr, self.indices = first.indptr, first.indices
+        self.data = np.ascontiguousarray(np.stack([a.data for a in mats], axis=1))  # (nnz, B)
+        # The transposed pattern, and where each of its entries sits in ``data``.
+        where = sp.csr_matrix((np.arange(1, first.nnz + 1, dtype=float), first.indices, first.indptr),
+                              shape=first.shape).T.tocsr()
+        where.sort_indices()
+        self.t_indptr, self.t_indices = where.indptr, where.indices
+        self.t_data = np.ascontiguousarray(self.data[where.data.astype(np.int64) - 1])
+
+    def matmul(self, x: np.ndarray) -> np.ndarray:
+        """``out[:, :, b] = A_b @ x`` as (N, k, B), for ``x`` (M, k <= 3)."""
+        return _csr_matmul_shared(self.indptr, self.indices, self.data, np.ascontiguousarray(x, dtype=float))
+
+    def rmatmul_sum(self, y: np.ndarray) -> np.ndarray:
+        """``sum_b A_b.T @ y[:, :, b]`` as (M, k), for ``y`` (N, k <= 3, B)."""
+        return _csr_matmul_shared_sum(self.t_indptr, self.t_indices, self.t_data,
+                                      np.ascontiguousarray(y, dtype=float))
 
 
 def kernel_gradient_matrices(rows: np.ndarray, cols: np.ndarray, sigma: float) -> list[sp.csr_matrix]:

@@ -33,6 +33,8 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from .kernels import SharedPatternCSR
+
 __all__ = ["FeaturePair", "LevelObjective", "simplex_vertices"]
 
 #: ``evaluate(points, order) -> (f, grad f[, hess f])`` as ImplicitSurface.evaluate.
@@ -95,7 +97,7 @@ class LevelObjective:
     neighbourhood : (K, D) float ndarray, mm, optional
         Offsets ``dx`` of the neighbourhood cost (5) (e.g. :func:`simplex_vertices`);
         default only ``dx = 0``.
-    fold_gradients : list of D (P, M) sparse matrices, optional
+    fold_gradients : list of D (P, M) sparse matrices or SharedPatternCSR, optional
         ``d k(y_p, c_j) / d y_b`` at fold-check points ``y_p``
         (:func:`~volreg.kernels.kernel_gradient_matrices`).
     fold_base : (P, D, D) float ndarray, optional
@@ -128,7 +130,7 @@ class LevelObjective:
     landmark_targets: np.ndarray | None = None
     lambda_p: float = 0.0
     neighbourhood: np.ndarray | None = None
-    fold_gradients: list | None = None
+    fold_gradients: list | SharedPatternCSR | None = None
     fold_base: np.ndarray | None = None
     lambda_fold: float = 0.0
     fold_margin: float = 0.2
@@ -140,8 +142,10 @@ class LevelObjective:
 
     def __post_init__(self) -> None:
         self.kernel = sp.csr_matrix(self.kernel)
-        self.kernel_t = self.kernel.T.tocsr()
         self.kernel_centres = sp.csr_matrix(self.kernel_centres)
+        # Products in parallel over rows (with the transpose precomputed).
+        self._kernel = SharedPatternCSR([self.kernel])
+        self._kernel_centres = SharedPatternCSR([self.kernel_centres])
         n, m = self.kernel.shape
         self.dim = self.base.shape[1]
         if self.samples.shape != self.base.shape or self.base.shape[0] != n:
@@ -171,17 +175,20 @@ class LevelObjective:
         if self.lambda_fold > 0:
             if self.fold_gradients is None or self.fold_base is None:
                 raise ValueError("Expected `fold_gradients` and `fold_base` when `lambda_fold` > 0.")
-            self.fold_gradients = [sp.csr_matrix(g) for g in self.fold_gradients]
-            self.fold_gradients_t = [g.T.tocsr() for g in self.fold_gradients]
+            # The D gradient matrices share one pattern: each product reads it once.  Only
+            # the shared copy is kept (these are the largest matrices of a level).
+            fold = self.fold_gradients
+            self._fold = fold if isinstance(fold, SharedPatternCSR) else SharedPatternCSR(fold)
+            self.fold_gradients = None
 
     def warp_samples(self, coeffs: np.ndarray) -> np.ndarray:
         """``tau(x)`` at the sample points for coefficients ``coeffs`` (M, D)."""
-        return self.base + self.kernel @ coeffs
+        return self.base + self._kernel.matmul(coeffs)[:, :, 0]
 
     def __call__(self, flat: np.ndarray) -> tuple[float, np.ndarray]:
         """Objective and gradient at flattened coefficients (M * D,), for scipy.optimize."""
         c = flat.reshape(self.n_centres, self.dim)
-        kc = self.kernel_centres @ c
+        kc = self._kernel_centres.matmul(c)[:, :, 0]
         reg = 0.5 * float(np.einsum("md,md->", c, kc))
         grad = kc.copy()
         tau = self.warp_samples(c)
@@ -212,7 +219,7 @@ class LevelObjective:
             resid = tau - self.sample_targets
             consistency = self.lambda_target * float(np.einsum("nd,nd->", resid, resid)) / n
             g_tau += (2.0 * self.lambda_target / n) * resid
-        grad += self.kernel_t @ g_tau
+        grad += self._kernel.rmatmul_sum(g_tau[:, :, None])
         loc = scale * (dist_term + grad_term)
         land = 0.0
         if self.lambda_p > 0:
@@ -221,16 +228,13 @@ class LevelObjective:
             grad += self.landmark_kernel_t @ (2 * self.lambda_p * resid)
         fold = 0.0
         if self.lambda_fold > 0:
-            jac = self.fold_base.copy()
-            for b, g in enumerate(self.fold_gradients):
-                jac[:, :, b] += g @ c
+            jac = self.fold_base + self._fold.matmul(c)  # jac[:, :, b] += G_b @ c
             det, cof = _det_cofactor(jac)
             short = np.maximum(self.fold_margin - det, 0.0)
             p = len(det)
             fold = self.lambda_fold * float(short @ short) / p
             w = (-2.0 * self.lambda_fold / p) * short[:, None, None] * cof  # dE/dJ, (P, D, D)
-            for b, gt in enumerate(self.fold_gradients_t):
-                grad += gt @ w[:, :, b]
+            grad += self._fold.rmatmul_sum(w)  # sum_b G_b^T @ w[:, :, b]
         self.last_terms = dict(regulariser=reg, landmarks=land, distance=scale * dist_term,
                                gradient=scale * grad_term, folding=fold, consistency=consistency)
         return reg + land + loc + fold + consistency, grad.ravel()

@@ -34,7 +34,7 @@ import scipy.sparse.linalg
 from scipy.spatial import cKDTree
 
 from .implicit import ImplicitSurface
-from .kernels import CellGrid, _check_points, kernel_gradient_matrices, kernel_matrix, kernel_sum
+from .kernels import CellGrid, SharedPatternCSR, _check_points, kernel_gradient_matrices, kernel_matrix, kernel_sum
 from .objective import FeaturePair, LevelObjective, simplex_vertices
 from .sampling import octree_sample
 from .warp import KernelWarp, WarpLevel
@@ -345,7 +345,7 @@ def fit_warp(
                       landmark_targets=dst_l, lambda_p=settings.lambda_p)
         j_prev = warp.jacobian(check)  # coarser levels' Jacobian at the fold-check points
         if settings.lambda_fold > 0:
-            kw.update(fold_gradients=kernel_gradient_matrices(check, centres, width), fold_base=j_prev,
+            kw.update(fold_gradients=SharedPatternCSR(kernel_gradient_matrices(check, centres, width)), fold_base=j_prev,
                       lambda_fold=settings.lambda_fold, fold_margin=settings.fold_margin)
         subsets = _feature_samples(features, samples, settings.band, reach=settings.neighbourhood)
         objective = LevelObjective(kernel=k_xc, kernel_centres=k_cc, base=base, samples=samples,
