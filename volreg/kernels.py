@@ -357,6 +357,98 @@ def _run_value_grad(x0, x1, x2, px, py, pz, gcoef, begin, end, inv_s2):
     return v, g0, g1, g2
 
 
+@numba.njit(cache=True, fastmath=True, inline="always")
+def _run_value_grad_hess(x0, x1, x2, px, py, pz, gcoef, begin, end, inv_s2):
+    """Value, gradient and Hessian parts of the sum over one run of points (branch-free):
+    ``v, g0, g1, g2, gs, h00, h01, h02, h11, h12, h22`` with Hessian ``gs I + h``."""
+    inv_s4 = inv_s2 * inv_s2
+    v = 0.0
+    g0 = 0.0
+    g1 = 0.0
+    g2 = 0.0
+    gs = 0.0
+    a00 = 0.0
+    a01 = 0.0
+    a02 = 0.0
+    a11 = 0.0
+    a12 = 0.0
+    a22 = 0.0
+    for p in range(begin, end):
+        d0 = x0 - px[p]
+        d1 = x1 - py[p]
+        d2 = x2 - pz[p]
+        r = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2) * inv_s2)
+        t = max(1.0 - r, 0.0)
+        t2 = t * t
+        a = gcoef[p]
+        v += a * t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
+        g = a * -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
+        # r = 0 only where d = 0, which zeroes h's terms: the floor only avoids 0/0.
+        h = a * 105.0 * t2 * (1.0 + r) * (1.0 + r) / max(r, 1e-12) * inv_s4
+        gs += g
+        g0 += g * d0
+        g1 += g * d1
+        g2 += g * d2
+        a00 += h * d0 * d0
+        a01 += h * d0 * d1
+        a02 += h * d0 * d2
+        a11 += h * d1 * d1
+        a12 += h * d1 * d2
+        a22 += h * d2 * d2
+    return v, g0, g1, g2, gs, a00, a01, a02, a11, a12, a22
+
+
+@numba.njit(cache=True, inline="always")
+def _add_value_grad_hess(q, dim3, val, grad, hess, v, g0, g1, g2, gs, a00, a01, a02, a11, a12, a22):
+    """Accumulate one query's sums (from :func:`_run_value_grad_hess`) into the outputs."""
+    val[q, 0] += v
+    grad[q, 0, 0] += g0
+    grad[q, 0, 1] += g1
+    hess[q, 0, 0, 0] += gs + a00
+    hess[q, 0, 0, 1] += a01
+    hess[q, 0, 1, 0] += a01
+    hess[q, 0, 1, 1] += gs + a11
+    if dim3:
+        grad[q, 0, 2] += g2
+        hess[q, 0, 0, 2] += a02
+        hess[q, 0, 2, 0] += a02
+        hess[q, 0, 1, 2] += a12
+        hess[q, 0, 2, 1] += a12
+        hess[q, 0, 2, 2] += gs + a22
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _grid_sum_scalar_hessian(queries, px, py, pz, gcoef, start, lo, cell, dims, max_runs, sigma, val, grad, hess):
+    """:func:`_grid_sum_scalar` with the Hessian (order 2), one neighbour search per query."""
+    n, dim = queries.shape
+    inv_s2 = 1.0 / (sigma * sigma)
+    dim3 = dim == 3
+    n_blocks = (n + _BLOCK - 1) // _BLOCK
+    for blk in numba.prange(n_blocks):
+        ranges = np.empty((max_runs, 2), dtype=np.int64)
+        for q in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
+            x = queries[q]
+            nr = _candidate_ranges(x, lo, cell, dims, sigma, start, ranges)
+            x0 = x[0]
+            x1 = x[1]
+            x2 = x[2] if dim3 else 0.0
+            v = g0 = g1 = g2 = gs = a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+            for rr in range(nr):
+                r = _run_value_grad_hess(x0, x1, x2, px, py, pz, gcoef, ranges[rr, 0], ranges[rr, 1], inv_s2)
+                v += r[0]
+                g0 += r[1]
+                g1 += r[2]
+                g2 += r[3]
+                gs += r[4]
+                a00 += r[5]
+                a01 += r[6]
+                a02 += r[7]
+                a11 += r[8]
+                a12 += r[9]
+                a22 += r[10]
+            _add_value_grad_hess(q, dim3, val, grad, hess, v, g0, g1, g2, gs, a00, a01, a02, a11, a12, a22)
+
+
 @numba.njit(parallel=True, cache=True, fastmath=True)
 def _grid_sum_scalar(queries, px, py, pz, gcoef, start, lo, cell, dims, max_runs, sigma, val, grad):
     """Hot path of :func:`_grid_sum` for scalar coefficients, order <= 1, D <= 3;
@@ -673,7 +765,6 @@ def _blocked_sum_scalar_hessian(queries, bstarts, px, py, pz, gcoef, start, lo, 
     dim3 = dim == 3
     s2 = sigma * sigma
     inv_s2 = 1.0 / s2
-    inv_s4 = inv_s2 * inv_s2
     nz = dims[2] if dim3 else dims[1]
     ny = dims[1] if dim3 else 1
     n_blocks = bstarts.shape[0] - 1
@@ -710,56 +801,10 @@ def _blocked_sum_scalar_hessian(queries, bstarts, px, py, pz, gcoef, start, lo, 
                             ca[c] = gcoef[p]
                             c += 1
             for q in range(q0, q1):
-                x0 = queries[q, 0]
-                x1 = queries[q, 1]
                 x2 = queries[q, 2] if dim3 else 0.0
-                v = 0.0
-                g0 = 0.0
-                g1 = 0.0
-                g2 = 0.0
-                a00 = 0.0
-                a01 = 0.0
-                a02 = 0.0
-                a11 = 0.0
-                a12 = 0.0
-                a22 = 0.0
-                gs = 0.0
-                for p in range(c):
-                    d0 = x0 - cx[p]
-                    d1 = x1 - cy[p]
-                    d2 = x2 - cz[p]
-                    r = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2) * inv_s2)
-                    t = max(1.0 - r, 0.0)
-                    t2 = t * t
-                    a = ca[p]
-                    v += a * t2 * t2 * (4.0 + r * (16.0 + r * (12.0 + 3.0 * r)))
-                    g = a * -7.0 * t2 * t * (8.0 + r * (9.0 + 3.0 * r)) * inv_s2
-                    # r = 0 only where d = 0, which zeroes h's terms: the floor only avoids 0/0.
-                    h = a * 105.0 * t2 * (1.0 + r) * (1.0 + r) / max(r, 1e-12) * inv_s4
-                    gs += g
-                    g0 += g * d0
-                    g1 += g * d1
-                    g2 += g * d2
-                    a00 += h * d0 * d0
-                    a01 += h * d0 * d1
-                    a02 += h * d0 * d2
-                    a11 += h * d1 * d1
-                    a12 += h * d1 * d2
-                    a22 += h * d2 * d2
-                val[q, 0] += v
-                grad[q, 0, 0] += g0
-                grad[q, 0, 1] += g1
-                hess[q, 0, 0, 0] += gs + a00
-                hess[q, 0, 0, 1] += a01
-                hess[q, 0, 1, 0] += a01
-                hess[q, 0, 1, 1] += gs + a11
-                if dim3:
-                    grad[q, 0, 2] += g2
-                    hess[q, 0, 0, 2] += a02
-                    hess[q, 0, 2, 0] += a02
-                    hess[q, 0, 1, 2] += a12
-                    hess[q, 0, 2, 1] += a12
-                    hess[q, 0, 2, 2] += gs + a22
+                r = _run_value_grad_hess(queries[q, 0], queries[q, 1], x2, cx, cy, cz, ca, 0, c, inv_s2)
+                _add_value_grad_hess(q, dim3, val, grad, hess, r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7],
+                                     r[8], r[9], r[10])
 
 
 #: Evaluations of more points than this visit them in spatial order first.
@@ -897,6 +942,10 @@ def kernel_sum(
         else:
             _grid_sum_scalar(queries, px, py, pz, a, grid.start, grid.lo, grid.cell, grid.dims, runs,
                              float(sigma), val, grad)
+    elif m == 1:
+        px, py, pz = grid.columns
+        _grid_sum_scalar_hessian(queries, px, py, pz, np.ascontiguousarray(coef[:, 0]), grid.start, grid.lo,
+                                 grid.cell, grid.dims, runs, float(sigma), val, grad, hess)
     else:
         _grid_sum(queries, grid.points, coef, grid.start, grid.lo, grid.cell, grid.dims,
                   runs, float(sigma), order, val, grad, hess)
