@@ -324,7 +324,9 @@ def test_interrupted_registration_leaves_nothing(tmp_path, sig):
     a = blob_volume()
     write_labels(a, tmp_path / "a.nii.gz")
     write_labels(deform_labels(a, GaussianBumps(np.zeros((1, 3)), np.array([[3.0, 0, 0]]), 40.0)), tmp_path / "b.nii.gz")
-    (tmp_path / "p.toml").write_text(TEST_PROTOCOL)
+    # A finer warp than the other tests' protocol, so that the run outlasts the wait below
+    # (the 8 mm protocol could finish within it once the kernel sums got faster).
+    (tmp_path / "p.toml").write_text(TEST_PROTOCOL.replace("min_width = 8.0", "min_width = 4.0"))
     out = tmp_path / "out"
     proc = _start(["register", tmp_path / "a.nii.gz", tmp_path / "b.nii.gz", "-o", out, "--protocol",
                    tmp_path / "p.toml", "-v"], tmp_path)
