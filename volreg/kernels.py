@@ -540,12 +540,12 @@ def _query_blocks(queries, width, max_size):
 def _blocked_sum_scalar(queries, bstarts, px, py, pz, gcoef, start, lo, cell, dims, sigma, val, grad):
     """:func:`_grid_sum_scalar` with the neighbour search amortised over blocks of nearby
     queries: the centres within ``sigma`` of a block's bounding box are gathered once into
-    contiguous arrays, then every query of the block runs one branch-free SIMD loop over them
-    (4-8x fewer ns per kernel term than one search per query on the frog body)."""
+    contiguous arrays (:func:`_gather_block`; ``gcoef`` (M, 1)), then every query of the
+    block runs one branch-free SIMD loop over them (4-8x fewer ns per kernel term than one
+    search per query on the frog body)."""
     n, dim = queries.shape
     dim3 = dim == 3
-    s2 = sigma * sigma
-    inv_s2 = 1.0 / s2
+    inv_s2 = 1.0 / (sigma * sigma)
     want_grad = grad.shape[0] == n
     n_blocks = bstarts.shape[0] - 1
     for sb in numba.prange((n_blocks + _SUPER - 1) // _SUPER):
@@ -553,35 +553,13 @@ def _blocked_sum_scalar(queries, bstarts, px, py, pz, gcoef, start, lo, cell, di
         for b in range(sb * _SUPER, min(n_blocks, (sb + 1) * _SUPER)):
             q0 = bstarts[b]
             q1 = bstarts[b + 1]
-            l0, h0, l1, h1, l2, h2 = _block_box(queries, q0, q1, dim3)
-            i0, i1, j0, j1, k0, k1 = _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3)
-            if i0 > i1 or j0 > j1 or k0 > k1:
+            buf, m = _gather_block(queries, q0, q1, dim3, px, py, pz, gcoef, start, lo, cell, dims, sigma, buf)
+            if m == 0:
                 continue
-            nz = dims[2] if dim3 else dims[1]
-            ny = dims[1] if dim3 else 1
-            count = 0
-            for i in range(i0, i1 + 1):
-                for j in range(j0, j1 + 1):
-                    base = (i * ny + j) * nz
-                    count += start[base + k1 + 1] - start[base + k0]
-            if count > buf.shape[1]:
-                buf = np.empty((6, 2 * count))
             cx = buf[0]
             cy = buf[1]
             cz = buf[2]
             ca = buf[3]
-            m = 0
-            for i in range(i0, i1 + 1):
-                for j in range(j0, j1 + 1):
-                    base = (i * ny + j) * nz
-                    for p in range(start[base + k0], start[base + k1 + 1]):
-                        g = _gap2(px[p], l0, h0 - l0) + _gap2(py[p], l1, h1 - l1) + _gap2(pz[p], l2, h2 - l2)
-                        if g < s2:
-                            cx[m] = px[p]
-                            cy[m] = py[p]
-                            cz[m] = pz[p]
-                            ca[m] = gcoef[p]
-                            m += 1
             for q in range(q0, q1):
                 x0 = queries[q, 0]
                 x1 = queries[q, 1]
@@ -632,6 +610,42 @@ def _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3):
     return i0, i1, np.int64(0), np.int64(0), j0, j1
 
 
+@numba.njit(cache=True, inline="always")
+def _gather_block(queries, q0, q1, dim3, px, py, pz, coef, start, lo, cell, dims, sigma, buf):
+    """Copy the centres within ``sigma`` of the bounding box of queries[q0:q1] into
+    ``buf`` (6, capacity): rows 0-2 coordinates, rows 3-5 the (up to 3) coefficient
+    columns of ``coef`` (M, m), zeros past m.  Returns ``(buf, count)``; ``buf`` is
+    replaced by a larger array when the candidates do not fit."""
+    l0, h0, l1, h1, l2, h2 = _block_box(queries, q0, q1, dim3)
+    i0, i1, j0, j1, k0, k1 = _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3)
+    if i0 > i1 or j0 > j1 or k0 > k1:
+        return buf, 0
+    nz = dims[2] if dim3 else dims[1]
+    ny = dims[1] if dim3 else 1
+    count = 0
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            base = (i * ny + j) * nz
+            count += start[base + k1 + 1] - start[base + k0]
+    if count > buf.shape[1]:
+        buf = np.empty((6, 2 * count))
+    m = coef.shape[1]
+    s2 = sigma * sigma
+    c = 0
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            base = (i * ny + j) * nz
+            for p in range(start[base + k0], start[base + k1 + 1]):
+                if _gap2(px[p], l0, h0 - l0) + _gap2(py[p], l1, h1 - l1) + _gap2(pz[p], l2, h2 - l2) < s2:
+                    buf[0, c] = px[p]
+                    buf[1, c] = py[p]
+                    buf[2, c] = pz[p]
+                    for a in range(3):
+                        buf[3 + a, c] = coef[p, a] if a < m else 0.0
+                    c += 1
+    return buf, c
+
+
 @numba.njit(parallel=True, cache=True, fastmath=True)
 def _blocked_sum_vector(queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigma, val, grad):
     """:func:`_blocked_sum_scalar` for 2- or 3-vector coefficients (warps): value
@@ -639,48 +653,23 @@ def _blocked_sum_vector(queries, bstarts, px, py, pz, coef, start, lo, cell, dim
     n, dim = queries.shape
     m = coef.shape[1]
     dim3 = dim == 3
-    s2 = sigma * sigma
-    inv_s2 = 1.0 / s2
+    inv_s2 = 1.0 / (sigma * sigma)
     want_grad = grad.shape[0] == n
-    nz = dims[2] if dim3 else dims[1]
-    ny = dims[1] if dim3 else 1
     n_blocks = bstarts.shape[0] - 1
     for sb in numba.prange((n_blocks + _SUPER - 1) // _SUPER):
         buf = np.empty((6, 256))  # gathered candidates, grown as needed
         for b in range(sb * _SUPER, min(n_blocks, (sb + 1) * _SUPER)):
             q0 = bstarts[b]
             q1 = bstarts[b + 1]
-            l0, h0, l1, h1, l2, h2 = _block_box(queries, q0, q1, dim3)
-            i0, i1, j0, j1, k0, k1 = _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3)
-            if i0 > i1 or j0 > j1 or k0 > k1:
+            buf, c = _gather_block(queries, q0, q1, dim3, px, py, pz, coef, start, lo, cell, dims, sigma, buf)
+            if c == 0:
                 continue
-            count = 0
-            for i in range(i0, i1 + 1):
-                for j in range(j0, j1 + 1):
-                    base = (i * ny + j) * nz
-                    count += start[base + k1 + 1] - start[base + k0]
-            if count > buf.shape[1]:
-                buf = np.empty((6, 2 * count))
             cx = buf[0]
             cy = buf[1]
             cz = buf[2]
             c0 = buf[3]
             c1 = buf[4]
             c2 = buf[5]
-            c = 0
-            for i in range(i0, i1 + 1):
-                for j in range(j0, j1 + 1):
-                    base = (i * ny + j) * nz
-                    for p in range(start[base + k0], start[base + k1 + 1]):
-                        g = _gap2(px[p], l0, h0 - l0) + _gap2(py[p], l1, h1 - l1) + _gap2(pz[p], l2, h2 - l2)
-                        if g < s2:
-                            cx[c] = px[p]
-                            cy[c] = py[p]
-                            cz[c] = pz[p]
-                            c0[c] = coef[p, 0]
-                            c1[c] = coef[p, 1]
-                            c2[c] = coef[p, 2] if m == 3 else 0.0
-                            c += 1
             for q in range(q0, q1):
                 x0 = queries[q, 0]
                 x1 = queries[q, 1]
@@ -763,43 +752,20 @@ def _blocked_sum_scalar_hessian(queries, bstarts, px, py, pz, gcoef, start, lo, 
     (N, 1, D) and Hessian (N, 1, D, D), as the objective's gradient term needs for f2."""
     n, dim = queries.shape
     dim3 = dim == 3
-    s2 = sigma * sigma
-    inv_s2 = 1.0 / s2
-    nz = dims[2] if dim3 else dims[1]
-    ny = dims[1] if dim3 else 1
+    inv_s2 = 1.0 / (sigma * sigma)
     n_blocks = bstarts.shape[0] - 1
     for sb in numba.prange((n_blocks + _SUPER - 1) // _SUPER):
         buf = np.empty((6, 256))  # gathered candidates, grown as needed
         for b in range(sb * _SUPER, min(n_blocks, (sb + 1) * _SUPER)):
             q0 = bstarts[b]
             q1 = bstarts[b + 1]
-            l0, h0, l1, h1, l2, h2 = _block_box(queries, q0, q1, dim3)
-            i0, i1, j0, j1, k0, k1 = _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3)
-            if i0 > i1 or j0 > j1 or k0 > k1:
+            buf, c = _gather_block(queries, q0, q1, dim3, px, py, pz, gcoef, start, lo, cell, dims, sigma, buf)
+            if c == 0:
                 continue
-            count = 0
-            for i in range(i0, i1 + 1):
-                for j in range(j0, j1 + 1):
-                    base = (i * ny + j) * nz
-                    count += start[base + k1 + 1] - start[base + k0]
-            if count > buf.shape[1]:
-                buf = np.empty((6, 2 * count))
             cx = buf[0]
             cy = buf[1]
             cz = buf[2]
             ca = buf[3]
-            c = 0
-            for i in range(i0, i1 + 1):
-                for j in range(j0, j1 + 1):
-                    base = (i * ny + j) * nz
-                    for p in range(start[base + k0], start[base + k1 + 1]):
-                        g = _gap2(px[p], l0, h0 - l0) + _gap2(py[p], l1, h1 - l1) + _gap2(pz[p], l2, h2 - l2)
-                        if g < s2:
-                            cx[c] = px[p]
-                            cy[c] = py[p]
-                            cz[c] = pz[p]
-                            ca[c] = gcoef[p]
-                            c += 1
             for q in range(q0, q1):
                 x2 = queries[q, 2] if dim3 else 0.0
                 r = _run_value_grad_hess(queries[q, 0], queries[q, 1], x2, cx, cy, cz, ca, 0, c, inv_s2)
@@ -927,7 +893,7 @@ def kernel_sum(
         blocks = None  # queries not in spatial order: one neighbour search per query
     if blocks is not None and m == 1 and order == 2:
         px, py, pz = grid.columns
-        _blocked_sum_scalar_hessian(queries, blocks, px, py, pz, np.ascontiguousarray(coef[:, 0]), grid.start,
+        _blocked_sum_scalar_hessian(queries, blocks, px, py, pz, coef, grid.start,
                                     grid.lo, grid.cell, grid.dims, float(sigma), val, grad, hess)
     elif blocks is not None and m in (2, 3):
         px, py, pz = grid.columns
@@ -937,7 +903,7 @@ def kernel_sum(
         px, py, pz = grid.columns
         a = np.ascontiguousarray(coef[:, 0])
         if blocks is not None:
-            _blocked_sum_scalar(queries, blocks, px, py, pz, a, grid.start, grid.lo, grid.cell, grid.dims,
+            _blocked_sum_scalar(queries, blocks, px, py, pz, coef, grid.start, grid.lo, grid.cell, grid.dims,
                                 float(sigma), val, grad)
         else:
             _grid_sum_scalar(queries, px, py, pz, a, grid.start, grid.lo, grid.cell, grid.dims, runs,
