@@ -1,7 +1,7 @@
 """Inverse consistency on the frog demo pair: volreg against ANTs SyN, side by side.
 
 Run:  .venv/bin/python benchmarks/bench_consistency.py [--repeats 3] [--peers]
-          [--methods volreg-fast,volreg-fast-symmetric,ants-SyNOnly]
+          [--methods volreg-default,volreg-default-symmetric,volreg-fast,ants-SyNOnly]
 
 The pair is `volreg demo`'s (pyvista's frog tissues block-downsampled to 3 mm = A, a copy deformed
 by a known smooth warp of up to 8 mm = B).  For every method, A is registered to B (pull-back
@@ -9,7 +9,7 @@ tau_AB: an A point to its B partner) and B to A, and at every voxel x of A's lab
   * the consistency error of the two registrations, |tau_BA(tau_AB(x)) - x|;
   * for ANTs also the forward warp composed with ANTs' own inverse (SyN's InverseWarp);
   * for volreg also the forward warp composed with its Newton inverse (volreg.inverse);
-  * volreg-fast-symmetric: the symmetric option (lambda_consistency = 1000: the B->A fit is
+  * volreg-<protocol>-symmetric: the symmetric option (lambda_consistency = 1000: the B->A fit is
     pulled towards the A->B warp's inverse);
   * the endpoint error of tau_AB against the known warp (an identity warp is perfectly
     consistent and useless, so the two are read together).
@@ -131,7 +131,7 @@ def main() -> None:
     if args.one:
         print(json.dumps(run_one(args.one)))
         return
-    methods = ["volreg-fast", "volreg-fast-symmetric"] + (["ants-SyNOnly", "greedy"] if args.peers else [])
+    methods = ["volreg-default", "volreg-default-symmetric"] + (["ants-SyNOnly", "greedy"] if args.peers else [])
     if args.methods:
         methods = args.methods.split(",")
     print("| method | A->B then B->A: mean / p95 mm (voxel) | A->B then own inverse: mean / p95 mm (voxel) "

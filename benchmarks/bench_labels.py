@@ -7,7 +7,11 @@ deformed by a known smooth warp of up to 8 mm (moving).  Every method gets the s
 volumes; each run is a fresh process (its own peak RSS).  Reported per method: mean Dice over the
 labels, endpoint error against the known warp at the fixed voxels inside the labels (mean, 95th
 percentile, mm), folded fraction (det <= 0 over the grid), wall time and peak RSS; medians of the
-repeats.  With --peers, ANTs SyNOnly (antspyx, the label images as float, threads = 2) runs too.
+repeats.  With --peers the peers run too, each on the label images as float with 2 threads:
+ANTs SyNOnly and SyN (affine + SyN; antspyx), greedy (picsl_greedy: SSD, 100x50x20 iterations,
+smoothing 2 and 1 voxels) and elastix B-spline (itk-elastix: its default 4-resolution B-spline map
+with mean squares and a 12 mm final grid).  Peers' folded fractions come from central differences
+of their displacement fields (ANTs SyNOnly: ANTs' own Jacobian).
 
 Also measured once: label interpolation by per-label signed distances against nearest neighbour,
 both through the *true* warp (so the only error is the interpolation), as Dice with the fixed labels.
@@ -48,6 +52,64 @@ def _scores(fixed, moving, positions, truth, det):
                 folded=float(np.mean(det <= 0)))
 
 
+def _read_field(path) -> np.ndarray:
+    from volreg.io.fields import read_displacement
+
+    return read_displacement(path)[0]
+
+
+def _det_from_field(u: np.ndarray, grid) -> np.ndarray:
+    """det(I + du/dx) by central differences on an axis-aligned grid (the frog's), for peers
+    that return only a displacement field."""
+    if not np.allclose(grid.direction, np.eye(3)):
+        raise SystemExit("expected an axis-aligned grid")
+    jac = np.stack([np.stack(np.gradient(u[..., a], *grid.spacing), axis=-1) for a in range(3)], axis=-2)
+    return np.linalg.det(jac + np.eye(3))
+
+
+def _peer(method: str, fixed, moving, d: str):
+    """Run a peer on the pair written as float NIfTI into folder ``d``: its displacement field
+    on the fixed grid (LPS mm, pull-back) and det of its Jacobian there."""
+    from volreg.io import write_labels
+
+    f_path, m_path = os.path.join(d, "f.nii.gz"), os.path.join(d, "m.nii.gz")
+    write_labels(fixed, f_path)
+    write_labels(moving, m_path)
+    if method in ("ants-SyNOnly", "ants-SyN"):  # SyN: affine then SyN, ANTs' default for a pair
+        import ants
+
+        f = ants.image_read(f_path, pixeltype="float")
+        m = ants.image_read(m_path, pixeltype="float")
+        reg = ants.registration(f, m, type_of_transform=method.split("-")[1])
+        if method == "ants-SyNOnly":
+            return _read_field(reg["fwdtransforms"][0]), ants.create_jacobian_determinant_image(
+                f, reg["fwdtransforms"][0]).numpy()
+        # the composite (warp, then affine) as one displacement field on the fixed grid
+        u = _read_field(ants.apply_transforms(f, m, reg["fwdtransforms"], compose=os.path.join(d, "comp")))
+    elif method == "greedy":
+        from picsl_greedy import Greedy3D
+
+        Greedy3D().execute(f"-d 3 -threads 2 -i {f_path} {m_path} -o {d}/w.nii.gz -n 100x50x20 -m SSD -s 2vox 1vox")
+        u = _read_field(f"{d}/w.nii.gz")
+    elif method == "elastix-bspline":
+        import itk
+
+        f = itk.imread(f_path, itk.F)
+        m = itk.imread(m_path, itk.F)
+        params = itk.ParameterObject.New()
+        pm = params.GetDefaultParameterMap("bspline", 4)  # 4 resolutions
+        pm["Metric"] = ["AdvancedMeanSquares"]  # same label values in both images
+        pm["FinalGridSpacingInPhysicalUnits"] = ["12"]  # 4 voxels of 3 mm
+        params.AddParameterMap(pm)
+        _, tp = itk.elastix_registration_method(f, m, parameter_object=params, log_to_console=False,
+                                                number_of_threads=2)
+        field = itk.transformix_deformation_field(m, tp)  # on the fixed grid, LPS mm, fixed -> moving
+        u = np.ascontiguousarray(np.transpose(itk.array_from_image(field), (2, 1, 0, 3)), dtype=float)
+    else:
+        raise SystemExit(f"unknown method {method}")
+    return u, _det_from_field(u, fixed)
+
+
 def run_one(method: str) -> dict:
     fixed, moving, truth = _pair()
     t0 = time.perf_counter()
@@ -59,23 +121,9 @@ def run_one(method: str) -> dict:
         result = register_labels(fixed, moving, protocol=load_protocol(method.split("-", 1)[1]))
         u = displacement_on_grid(result.warp, fixed)
         det = jacobian_determinant_on_grid(result.warp, fixed)
-    elif method == "ants-SyNOnly":
-        import ants
-
-        from volreg.io import write_labels
-        from volreg.io.fields import read_displacement
-
-        with tempfile.TemporaryDirectory() as d:
-            write_labels(fixed, os.path.join(d, "f.nii.gz"))
-            write_labels(moving, os.path.join(d, "m.nii.gz"))
-            f = ants.image_read(os.path.join(d, "f.nii.gz"), pixeltype="float")
-            m = ants.image_read(os.path.join(d, "m.nii.gz"), pixeltype="float")
-            reg = ants.registration(f, m, type_of_transform="SyNOnly")
-            u, _ = read_displacement(reg["fwdtransforms"][0])
-            jac = ants.create_jacobian_determinant_image(f, reg["fwdtransforms"][0])
-            det = jac.numpy()
     else:
-        raise SystemExit(f"unknown method {method}")
+        with tempfile.TemporaryDirectory() as d:
+            u, det = _peer(method, fixed, moving, d)
     seconds = time.perf_counter() - t0
     out = _scores(fixed, moving, fixed.grid_points() + u, truth, det)
     out.update(seconds=seconds, peak_rss_gb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2)
@@ -108,7 +156,8 @@ def main() -> None:
     if args.one:
         print(json.dumps(run_one(args.one)))
         return
-    methods = ["volreg-fast", "volreg-default"] + (["ants-SyNOnly"] if args.peers else [])
+    methods = ["volreg-fast", "volreg-default"] + (
+        ["ants-SyNOnly", "ants-SyN", "greedy", "elastix-bspline"] if args.peers else [])
     if args.methods:
         methods = args.methods.split(",")
     if not args.no_interpolation:

@@ -48,8 +48,8 @@ def _objective(dim, rng, **kw):
     "kw",
     [dict(lambda_loc=3.0, alpha=0.0), dict(lambda_loc=3.0, alpha=2.0, lambda_p=0.7),
      dict(lambda_loc=1.0, alpha=1.0, neighbourhood=simplex_vertices(2, 0.5)),
-     dict(lambda_loc=2.0, alpha=1.0, lambda_target=5.0)],
-    ids=["distance-only", "distance+gradient+landmarks", "neighbourhood", "consistency"],
+     dict(lambda_loc=2.0, alpha=1.0, lambda_target=5.0), dict(lambda_loc=3.0, alpha=1.0, robust=0.3)],
+    ids=["distance-only", "distance+gradient+landmarks", "neighbourhood", "consistency", "robust"],
 )
 def test_gradient_matches_finite_differences(dim, kw):
     rng = np.random.default_rng(20 + dim)
@@ -131,3 +131,26 @@ def test_simplex_vertices_are_regular():
         np.testing.assert_allclose(np.linalg.norm(v, axis=1), 2.0)
         d = np.linalg.norm(v[:, None] - v[None], axis=2)[np.triu_indices(dim + 1, 1)]
         np.testing.assert_allclose(d, d[0])
+
+
+def test_robust_loss_is_pseudo_huber_of_the_residual():
+    """Distance term with ``robust = d``: ``2 d^2 (sqrt(1 + (r/d)^2) - 1)`` per sample, which is
+    ``r^2`` for small residuals and grows linearly for large ones."""
+    samples = np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 4.01], [0.0, 0.0, 30.0]])
+    f1, f2 = SphereSDF(np.zeros(3), 4.0), SphereSDF(np.zeros(3), 4.0)
+    moved = samples + np.array([0.0, 0.0, 0.5])  # residual f1(x) - f2(tau(x)) = -0.5 at every sample
+    k = kernel_matrix(samples, samples, 1.0)
+
+    def distance(robust):
+        obj = LevelObjective(kernel=k, kernel_centres=k, base=moved, samples=samples,
+                             features=[FeaturePair(f1, f2)], lambda_loc=3.0, robust=robust)
+        obj(np.zeros(9))
+        return obj.last_terms["distance"]
+
+    d = 0.2
+    assert distance(0.0) == pytest.approx(3.0 * 0.25)
+    assert distance(d) == pytest.approx(3.0 * 2 * d**2 * (np.sqrt(1 + (0.5 / d) ** 2) - 1))
+    assert distance(1e4) == pytest.approx(distance(0.0), rel=1e-6)
+    with pytest.raises(ValueError, match="robust"):
+        LevelObjective(kernel=k, kernel_centres=k, base=moved, samples=samples,
+                       features=[FeaturePair(f1, f2)], robust=-1.0)

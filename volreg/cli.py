@@ -169,7 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("-o", "--output", metavar="OUTDIR", type=Path, default=Path("volreg-demo"),
                       help="output directory (default ./volreg-demo)")
     demo.add_argument("--full", action="store_true", help="native resolution (slow)")
-    demo.add_argument("--protocol", metavar="NAME|FILE", default="fast", help="protocol preset or TOML file (default: fast)")
+    demo.add_argument("--protocol", metavar="NAME|FILE", default="default", help="protocol preset or TOML file (default: default)")
     demo.add_argument("--force", action="store_true", help="overwrite existing outputs")
     demo.add_argument("--quiet", action="store_true", help="no progress bars")
     demo.add_argument("-v", "--verbose", action="store_true", help="log each stage and warp level to stderr")

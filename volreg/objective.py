@@ -110,6 +110,13 @@ class LevelObjective:
     lambda_target : float
         Weight of the consistency term ``lambda_target mean_x |tau(x) - t(x)|^2``
         (mm^-2 times the locational cost's units); 0 = off.
+    robust : float, mm
+        If > 0, the distance term (3) uses the pseudo-Huber loss
+        ``2 robust^2 (sqrt(1 + (r / robust)^2) - 1)`` of the residual
+        ``r = f1(x) - f2(tau(x))`` instead of ``r^2`` (not in the paper): equal to
+        ``r^2`` for ``|r| << robust``, growing only linearly beyond, so that the few
+        samples where two implicit surfaces disagree by tens of mm (a piece of a label
+        present in one volume only, a fit artefact) do not outweigh the rest.  0 = off.
     feature_samples : list of (N_l,) int ndarrays or None, optional
         For each feature pair, the indices of the samples where it can be
         non-constant (``None``: all).  Elsewhere both ``f1`` and ``f2(tau)`` sit
@@ -137,6 +144,7 @@ class LevelObjective:
     feature_samples: Sequence[np.ndarray | None] | None = None
     sample_targets: np.ndarray | None = None
     lambda_target: float = 0.0
+    robust: float = 0.0
     _f1: list = field(default_factory=list, init=False, repr=False)
     last_terms: dict = field(default_factory=dict, init=False, repr=False)
 
@@ -170,6 +178,8 @@ class LevelObjective:
             self.landmark_kernel = sp.csr_matrix(self.landmark_kernel)
             self.landmark_kernel_t = self.landmark_kernel.T.tocsr()
         self.n_centres = m
+        if not (np.isfinite(self.robust) and self.robust >= 0):
+            raise ValueError(f"Expected `robust` >= 0 (mm), got {self.robust}.")
         if self.lambda_target > 0 and (self.sample_targets is None or np.shape(self.sample_targets) != self.samples.shape):
             raise ValueError(f"Expected `sample_targets` of shape {self.samples.shape} when `lambda_target` > 0.")
         if self.lambda_fold > 0:
@@ -204,7 +214,12 @@ class LevelObjective:
             for dx, f1 in zip(self.offsets, f1_list):
                 out = pair.f2.evaluate(tau_l + dx, order=order)
                 r = f1[0] - out[0]  # (N_l,)
-                dist_term += pair.weight * float(r @ r)
+                if self.robust > 0:
+                    root = np.sqrt(1.0 + (r / self.robust) ** 2)
+                    dist_term += pair.weight * 2.0 * self.robust**2 * float(np.sum(root - 1.0))
+                    r = r / root  # d/dr of the loss, halved: r / sqrt(1 + (r / robust)^2)
+                else:
+                    dist_term += pair.weight * float(r @ r)
                 g_l -= (2 * scale * pair.weight) * r[:, None] * out[1]
                 if self.alpha > 0:
                     rg = f1[1] - out[1]  # (N_l, D)
