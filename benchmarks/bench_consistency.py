@@ -9,7 +9,7 @@ tau_AB: an A point to its B partner) and B to A, and at every voxel x of A's lab
   * the consistency error of the two registrations, |tau_BA(tau_AB(x)) - x|;
   * for ANTs also the forward warp composed with ANTs' own inverse (SyN's InverseWarp);
   * for volreg also the forward warp composed with its Newton inverse (volreg.inverse);
-  * volreg-<protocol>-symmetric: the symmetric option (lambda_consistency = 1000: the B->A fit is
+  * volreg-<protocol>-symmetric[=W]: the symmetric option (lambda_consistency = W, default 1000: the B->A fit is
     pulled towards the A->B warp's inverse);
   * the endpoint error of tau_AB against the known warp (an identity warp is perfectly
     consistent and useless, so the two are read together).
@@ -55,8 +55,9 @@ def run_one(method: str) -> dict:
 
         name = method.split("-")[1]
         protocol = load_protocol(name)
-        if method.endswith("-symmetric"):  # the symmetric option at weight 1000
-            protocol = dataclasses.replace(protocol, warp=dataclasses.replace(protocol.warp, lambda_consistency=1000.0))
+        if "-symmetric" in method:  # the symmetric option, weight 1000 or as given (-symmetric=W)
+            weight = float(method.split("=")[1]) if "=" in method else 1000.0
+            protocol = dataclasses.replace(protocol, warp=dataclasses.replace(protocol.warp, lambda_consistency=weight))
         ab = register_labels(a, b, protocol=protocol).warp
         ba = register_labels(b, a, protocol=protocol, prior=InverseWarp(ab)).warp
         out["seconds"] = time.perf_counter() - t0
