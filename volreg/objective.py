@@ -115,8 +115,8 @@ class LevelObjective:
         ``2 robust^2 (sqrt(1 + (r / robust)^2) - 1)`` of the residual
         ``r = f1(x) - f2(tau(x))`` instead of ``r^2`` (not in the paper): equal to
         ``r^2`` for ``|r| << robust``, growing only linearly beyond, so that the few
-        samples where two implicit surfaces disagree by tens of mm (a piece of a label
-        present in one volume only, a fit artefact) do not outweigh the rest.  0 = off.
+        samples where two implicit surfaces disagree by tens of mm (seen on thin,
+        fragmented labels after resampling) do not outweigh the rest.  0 = off.
     feature_samples : list of (N_l,) int ndarrays or None, optional
         For each feature pair, the indices of the samples where it can be
         non-constant (``None``: all).  Elsewhere both ``f1`` and ``f2(tau)`` sit
