@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -421,3 +422,17 @@ def test_thin_label_is_contoured_with_less_smoothing(tmp_path):
     # The line's mesh encloses its voxel centres and stays within a voxel of them.
     assert np.all(lo <= [17, 2, 17]) and np.all(hi >= [17, 13, 17])
     assert np.all(lo >= [16, 1, 16]) and np.all(hi <= [18, 14, 18])
+
+
+def test_closed_stdout_pipe_exits_quietly():
+    """`volreg protocols | head -c 1`: the reader goes away; no traceback, the SIGPIPE status."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # nobody reads: the child's first write fails with EPIPE
+    try:
+        proc = subprocess.run([sys.executable, "-m", "volreg", "protocols"], stdout=write_end,
+                              stderr=subprocess.PIPE, timeout=60)
+    finally:
+        os.close(write_end)
+    stderr = proc.stderr.decode()
+    assert "Traceback" not in stderr and "BrokenPipe" not in stderr, stderr
+    assert proc.returncode == 141

@@ -505,6 +505,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         message = " ".join(str(exc).split("\n")).strip() or type(exc).__name__
         print(f"{PROG} {args.command}: error: {message}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # The reader of stdout went away (`volreg protocols | head -1`): stop quietly, as
+        # command-line tools killed by SIGPIPE do, and keep Python's exit-time flush from
+        # raising again on the closed pipe.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        return 128 + int(signal.SIGPIPE)
     except KeyboardInterrupt as exc:
         name = str(exc) or "SIGINT"
         print(f"{PROG} {args.command}: interrupted by {name}; the outputs of this run were removed.", file=sys.stderr)
