@@ -21,6 +21,7 @@ both through the *true* warp (so the only error is the interpolation), as Dice w
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import resource
@@ -106,7 +107,8 @@ def _peer(method: str, fixed, moving, d: str):
         # threads from ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS (main sets 2): number_of_threads=2
         # crashed itk-elastix 0.25.4 (ITK 5.4.7) on this pair (segmentation fault)
         _, tp = itk.elastix_registration_method(f, m, parameter_object=params, log_to_console=False)
-        field = itk.transformix_deformation_field(m, tp)  # on the fixed grid, LPS mm, fixed -> moving
+        with contextlib.chdir(d):  # transformix also writes deformationField.nii into the working directory
+            field = itk.transformix_deformation_field(m, tp)  # on the fixed grid, LPS mm, fixed -> moving
         u = np.ascontiguousarray(np.transpose(itk.array_from_image(field), (2, 1, 0, 3)), dtype=float)
     else:
         raise SystemExit(f"unknown method {method}")
