@@ -105,6 +105,10 @@ class LevelObjective:
     lambda_fold, fold_margin : float
         Fold barrier (not in the paper): ``lambda_fold mean_p max(0, fold_margin
         - det J(y_p))^2`` keeps the warp orientation-preserving.
+    fold_count : int, optional
+        The number of fold-check points the barrier's mean runs over; default the
+        rows of ``fold_gradients``.  Larger when those rows are only the points where
+        the barrier can act (:meth:`set_fold`): elsewhere its terms are 0.
     sample_targets : (N, D) float ndarray, mm, optional
         ``t(x)``: positions the samples should map to (consistency term).
     lambda_target : float
@@ -141,6 +145,7 @@ class LevelObjective:
     fold_base: np.ndarray | None = None
     lambda_fold: float = 0.0
     fold_margin: float = 0.2
+    fold_count: int | None = None
     feature_samples: Sequence[np.ndarray | None] | None = None
     sample_targets: np.ndarray | None = None
     lambda_target: float = 0.0
@@ -185,11 +190,31 @@ class LevelObjective:
         if self.lambda_fold > 0:
             if self.fold_gradients is None or self.fold_base is None:
                 raise ValueError("Expected `fold_gradients` and `fold_base` when `lambda_fold` > 0.")
-            # The D gradient matrices share one pattern: each product reads it once.  Only
-            # the shared copy is kept (these are the largest matrices of a level).
-            fold = self.fold_gradients
-            self._fold = fold if isinstance(fold, SharedPatternCSR) else SharedPatternCSR(fold)
-            self.fold_gradients = None
+            self.set_fold(self.fold_gradients, self.fold_base, self.fold_count)
+
+    def set_fold(self, gradients, base: np.ndarray, count: int | None = None) -> None:
+        """Replace the fold barrier's check points (``lambda_fold`` stays).
+
+        Parameters
+        ----------
+        gradients : list of D (P, M) sparse matrices or SharedPatternCSR
+            As ``fold_gradients``, at P points (P may be 0).
+        base : (P, D, D) float ndarray
+            As ``fold_base``.
+        count : int, optional
+            As ``fold_count``; default P.
+        """
+        # The D gradient matrices share one pattern: each product reads it once.  Only
+        # the shared copy is kept (these are the largest matrices of a level).
+        self._fold = gradients if isinstance(gradients, SharedPatternCSR) else SharedPatternCSR(gradients)
+        self.fold_gradients = None
+        self.fold_base = np.asarray(base, dtype=float)
+        if self._fold.shape[0] != len(self.fold_base) or self._fold.shape[1] != self.kernel.shape[1]:
+            raise ValueError(f"Expected fold gradients of shape ({len(self.fold_base)}, {self.kernel.shape[1]}), "
+                             f"got {self._fold.shape}.")
+        self.fold_count = len(self.fold_base) if count is None else int(count)
+        if self.fold_count < len(self.fold_base):
+            raise ValueError(f"Expected `fold_count` >= {len(self.fold_base)} (the rows given), got {self.fold_count}.")
 
     def warp_samples(self, coeffs: np.ndarray) -> np.ndarray:
         """``tau(x)`` at the sample points for coefficients ``coeffs`` (M, D)."""
@@ -242,11 +267,11 @@ class LevelObjective:
             land = self.lambda_p * float(np.einsum("ld,ld->", resid, resid))
             grad += self.landmark_kernel_t @ (2 * self.lambda_p * resid)
         fold = 0.0
-        if self.lambda_fold > 0:
+        if self.lambda_fold > 0 and len(self.fold_base):
             jac = self.fold_base + self._fold.matmul(c)  # jac[:, :, b] += G_b @ c
             det, cof = _det_cofactor(jac)
             short = np.maximum(self.fold_margin - det, 0.0)
-            p = len(det)
+            p = self.fold_count
             fold = self.lambda_fold * float(short @ short) / p
             w = (-2.0 * self.lambda_fold / p) * short[:, None, None] * cof  # dE/dJ, (P, D, D)
             grad += self._fold.rmatmul_sum(w)  # sum_b G_b^T @ w[:, :, b]
