@@ -125,7 +125,15 @@ def run_one(method: str) -> dict:
         from volreg.pipeline import register_labels
         from volreg.protocol import load_protocol
 
-        result = register_labels(fixed, moving, protocol=load_protocol(method.split("-", 1)[1]))
+        import dataclasses
+
+        # volreg-NAME[+key=value...]: a preset with warp settings overridden, e.g. volreg-default+alpha=20
+        name, *overrides = method.split("-", 1)[1].split("+")
+        protocol = load_protocol(name)
+        if overrides:
+            warp = dataclasses.replace(protocol.warp, **{k: float(v) for k, v in (o.split("=") for o in overrides)})
+            protocol = dataclasses.replace(protocol, warp=warp)
+        result = register_labels(fixed, moving, protocol=protocol)
         u = displacement_on_grid(result.warp, fixed)
         det = jacobian_determinant_on_grid(result.warp, fixed)
     else:
@@ -156,7 +164,8 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--peers", action="store_true")
-    parser.add_argument("--methods", default=None, help="comma-separated subset, e.g. ants-SyNOnly,volreg-fast")
+    parser.add_argument("--methods", default=None,
+                        help="comma-separated subset, e.g. ants-SyNOnly,volreg-fast,volreg-default+alpha=20")
     parser.add_argument("--no-interpolation", action="store_true", help="skip the interpolation table")
     parser.add_argument("--full", action="store_true", help="the frog at its native 1 x 1 x 1.5 mm (default 3 mm)")
     parser.add_argument("--one", help=argparse.SUPPRESS)
