@@ -351,6 +351,8 @@ def fit_warp(
         consistency = dict(sample_targets=np.asarray(prior(samples), float), lambda_target=settings.lambda_consistency)
     warp = KernelWarp(dim=dim, settings=dict(asdict(settings), pad=pad, min_width=min_width))
     log = []
+    j_prev = np.broadcast_to(np.eye(dim), (len(check), dim, dim)).copy()  # identity before the first level
+    base = samples.copy()
     for li, width in enumerate(widths):
         t0 = time.perf_counter()
         # Centres: octree boxes of half the width (Section 3.5), plus the source landmarks
@@ -365,12 +367,12 @@ def fit_warp(
         # paper samples each level at its own boxes, which leaves a coarse level a few
         # dozen points to estimate an integral over X).
         k_xc = kernel_matrix(samples, grid, width)
-        base = warp(samples)
         kw = {}
         if use_landmarks:
             kw = dict(landmark_kernel=kernel_matrix(src_l, grid, width), landmark_base=warp(src_l),
                       landmark_targets=dst_l, lambda_p=settings.lambda_p)
-        j_prev = warp.jacobian(check)  # coarser levels' Jacobian at the fold-check points
+        # j_prev: the coarser levels' Jacobian at the fold-check points, base: their warp at the
+        # samples; both carried over from the level before (not re-evaluated through every level).
         c0 = np.zeros((len(centres), dim))
         if use_landmarks:
             c0 = _landmark_init(sp.csr_matrix(k_cc), kw["landmark_kernel"], kw["landmark_base"], dst_l,
@@ -436,6 +438,8 @@ def fit_warp(
             scale = 0.0
         coeffs = scale * coeffs
         warp = warp.with_level(WarpLevel(centres, coeffs, width))
+        j_prev = j_prev + scale * j_level
+        base = objective.warp_samples(coeffs)
         log.append(dict(level=li, width=width, samples=int(len(samples)), centres=int(len(centres)),
                         iterations=iterations, converged=converged, fold_points=int(np.count_nonzero(active)),
                         fold_rounds=rounds, fold_scale=scale, objective_start=float(e0),
