@@ -121,7 +121,7 @@ def run_one(method: str) -> dict:
     fixed, moving, truth = _pair()
     t0 = time.perf_counter()
     if method.startswith("volreg"):
-        from volreg.field import displacement_on_grid, jacobian_determinant_on_grid
+        from volreg.field import fields_on_grid
         from volreg.pipeline import register_labels
         from volreg.protocol import load_protocol
 
@@ -134,8 +134,7 @@ def run_one(method: str) -> dict:
             warp = dataclasses.replace(protocol.warp, **{k: float(v) for k, v in (o.split("=") for o in overrides)})
             protocol = dataclasses.replace(protocol, warp=warp)
         result = register_labels(fixed, moving, protocol=protocol)
-        u = displacement_on_grid(result.warp, fixed)
-        det = jacobian_determinant_on_grid(result.warp, fixed)
+        u, det = fields_on_grid(result.warp, fixed)
     else:
         with tempfile.TemporaryDirectory() as d:
             u, det = _peer(method, fixed, moving, d)

@@ -463,3 +463,14 @@ def test_header_without_orientation_is_reported(tmp_path, capsys):
     assert main(["surface", str(tmp_path / "nocode.nii.gz"), "-o", str(tmp_path / "out"), "--quiet"]) == 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("volreg surface: warning: ") and "sform_code = 0" in err[0]
+
+
+def test_fields_on_grid_is_displacement_and_jacobian_determinant_in_one_pass():
+    from volreg.field import displacement_on_grid, fields_on_grid, jacobian_determinant_on_grid
+
+    volume = _cube()
+    warp = _folding_warp(volume)
+    u, det = fields_on_grid(warp, volume, chunk=1000)  # several chunks
+    np.testing.assert_allclose(u, displacement_on_grid(warp, volume), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(det, jacobian_determinant_on_grid(warp, volume), rtol=0, atol=1e-12)
+    assert np.mean(det <= 0) > 0 and np.abs(u).max() > 1.0  # a warp that moves and folds

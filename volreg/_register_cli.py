@@ -20,7 +20,7 @@ import numpy as np
 
 from . import __version__
 from .cli import PROG, UsageError, _make_directory, _remove_directories
-from .field import displacement_on_grid, jacobian_determinant_on_grid
+from .field import displacement_on_grid, fields_on_grid
 from .inverse import InverseWarp
 from .io import check_writable, read_image, read_labels, write_json, write_labels, write_scalar
 from .io.fields import read_displacement, write_displacement
@@ -187,9 +187,8 @@ def run_registration(
 
             t0 = time.perf_counter()
             grid = fixed.grid_points()  # (X, Y, Z, 3) mm, used below for every comparison
-            u = displacement_on_grid(result.warp, fixed, progress=progress)
+            u, jac = fields_on_grid(result.warp, fixed, progress=progress)
             points = grid + u
-            jac = jacobian_determinant_on_grid(result.warp, fixed, progress=progress)
             check_folding(result.warp, fixed, jac, protocol.warp.max_folded_fraction)  # before more work
             warped_array = resample_labels(moving, points, method="label", progress=progress)
             stages.append(dict(stage="resample", seconds=time.perf_counter() - t0, peak_rss_gb=round(_peak_rss_gb(), 3)))

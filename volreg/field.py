@@ -16,7 +16,7 @@ import numpy as np
 
 from .volume import LabelVolume
 
-__all__ = ["displacement_on_grid", "jacobian_determinant_on_grid", "support_slices"]
+__all__ = ["displacement_on_grid", "fields_on_grid", "jacobian_determinant_on_grid", "support_slices"]
 
 ProgressCallback = Callable[[str, int, int], None]
 
@@ -88,3 +88,29 @@ def jacobian_determinant_on_grid(
     for flat, _, (_, jac) in _on_grid(warp, reference, 1, chunk, progress, "Jacobian"):
         out[flat] = np.linalg.det(jac)
     return out.reshape(reference.shape)
+
+
+def fields_on_grid(
+    warp, reference: LabelVolume, *, chunk: int = 1 << 17, progress: ProgressCallback | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The displacement and the Jacobian determinant at every voxel centre, in one pass.
+
+    The same values as :func:`displacement_on_grid` and
+    :func:`jacobian_determinant_on_grid`, from one evaluation of ``tau`` and its
+    analytic Jacobian per voxel instead of two evaluations (on the frog at its
+    native 1 x 1 x 1.5 mm the displacement alone took 15 s of 32 million voxels).
+
+    Returns
+    -------
+    u : (*reference.shape, D) float64 ndarray, LPS mm
+        ``tau(x) - x``; zero outside the warp's support.
+    det : (*reference.shape) float64 ndarray
+        ``det d tau / dx``; 1 outside the warp's support.
+    """
+    n = int(np.prod(reference.shape))
+    u = np.zeros((n, reference.ndim))
+    det = np.ones(n)
+    for flat, points, (tau, jac) in _on_grid(warp, reference, 1, chunk, progress, "evaluate warp"):
+        u[flat] = tau - points
+        det[flat] = np.linalg.det(jac)
+    return u.reshape(*reference.shape, reference.ndim), det.reshape(reference.shape)
