@@ -351,7 +351,9 @@ def fit_warp(
         consistency = dict(sample_targets=np.asarray(prior(samples), float), lambda_target=settings.lambda_consistency)
     warp = KernelWarp(dim=dim, settings=dict(asdict(settings), pad=pad, min_width=min_width))
     log = []
-    j_prev = np.broadcast_to(np.eye(dim), (len(check), dim, dim)).copy()  # identity before the first level
+    # The coarser levels' Jacobian at the fold-check points and their warp at the samples, carried
+    # from level to level (not re-evaluated through every coarser level); identity at first.
+    j_prev = np.broadcast_to(np.eye(dim), (len(check), dim, dim)).copy()
     base = samples.copy()
     for li, width in enumerate(widths):
         t0 = time.perf_counter()
@@ -371,8 +373,6 @@ def fit_warp(
         if use_landmarks:
             kw = dict(landmark_kernel=kernel_matrix(src_l, grid, width), landmark_base=warp(src_l),
                       landmark_targets=dst_l, lambda_p=settings.lambda_p)
-        # j_prev: the coarser levels' Jacobian at the fold-check points, base: their warp at the
-        # samples; both carried over from the level before (not re-evaluated through every level).
         c0 = np.zeros((len(centres), dim))
         if use_landmarks:
             c0 = _landmark_init(sp.csr_matrix(k_cc), kw["landmark_kernel"], kw["landmark_base"], dst_l,
@@ -386,14 +386,16 @@ def fit_warp(
         j_level = kernel_sum(check, grid, c0, width, order=1)[1] if use_landmarks else np.zeros_like(j_prev)
         active = np.zeros(len(check), dtype=bool)
 
-        def fold_rows():
-            active[:] |= np.linalg.det(j_prev + j_level) < settings.fold_margin + FOLD_SLACK
+        def fold_rows(det):
+            """Add the points with det < fold_margin + FOLD_SLACK to the active set; its rows."""
+            active[:] |= det < settings.fold_margin + FOLD_SLACK
             idx = np.flatnonzero(active)
-            return dict(fold_gradients=SharedPatternCSR(kernel_gradient_matrices(check[idx], centres, width)),
-                        fold_base=j_prev[idx], fold_count=len(check))
+            return SharedPatternCSR(kernel_gradient_matrices(check[idx], centres, width)), j_prev[idx]
 
         if settings.lambda_fold > 0:
-            kw.update(lambda_fold=settings.lambda_fold, fold_margin=settings.fold_margin, **fold_rows())
+            gradients, fold_base = fold_rows(np.linalg.det(j_prev + j_level))
+            kw.update(lambda_fold=settings.lambda_fold, fold_margin=settings.fold_margin, fold_gradients=gradients,
+                      fold_base=fold_base, fold_count=len(check))
         subsets = _feature_samples(features, samples, settings.band, reach=settings.neighbourhood)
         objective = LevelObjective(kernel=k_xc, kernel_centres=k_cc, base=base, samples=samples,
                                    features=features, lambda_loc=settings.lambda_loc, alpha=settings.alpha,
@@ -418,12 +420,12 @@ def fit_warp(
             converged = bool(res.success)
             rounds += 1
             j_level = kernel_sum(check, grid, coeffs, width, order=1)[1]
+            det = np.linalg.det(j_prev + j_level)  # at every check point
             if settings.lambda_fold <= 0 or rounds >= FOLD_ROUNDS:
                 break
-            if not np.any(~active & (np.linalg.det(j_prev + j_level) < settings.fold_margin)):
+            if not np.any(~active & (det < settings.fold_margin)):
                 break
-            fold = fold_rows()
-            objective.set_fold(fold["fold_gradients"], fold["fold_base"], fold["fold_count"])
+            objective.set_fold(*fold_rows(det), count=len(check))
         # Fold guard: tau must stay orientation-preserving, checked at the samples
         # and at the centres of their octree children (the next level's samples).
         # If the level folds space there (det J < min_det), shrink its coefficients;
@@ -431,9 +433,10 @@ def fit_warp(
         floor = min(settings.min_det, float(np.linalg.det(j_prev).min()))
         scale = 1.0
         for _ in range(20):
-            if np.linalg.det(j_prev + scale * j_level).min() >= floor:
+            if det.min() >= floor:
                 break
             scale *= 0.7
+            det = np.linalg.det(j_prev + scale * j_level)
         else:
             scale = 0.0
         coeffs = scale * coeffs
