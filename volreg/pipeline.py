@@ -534,15 +534,18 @@ COMPACT_FRACTION = 0.8
 SPECK_FRACTION = 0.01
 
 
-def despeckle(volume, labels, *, piece: float = 0.05):
+def despeckle(volume, labels, *, piece: float = 0.05, judge: float | None = None):
     """Remove each label's specks: connected pieces (face connectivity) smaller than
     ``piece`` times the label's voxel count (they are set to 0).
+
+    ``judge`` (default ``piece``) is the piece fraction by which ``kept`` is measured.
 
     Returns
     -------
     cleaned : LabelVolume
     kept : dict of int to float
-        Per label, the fraction of its voxels that lies in the pieces kept.
+        Per label, the fraction of its voxels that lies in pieces of at least ``judge``
+        times the label's voxel count.
     """
     from scipy import ndimage
 
@@ -560,7 +563,7 @@ def despeckle(volume, labels, *, piece: float = 0.05):
             kept[v] = 0.0
             continue
         small = np.flatnonzero(sizes < piece * total) + 1
-        kept[v] = float(sizes[sizes >= piece * total].sum() / total)
+        kept[v] = float(sizes[sizes >= (piece if judge is None else judge) * total].sum() / total)
         if len(small):
             sub = array[box]
             sub[np.isin(pieces, small)] = 0
@@ -665,10 +668,8 @@ def register_labels(
     skipped = []
     # Specks (pieces under SPECK_FRACTION of a label) are removed before the surfaces are
     # made; whether a label is speckled is judged on pieces of at least 5 %.
-    clean_fixed, _ = despeckle(fixed, labels, piece=SPECK_FRACTION)
-    clean_moving, _ = despeckle(moving, labels, piece=SPECK_FRACTION)
-    _, speckled_f = despeckle(fixed, labels)
-    _, speckled_m = despeckle(moving, labels)
+    clean_fixed, speckled_f = despeckle(fixed, labels, piece=SPECK_FRACTION, judge=0.05)
+    clean_moving, speckled_m = despeckle(moving, labels, piece=SPECK_FRACTION, judge=0.05)
     if drive_labels is None:
         # Speckled labels (a sheet broken into many pieces by the voxel grid) give pieces in
         # one volume that have no partner in the other; their implicit surfaces then differ by
