@@ -153,3 +153,20 @@ def test_fold_barrier_on_its_active_set_fits_as_the_barrier_on_every_point(shape
     for a, b in zip(subset, full):
         # Measured: 381.405 / 381.405, 315.373 / 315.374, 309.208 / 309.266.
         assert a["objective"] == pytest.approx(b["objective"], rel=0.01)
+
+
+def test_despeckle_removes_pieces_under_the_speck_fraction_and_judges_at_another():
+    from volreg.pipeline import SPECK_FRACTION, despeckle
+
+    a = np.zeros((30, 30, 30), np.uint8)
+    a[2:12, 2:12, 2:12] = 3  # 1000 voxels
+    a[20:23, 20:23, 20:23] = 3  # 27 voxels: 2.6 % of the label, over SPECK_FRACTION, under 5 %
+    a[27, 27, 27] = 3  # 1 voxel: 0.1 %
+    vol = LabelVolume(a, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(3))
+    assert SPECK_FRACTION < 27 / 1028
+    cleaned, kept = despeckle(vol, [3], piece=SPECK_FRACTION, judge=0.05)
+    assert np.count_nonzero(cleaned.array == 3) == 1027 and cleaned.array[27, 27, 27] == 0
+    assert kept[3] == pytest.approx(1000 / 1028)
+    cleaned5, kept5 = despeckle(vol, [3])
+    assert np.count_nonzero(cleaned5.array == 3) == 1000 and kept5[3] == kept[3]
+    assert np.array_equal(vol.array, a)  # input untouched
