@@ -617,8 +617,9 @@ def register_labels(
         Labels whose surfaces drive the warp; default every label present in
         both volumes except speckled ones (less than :data:`COMPACT_FRACTION` of
         the voxels in pieces of at least 5 % of the label, see :func:`despeckle`).
-        Specks (pieces under :data:`SPECK_FRACTION` of the label) are removed before the surfaces are made.  Labels too small to
-        give a surface in either volume are skipped.  ``result.skipped`` says
+        Specks (pieces under :data:`SPECK_FRACTION` of the label) are removed
+        before the surfaces are made.  Labels too small to give a surface in
+        either volume are skipped.  ``result.skipped`` says
         which and why.
     landmarks : pair of (L, D) float ndarrays, optional
         Fixed-space points and their moving-space partners, LPS mm.
