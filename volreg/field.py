@@ -14,6 +14,7 @@ from typing import Callable
 
 import numpy as np
 
+from ._threads import single_blas
 from .volume import LabelVolume
 
 __all__ = ["displacement_on_grid", "fields_on_grid", "jacobian_determinant_on_grid", "support_slices"]
@@ -90,6 +91,7 @@ def jacobian_determinant_on_grid(
     return out.reshape(reference.shape)
 
 
+@single_blas
 def fields_on_grid(
     warp, reference: LabelVolume, *, chunk: int = 1 << 17, progress: ProgressCallback | None = None
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -33,6 +33,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg
 from scipy.spatial import cKDTree
 
+from ._threads import single_blas
 from .implicit import ImplicitSurface
 from .kernels import CellGrid, SharedPatternCSR, _check_points, kernel_gradient_matrices, kernel_matrix, kernel_sum
 from .objective import FeaturePair, LevelObjective, simplex_vertices
@@ -291,6 +292,7 @@ def _feature_samples(features, samples: np.ndarray, band: float | None, reach: f
     return None if all(o is None for o in out) else out
 
 
+@single_blas
 def fit_warp(
     features: Sequence[FeaturePair],
     source_points: np.ndarray,
@@ -475,6 +477,7 @@ def _as_implicit(surface, **kwargs) -> tuple[ImplicitSurface, np.ndarray]:
     )
 
 
+@single_blas
 def register_surfaces(
     source,
     target,
@@ -593,6 +596,7 @@ class LabelRegistration(RegistrationResult):
     stages: list = field(default_factory=list)
 
 
+@single_blas
 def register_labels(
     fixed,
     moving,

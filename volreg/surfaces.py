@@ -21,6 +21,7 @@ import numpy as np
 from scipy import ndimage
 from skimage import measure
 
+from ._threads import single_blas
 from .implicit import ImplicitSurface
 from .volume import LabelVolume
 
@@ -285,6 +286,7 @@ def label_surfaces(
     return out
 
 
+@single_blas
 def implicit_surfaces(
     volume: LabelVolume,
     surfaces: dict[int, Surface],
