@@ -273,7 +273,9 @@ def _feature_samples(features, samples: np.ndarray, band: float | None, reach: f
     out = []
     for pair in features:
         limit = band
-        if limit is None and hasattr(pair.f1, "widths"):
+        if hasattr(pair.f1, "band"):  # a feature with its own band (a VoxelDistance)
+            limit = pair.f1.band
+        elif limit is None and hasattr(pair.f1, "widths"):
             limit = 0.5 * float(min(pair.f1.widths))
         if limit is None or not hasattr(pair.f1, "bounds"):
             out.append(None)
@@ -587,6 +589,9 @@ class LabelRegistration(RegistrationResult):
         The labels whose surfaces drove the warp.
     skipped : list of str
         Labels left out (too small in one of the volumes), with the reason.
+    distance_labels : list of int
+        The labels whose voxel signed-distance maps drove the warp (protocol
+        ``surface.distance_weight`` > 0).
     stages : list of dict
         Per stage: ``{"stage", "seconds"}``.
     """
@@ -594,6 +599,7 @@ class LabelRegistration(RegistrationResult):
     labels: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
     stages: list = field(default_factory=list)
+    distance_labels: list = field(default_factory=list)
 
 
 @single_blas
@@ -611,20 +617,26 @@ def register_labels(
 
     Each driving label gives one feature pair (paper (6)): the kernel implicit
     surface (Section 4) of its boundary in the fixed volume (``f1``, O1) and in
-    the moving volume (``f2``, O2).  The warp is fitted in the padded
-    neighbourhood of the fixed surfaces (:func:`fit_warp`).
+    the moving volume (``f2``, O2).  With the protocol's
+    ``surface.distance_weight`` > 0 (the presets) every label present in both
+    volumes (or every drive label) also gives a pair of voxel signed-distance
+    maps (:class:`~volreg.distance_maps.VoxelDistance`, not in the paper), so that
+    labels too small or too fragmented for a surface drive the warp as well
+    (frog demo at 3 mm: endpoint error 0.52 / 1.18 -> 0.51 / 0.84 mm, mean / p95;
+    at 1 x 1 x 1.5 mm 0.29 / 1.08 -> 0.21 / 0.40).  The warp is fitted in the
+    padded neighbourhood of the fixed surfaces (:func:`fit_warp`).
 
     Parameters
     ----------
     fixed, moving : LabelVolume
     drive_labels : sequence of int, optional
-        Labels whose surfaces drive the warp; default every label present in
+        Labels whose surfaces (and distance maps) drive the warp; default every label present in
         both volumes except speckled ones (less than :data:`COMPACT_FRACTION` of
         the voxels in pieces of at least 5 % of the label, see :func:`despeckle`).
         Specks (pieces under :data:`SPECK_FRACTION` of the label) are removed
         before the surfaces are made.  Labels too small to give a surface in
-        either volume are skipped.  ``result.skipped`` says
-        which and why.
+        either volume are skipped (their distance maps still count).
+        ``result.skipped`` says which and why.
     landmarks : pair of (L, D) float ndarrays, optional
         Fixed-space points and their moving-space partners, LPS mm.
     protocol : Protocol, optional
@@ -682,8 +694,10 @@ def register_labels(
         for v in labels:
             frac = min(speckled_f[v], speckled_m[v])
             if frac < COMPACT_FRACTION:
-                skipped.append(f"Label {v} does not drive the warp: only {100 * frac:.0f} % of its voxels lie in "
-                               f"pieces of at least 5 % of the label (speckled); name it in drive_labels to use it anyway.")
+                how = ("only its voxel distance map does" if protocol.surface.distance_weight > 0
+                       else "name it in drive_labels to use it anyway")
+                skipped.append(f"Label {v}'s surface does not drive the warp: only {100 * frac:.0f} % of its voxels lie in "
+                               f"pieces of at least 5 % of the label (speckled); {how}.")
         labels = [v for v in labels if min(speckled_f[v], speckled_m[v]) >= COMPACT_FRACTION]
         if not labels:
             raise RegistrationInputError("Every common label is speckled (many small pieces); choose drive_labels explicitly.")
@@ -714,8 +728,69 @@ def register_labels(
             progress("fit implicit surfaces", i + 1, len(used))
     stages.append(dict(stage="implicit surfaces", seconds=time.perf_counter() - t0))
 
+    weight = protocol.surface.distance_weight
+    distance_labels = []
+    if weight > 0:
+        # Voxel signed-distance features: every label in both volumes (or the chosen
+        # drive labels), also those too small or too fragmented for a surface.
+        t0 = time.perf_counter()
+        distance_labels = common if drive_labels is None else labels
+        boxes_f, boxes_m = _label_boxes(fixed), _label_boxes(moving)
+        for i, v in enumerate(distance_labels):
+            pairs.append(FeaturePair(_voxel_distance(fixed, v, boxes_f, protocol.surface),
+                                     _voxel_distance(moving, v, boxes_m, protocol.surface), weight))
+            if progress is not None:
+                progress("voxel distance maps", i + 1, len(distance_labels))
+        stages.append(dict(stage="voxel distance maps", seconds=time.perf_counter() - t0))
+
     t0 = time.perf_counter()
-    points = np.concatenate([s_fixed[v].vertices for v in used])
+    points = [s_fixed[v].vertices for v in used]
+    # Labels that drive only through their distance maps: their boundary voxels join the
+    # points whose padded neighbourhood is the warp volume X.
+    points += [_boundary_points(fixed, v, boxes_f[v]) for v in distance_labels if v not in used]
+    points = np.concatenate(points)
     result = fit_warp(pairs, points, landmarks=landmarks, settings=protocol.warp, prior=prior, progress=progress)
     stages.append(dict(stage="fit warp", seconds=time.perf_counter() - t0))
-    return LabelRegistration(result.warp, result.log, labels=used, skipped=skipped, stages=stages)
+    return LabelRegistration(result.warp, result.log, labels=used, skipped=skipped, stages=stages,
+                             distance_labels=[int(v) for v in distance_labels])
+
+
+def _label_boxes(volume) -> dict:
+    """Bounding box (tuple of slices) of every label of ``volume``."""
+    from scipy import ndimage
+
+    array = volume.array
+    if array.min() >= 0 and array.max() < 1 << 24:
+        found = ndimage.find_objects(array.astype(np.int64, copy=False))
+        return {v + 1: box for v, box in enumerate(found) if box is not None}
+    return {int(v): ndimage.find_objects((array == v).astype(np.int8))[0] for v in volume.labels()}
+
+
+def _boundary_points(volume, value: int, box) -> np.ndarray:
+    """World points (LPS mm, (N, D)) of the voxels of label ``value`` on its boundary
+    (with a face neighbour of another value), within its bounding box ``box``."""
+    from scipy import ndimage
+
+    lo = np.array([b.start for b in box])
+    window = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
+    mask = volume.array[window] == value
+    edge = mask & ~ndimage.binary_erosion(mask, border_value=0)
+    start = np.array([w.start for w in window])
+    return volume.index_to_world(np.argwhere(edge) + start) if edge.any() else volume.index_to_world(lo[None])
+
+
+def _voxel_distance(volume, value: int, boxes: dict, settings):
+    """The :class:`~volreg.distance_maps.VoxelDistance` of label ``value`` of ``volume`` (its
+    bounding box in ``boxes``), with the clip and blur of ``settings`` (a SurfaceSettings;
+    voxels of the largest spacing)."""
+    from .distance_maps import VoxelDistance
+
+    unit = float(np.max(volume.spacing))
+    clip, smoothing = settings.distance_clip * unit, settings.distance_smoothing * unit
+    # Only the label's box, padded beyond VoxelDistance's own crop, is compared with the value.
+    pad = np.ceil((clip + 3 * smoothing) / volume.spacing).astype(int) + 3
+    lo = np.array([max(b.start - p, 0) for b, p in zip(boxes[value], pad)])
+    window = tuple(slice(a, min(b.stop + p, n)) for a, b, p, n in zip(lo, boxes[value], pad, volume.shape))
+    origin = volume.origin + volume.direction @ (volume.spacing * lo)
+    return VoxelDistance(volume.array[window] == value, volume.spacing, origin, volume.direction,
+                         clip=clip, smoothing=smoothing)

@@ -61,16 +61,34 @@ class SurfaceSettings:
         Gaussian blur of each mask before contouring (largest spacing as unit).
     min_width_voxels : float, voxels
         Finest kernel width of the implicit surfaces.
+    distance_weight : float
+        Weight, relative to a label's implicit surface, of its voxel signed-distance
+        feature (:class:`~volreg.distance_maps.VoxelDistance`, not in the paper) in the
+        locational cost; it also covers labels too small or fragmented for a surface.
+        0 = off (implicit surfaces only, as in the paper).
+    distance_clip : float, voxels
+        The voxel signed distances are clipped to +- this.
+    distance_smoothing : float, voxels
+        Gaussian blur of the clipped voxel signed distances.
     """
 
     smoothing: float = 1.0
     min_width_voxels: float = 4.0
+    distance_weight: float = 2.0
+    distance_clip: float = 3.0
+    distance_smoothing: float = 1.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.smoothing) and 0 <= self.smoothing <= 10):
             raise ValueError(f"Expected `smoothing` in [0, 10] voxels, got {self.smoothing}.")
         if not (math.isfinite(self.min_width_voxels) and self.min_width_voxels > 0):
             raise ValueError(f"Expected a positive `min_width_voxels`, got {self.min_width_voxels}.")
+        if not (math.isfinite(self.distance_weight) and self.distance_weight >= 0):
+            raise ValueError(f"Expected `distance_weight` >= 0, got {self.distance_weight}.")
+        if not (math.isfinite(self.distance_clip) and self.distance_clip > 0):
+            raise ValueError(f"Expected a positive `distance_clip` (voxels), got {self.distance_clip}.")
+        if not (math.isfinite(self.distance_smoothing) and 0 <= self.distance_smoothing <= 10):
+            raise ValueError(f"Expected `distance_smoothing` in [0, 10] voxels, got {self.distance_smoothing}.")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,327 @@
+"""Voxel signed-distance features: each label's distance map as a feature function (6).
+
+The implicit surfaces (Section 4 of the paper) describe each label by a kernel
+fit to its marching-cubes surface; labels too small or too fragmented for a
+surface (thin bones broken into dozens of pieces by the voxel grid, tissues of
+a few voxels) then only ride along with the warp.  A :class:`VoxelDistance` is
+a second kind of feature function for the locational cost (3)-(4), one per
+label and volume: the signed Euclidean distance of the voxel centres to the
+label's boundary (mm, negative inside, exactly the map that the label
+interpolation of :mod:`volreg.resample` samples), clipped to ``+-clip`` mm so
+that only the neighbourhood of the label counts, smoothed by a Gaussian, and
+interpolated by a cubic B-spline -- so that its gradient and Hessian, which
+the objective's gradient needs, are exact derivatives of the interpolant.
+
+Everything here is a pure function of arrays (no I/O).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["VoxelDistance", "clipped_signed_distance"]
+
+
+@numba.njit(cache=True, inline="always")
+def _mirror(i: int, n: int) -> int:
+    """Index ``i`` reflected into ``[0, n)`` (scipy.ndimage's ``mirror`` mode)."""
+    if n == 1:
+        return 0
+    period = 2 * (n - 1)
+    i = i % period
+    if i < 0:
+        i += period
+    return i if i < n else period - i
+
+
+@numba.njit(cache=True, inline="always")
+def _axis(x: float, n: int, idx, w, d, s) -> None:
+    """Stencil of the cubic B-spline on one axis at continuous index ``x``: the four
+    indices ``idx``, weights ``w`` and their first and second derivatives ``d``, ``s``.
+    Outside ``[0, n - 1]`` the spline is continued as a constant (derivatives 0)."""
+    clamped = False
+    if x < 0.0:
+        x, clamped = 0.0, True
+    elif x > n - 1:
+        x, clamped = float(n - 1), True
+    base = int(np.floor(x))
+    if base > n - 2:
+        base = max(n - 2, 0)
+    t = x - base
+    t2 = t * t
+    t3 = t2 * t
+    u = 1.0 - t
+    w[0] = u * u * u / 6.0
+    w[1] = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0
+    w[2] = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0
+    w[3] = t3 / 6.0
+    if clamped or n == 1:
+        for k in range(4):
+            d[k] = 0.0
+            s[k] = 0.0
+    else:
+        d[0] = -0.5 * u * u
+        d[1] = 1.5 * t2 - 2.0 * t
+        d[2] = -1.5 * t2 + t + 0.5
+        d[3] = 0.5 * t2
+        s[0] = u
+        s[1] = 3.0 * t - 2.0
+        s[2] = 1.0 - 3.0 * t
+        s[3] = t
+    for k in range(4):
+        idx[k] = _mirror(base - 1 + k, n)
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _bspline3(coef, index, order, f, g, h):  # pragma: no cover - compiled
+    """Cubic B-spline with coefficients ``coef`` (nx, ny, nz) at continuous indices
+    ``index`` (N, 3): value ``f`` (N,), and for ``order`` >= 1 the gradient ``g``
+    (N, 3) and for ``order`` >= 2 the Hessian ``h`` (N, 3, 3), per index unit."""
+    nx, ny, nz = coef.shape
+    for p in numba.prange(index.shape[0]):
+        ix = np.empty(4, np.int64)
+        iy = np.empty(4, np.int64)
+        iz = np.empty(4, np.int64)
+        wx = np.empty(4)
+        wy = np.empty(4)
+        wz = np.empty(4)
+        dx = np.empty(4)
+        dy = np.empty(4)
+        dz = np.empty(4)
+        sx = np.empty(4)
+        sy = np.empty(4)
+        sz = np.empty(4)
+        _axis(index[p, 0], nx, ix, wx, dx, sx)
+        _axis(index[p, 1], ny, iy, wy, dy, sy)
+        _axis(index[p, 2], nz, iz, wz, dz, sz)
+        v = 0.0
+        gx = 0.0
+        gy = 0.0
+        gz = 0.0
+        hxx = 0.0
+        hyy = 0.0
+        hzz = 0.0
+        hxy = 0.0
+        hxz = 0.0
+        hyz = 0.0
+        for a in range(4):
+            for b in range(4):
+                for c in range(4):
+                    q = coef[ix[a], iy[b], iz[c]]
+                    v += wx[a] * wy[b] * wz[c] * q
+                    if order >= 1:
+                        gx += dx[a] * wy[b] * wz[c] * q
+                        gy += wx[a] * dy[b] * wz[c] * q
+                        gz += wx[a] * wy[b] * dz[c] * q
+                    if order >= 2:
+                        hxx += sx[a] * wy[b] * wz[c] * q
+                        hyy += wx[a] * sy[b] * wz[c] * q
+                        hzz += wx[a] * wy[b] * sz[c] * q
+                        hxy += dx[a] * dy[b] * wz[c] * q
+                        hxz += dx[a] * wy[b] * dz[c] * q
+                        hyz += wx[a] * dy[b] * dz[c] * q
+        f[p] = v
+        if order >= 1:
+            g[p, 0] = gx
+            g[p, 1] = gy
+            g[p, 2] = gz
+        if order >= 2:
+            h[p, 0, 0] = hxx
+            h[p, 1, 1] = hyy
+            h[p, 2, 2] = hzz
+            h[p, 0, 1] = hxy
+            h[p, 1, 0] = hxy
+            h[p, 0, 2] = hxz
+            h[p, 2, 0] = hxz
+            h[p, 1, 2] = hyz
+            h[p, 2, 1] = hyz
+
+
+@numba.njit(parallel=True, cache=True)
+def _clipped_sdf_band(mask, band, offsets, lengths, clip, out):  # pragma: no cover - compiled
+    """Signed distance of each voxel of ``band`` to the nearest voxel of the other kind
+    (inside/outside ``mask``), scanning ``offsets`` (K, 3) in order of their ``lengths``
+    (mm); ``+-clip`` where none lies within ``clip`` and everywhere outside ``band``."""
+    nx, ny, nz = mask.shape
+    for i in numba.prange(nx):
+        for j in range(ny):
+            for k in range(nz):
+                inside = mask[i, j, k]
+                value = clip
+                if band[i, j, k]:
+                    for q in range(offsets.shape[0]):
+                        a = i + offsets[q, 0]
+                        b = j + offsets[q, 1]
+                        c = k + offsets[q, 2]
+                        if a < 0 or b < 0 or c < 0 or a >= nx or b >= ny or c >= nz:
+                            continue
+                        if mask[a, b, c] != inside:
+                            value = lengths[q]
+                            break
+                out[i, j, k] = -value if inside else value
+
+
+def clipped_signed_distance(mask: np.ndarray, spacing: np.ndarray, clip: float) -> np.ndarray:
+    """:func:`volreg.resample.signed_distance_map` clipped to ``[-clip, clip]``, computed only
+    near the boundary.
+
+    Equal to ``np.clip(signed_distance_map(mask, spacing), -clip, clip)`` (the same Euclidean
+    distances between voxel centres), but each voxel looks only at the voxels within
+    ``clip`` mm of it, and only voxels within that reach of the boundary look at all:
+    on a thin label spread over a large box (the frog's skeleton: 1.6 % of 27 M
+    voxels) this is about 20x faster than two full distance transforms.
+
+    Parameters
+    ----------
+    mask : (n_i, n_j[, n_k]) bool ndarray
+    spacing : (D,) float ndarray, mm
+    clip : float, mm
+
+    Returns
+    -------
+    float32 ndarray of ``mask.shape``, mm (negative inside)
+    """
+    mask = np.asarray(mask, dtype=bool)
+    spacing = np.asarray(spacing, dtype=float)
+    reach = np.floor(clip / spacing + 1e-9).astype(int)
+    grids = np.meshgrid(*[np.arange(-r, r + 1) for r in reach], indexing="ij")
+    offsets = np.stack([g.ravel() for g in grids], axis=1)
+    lengths = np.linalg.norm(offsets * spacing, axis=1)
+    keep = (lengths > 0) & (lengths <= clip)
+    order = np.argsort(lengths[keep], kind="stable")
+    offsets, lengths = offsets[keep][order], lengths[keep][order]
+    # Voxels with a voxel of the other kind within `reach` (per axis): the only ones that can
+    # be nearer than `clip` to the boundary.
+    # (Separable running max / min over boxes of that reach; outside the array counts as
+    # neither, as in the distance transform.)
+    size = tuple(2 * reach + 1)
+    as_u8 = mask.view(np.uint8)
+    near_in = ndimage.maximum_filter(as_u8, size=size, mode="constant", cval=0)
+    near_out = ndimage.minimum_filter(as_u8, size=size, mode="constant", cval=1) == 0
+    band = (near_in > 0) & near_out
+    if mask.ndim == 2:
+        mask3, band3 = mask[:, :, None], band[:, :, None]
+        offsets = np.concatenate([offsets, np.zeros((len(offsets), 1), dtype=offsets.dtype)], axis=1)
+    else:
+        mask3, band3 = mask, band
+    out = np.empty(mask3.shape, dtype=np.float32)
+    _clipped_sdf_band(np.ascontiguousarray(mask3), np.ascontiguousarray(band3), np.ascontiguousarray(offsets, dtype=np.int64),
+                      lengths.astype(np.float32), np.float32(clip), out)
+    return out.reshape(mask.shape)
+
+
+class VoxelDistance:
+    """One label's clipped, smoothed signed distance map as a feature function.
+
+    ``f(x)`` (mm) is the cubic B-spline interpolant of the signed distance of
+    the voxel centres to the boundary of ``mask`` (negative inside, see
+    :func:`volreg.resample.signed_distance_map`), clipped to ``[-clip, clip]``
+    and blurred by a Gaussian of ``smoothing`` mm; beyond the mask's bounding
+    box padded by ``clip`` it is the constant ``clip``.  Exposes the interface
+    of :class:`~volreg.implicit.ImplicitSurface` that the warp objective uses:
+    :meth:`evaluate`, :meth:`bounds` and ``band``.
+
+    Parameters
+    ----------
+    mask : (n_i, n_j[, n_k]) bool ndarray
+        The label's voxels, ITK index order.
+    spacing : (D,) float ndarray, mm
+    origin : (D,) float ndarray, mm (LPS)
+    direction : (D, D) float ndarray
+        World point of index ``i``: ``origin + direction @ (spacing * i)``.
+    clip : float, mm
+        Distances are clipped to ``+-clip``.
+    smoothing : float, mm
+        Standard deviation of the blur (0 = none: the spline interpolates the
+        clipped distances).  Where it is at least ``spacing / sqrt(3)`` on every
+        axis, the spline's own blur is part of it (the samples blurred by the
+        rest are the spline's coefficients); otherwise the samples are blurred
+        by a Gaussian of ``smoothing`` and interpolated.
+
+    Attributes
+    ----------
+    band : float, mm
+        Where the feature is informative: ``|f| < clip`` (samples farther from
+        the fixed label are left out of its locational cost, as the band of
+        the implicit surfaces).
+    """
+
+    def __init__(self, mask, spacing, origin, direction, *, clip: float, smoothing: float = 0.0):
+        mask = np.asarray(mask, dtype=bool)
+        self.dim = mask.ndim
+        if self.dim not in (2, 3):
+            raise ValueError(f"Expected a 2-D or 3-D `mask`, got {mask.ndim}-D.")
+        if not mask.any():
+            raise ValueError("Expected a `mask` with at least one voxel, got an empty mask.")
+        if not (np.isfinite(clip) and clip > 0):
+            raise ValueError(f"Expected a positive `clip` (mm), got {clip}.")
+        if not (np.isfinite(smoothing) and smoothing >= 0):
+            raise ValueError(f"Expected `smoothing` >= 0 (mm), got {smoothing}.")
+        spacing = np.asarray(spacing, dtype=float)
+        self.spacing = spacing
+        self.origin = np.asarray(origin, dtype=float)
+        self.direction = np.asarray(direction, dtype=float)
+        self.clip = float(clip)
+        # Strictly inside the clip: far from the label, where f is the constant `clip` up to
+        # rounding, samples carry no information.
+        self.band = float(clip) * (1 - 1e-3)
+        # Crop: the bounding box padded by the clip distance, the blur's reach and the
+        # spline's stencil, so that the map is the constant `clip` at the crop's faces.
+        box = ndimage.find_objects(mask.astype(np.int8))[0]
+        pad = np.ceil((clip + 3 * smoothing) / spacing).astype(int) + 2
+        self.lo = np.array([max(b.start - p, 0) for b, p in zip(box, pad)])
+        hi = np.array([min(b.stop + p, n) for b, p, n in zip(box, pad, mask.shape)])
+        crop = mask[tuple(slice(a, b) for a, b in zip(self.lo, hi))]
+        sdf = clipped_signed_distance(crop, spacing, clip)
+        # A cubic B-spline whose coefficients are the samples themselves blurs them by its
+        # own kernel, of variance 1/3 voxel^2 per axis: where the asked-for blur is at least
+        # that, the Gaussian makes up the rest and no prefilter is needed (the prefilter and
+        # a full Gaussian took 1 s of the 3 s of the frog's skeleton at full resolution).
+        sigma = smoothing / spacing  # voxels, per axis
+        if np.all(sigma**2 >= 1 / 3):
+            coef = ndimage.gaussian_filter(sdf, np.sqrt(sigma**2 - 1 / 3), mode="nearest")
+        else:
+            if smoothing > 0:
+                sdf = ndimage.gaussian_filter(sdf, sigma, mode="nearest")
+            coef = ndimage.spline_filter(sdf, order=3, mode="mirror")
+        coef = coef.astype(np.float32, copy=False)
+        self._coef = np.ascontiguousarray(coef if self.dim == 3 else coef[:, :, None])
+        self._step = self.direction / spacing[None, :]  # d world-gradient = step @ d index-gradient
+        corners = np.array(np.meshgrid(*[[a, b - 1] for a, b in zip(self.lo, hi)], indexing="ij")).reshape(self.dim, -1).T
+        world = self.origin + (corners * spacing) @ self.direction.T
+        self._bounds = (world.min(axis=0), world.max(axis=0))
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World bounding box (LPS mm) outside which ``f`` is the constant ``clip``."""
+        return self._bounds
+
+    def evaluate(self, points: np.ndarray, order: int = 0) -> tuple:
+        """``f`` (mm) and for ``order`` >= 1 its gradient, for ``order`` >= 2 its Hessian.
+
+        Parameters
+        ----------
+        points : (N, D) float ndarray, LPS mm
+        order : {0, 1, 2}
+
+        Returns
+        -------
+        tuple of (N,), (N, D), (N, D, D) float ndarrays (as many as ``order + 1``)
+        """
+        points = np.asarray(points, dtype=float).reshape(-1, self.dim)
+        index = np.linalg.solve(self.direction * self.spacing[None, :], (points - self.origin).T).T - self.lo
+        if self.dim == 2:
+            index = np.concatenate([index, np.zeros((len(index), 1))], axis=1)
+        n = len(index)
+        f = np.empty(n)
+        g = np.empty((n, 3)) if order >= 1 else np.empty((0, 3))
+        h = np.empty((n, 3, 3)) if order >= 2 else np.empty((0, 3, 3))
+        _bspline3(self._coef, np.ascontiguousarray(index), int(order), f, g, h)
+        out = [f]
+        d = self.dim
+        if order >= 1:
+            out.append(g[:, :d] @ self._step.T)
+        if order >= 2:
+            out.append(np.einsum("ab,nbc,dc->nad", self._step, h[:, :d, :d], self._step))
+        return tuple(out)
