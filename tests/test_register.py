@@ -205,6 +205,7 @@ def test_interior_label_carried(tmp_path):
                 "--drive-labels", "1", "--quiet"]) == 0
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["drive_labels"] == [1]
+    assert report["distance_map_labels"] == [1]  # the chosen labels' distance maps only
     warped = read_labels(tmp_path / "out" / "warped.nii.gz").array
     assert dice(moving.array == 2, fixed.array == 2) < 0.8  # it did move
     assert dice(warped == 2, fixed.array == 2) >= 0.9

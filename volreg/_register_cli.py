@@ -174,7 +174,7 @@ def run_registration(
                 def log(text: str) -> None:
                     print(f"{PROG} {command}: {text}", file=sys.stderr)
 
-                log(f"driving labels {result.labels}")
+                log(f"driving labels {result.labels} (surfaces), {result.distance_labels} (voxel distance maps)")
                 for note in result.skipped:
                     log(note)
                 for st in result.stages:
@@ -210,6 +210,7 @@ def run_registration(
                 "inputs": inputs,
                 "direction": "pull-back: fixed point x corresponds to moving point x + u(x) (LPS mm)",
                 "drive_labels": result.labels,
+                "distance_map_labels": result.distance_labels,
                 "skipped_labels": result.skipped,
                 "labels": {
                     str(v): {"before": scores_before[v], "after": scores_after[v]} for v in labels
