@@ -771,12 +771,10 @@ def _boundary_points(volume, value: int, box) -> np.ndarray:
     (with a face neighbour of another value), within its bounding box ``box``."""
     from scipy import ndimage
 
-    lo = np.array([b.start for b in box])
     window = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
     mask = volume.array[window] == value
-    edge = mask & ~ndimage.binary_erosion(mask, border_value=0)
-    start = np.array([w.start for w in window])
-    return volume.index_to_world(np.argwhere(edge) + start) if edge.any() else volume.index_to_world(lo[None])
+    edge = mask & ~ndimage.binary_erosion(mask, border_value=0)  # never empty: the box holds the label
+    return volume.index_to_world(np.argwhere(edge) + np.array([w.start for w in window]))
 
 
 def _voxel_distance(volume, value: int, boxes: dict, settings):
