@@ -289,6 +289,7 @@ class VoxelDistance:
         coef = coef.astype(np.float32, copy=False)
         self._coef = np.ascontiguousarray(coef if self.dim == 3 else coef[:, :, None])
         self._step = self.direction / spacing[None, :]  # d world-gradient = step @ d index-gradient
+        self._to_index = np.linalg.inv(self.direction * spacing[None, :]).T  # index = (x - origin) @ this
         corners = np.array(np.meshgrid(*[[a, b - 1] for a, b in zip(self.lo, hi)], indexing="ij")).reshape(self.dim, -1).T
         world = self.origin + (corners * spacing) @ self.direction.T
         self._bounds = (world.min(axis=0), world.max(axis=0))
@@ -310,7 +311,7 @@ class VoxelDistance:
         tuple of (N,), (N, D), (N, D, D) float ndarrays (as many as ``order + 1``)
         """
         points = np.asarray(points, dtype=float).reshape(-1, self.dim)
-        index = np.linalg.solve(self.direction * self.spacing[None, :], (points - self.origin).T).T - self.lo
+        index = (points - self.origin) @ self._to_index - self.lo
         if self.dim == 2:
             index = np.concatenate([index, np.zeros((len(index), 1))], axis=1)
         n = len(index)
