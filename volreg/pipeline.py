@@ -654,8 +654,9 @@ def register_labels(
     Raises
     ------
     RegistrationInputError
-        No label in common, a requested label absent from a volume, or no
-        label with a surface in both volumes.
+        No label in common, a requested label absent from a volume, or, with
+        the protocol's ``distance_weight`` 0, no label with a surface in both
+        volumes (with distance maps every common label drives, surface or not).
     """
     from .protocol import load_protocol  # protocol imports this module
     from .surfaces import label_surfaces, voxel_size
@@ -699,16 +700,23 @@ def register_labels(
                 skipped.append(f"Label {v}'s surface does not drive the warp: only {100 * frac:.0f} % of its voxels lie in "
                                f"pieces of at least 5 % of the label (speckled); {how}.")
         labels = [v for v in labels if min(speckled_f[v], speckled_m[v]) >= COMPACT_FRACTION]
-        if not labels:
-            raise RegistrationInputError("Every common label is speckled (many small pieces); choose drive_labels explicitly.")
+        if not labels and protocol.surface.distance_weight <= 0:
+            raise RegistrationInputError(
+                "Every common label is speckled (many small pieces) and the protocol's distance_weight is 0; "
+                "choose drive_labels explicitly, or set distance_weight > 0 so that the labels' distance maps drive."
+            )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         s_fixed = label_surfaces(clean_fixed, labels, on_small="warn", smoothing=protocol.surface.smoothing, progress=progress)
         s_moving = label_surfaces(clean_moving, labels, on_small="warn", smoothing=protocol.surface.smoothing, progress=progress)
     skipped += [str(w.message) for w in caught]
     used = [v for v in labels if v in s_fixed and v in s_moving]
-    if not used:
-        raise RegistrationInputError(f"No label of {labels[:30]} gives a surface in both volumes; nothing drives the warp.")
+    if not used and protocol.surface.distance_weight <= 0:
+        # With distance maps (distance_weight > 0) every label drives, with a surface or not.
+        raise RegistrationInputError(
+            f"No label of {labels[:30]} gives a surface in both volumes and the protocol's distance_weight is 0; "
+            "nothing drives the warp (set distance_weight > 0 to drive by the labels' voxel distance maps)."
+        )
     stages.append(dict(stage="surfaces", seconds=time.perf_counter() - t0))
 
     t0 = time.perf_counter()
