@@ -85,3 +85,22 @@ def test_a_label_filling_the_whole_volume_is_kept():
         volume = LabelVolume(array, (0, 0, 0), (1.0, 2.0, 0.5), np.eye(3))
         for shift in (0.0, 0.1):  # on the voxel centres and between them
             assert np.array_equal(resample_labels(volume, volume.grid_points() + shift), array)
+
+
+@FAST
+@given(st.sampled_from(["bool", "uint8", "int16", "uint32", "int64"]), st.integers(0, 2**31 - 1))
+def test_label_boxes_are_the_tight_boxes_of_every_label(dtype, seed):
+    """``LabelVolume.label_boxes``: for every non-zero label, the tightest index box holding it
+    (also negative values and values of 2^30, which take the per-label path)."""
+    rng = np.random.default_rng(seed)
+    values = {"bool": [True], "uint8": [3, 255], "int16": [-7, 2, 30000], "uint32": [5, 2**30],
+              "int64": [-(2**40), 1, 2**40]}[dtype]
+    arr = np.zeros((6, 5, 4), dtype=dtype)
+    for v in values:
+        arr[tuple(rng.integers(0, n, 2) for n in arr.shape)] = v
+    vol = LabelVolume(arr, (0, 0, 0), (1, 1, 1), np.eye(3))
+    boxes = vol.label_boxes()
+    assert sorted(boxes) == [int(v) for v in vol.labels()]
+    for v, box in boxes.items():
+        where = np.argwhere(arr == v)
+        assert box == tuple(slice(int(a), int(b) + 1) for a, b in zip(where.min(0), where.max(0)))

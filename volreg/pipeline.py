@@ -556,10 +556,9 @@ def despeckle(volume, labels, *, piece: float = 0.05, judge: float | None = None
 
     array = volume.array.copy()
     kept = {}
-    objects = ndimage.find_objects(np.where(volume.array > 0, volume.array, 0).astype(np.int64)) if volume.array.min() >= 0 else None
+    boxes = volume.label_boxes()
     for v in labels:
-        box = objects[v - 1] if objects is not None and v - 1 < len(objects) and objects[v - 1] is not None else None
-        box = box if box is not None else tuple(slice(0, n) for n in volume.shape)
+        box = boxes.get(v, tuple(slice(0, n) for n in volume.shape))
         mask = volume.array[box] == v
         pieces, n = ndimage.label(mask)
         sizes = np.bincount(pieces.ravel())[1:]
@@ -743,7 +742,7 @@ def register_labels(
         # drive labels), also those too small or too fragmented for a surface.
         t0 = time.perf_counter()
         distance_labels = common if drive_labels is None else labels
-        boxes_f, boxes_m = _label_boxes(fixed), _label_boxes(moving)
+        boxes_f, boxes_m = fixed.label_boxes(), moving.label_boxes()
         for i, v in enumerate(distance_labels):
             pairs.append(FeaturePair(_voxel_distance(fixed, v, boxes_f, protocol.surface),
                                      _voxel_distance(moving, v, boxes_m, protocol.surface), weight))
@@ -761,17 +760,6 @@ def register_labels(
     stages.append(dict(stage="fit warp", seconds=time.perf_counter() - t0))
     return LabelRegistration(result.warp, result.log, labels=used, skipped=skipped, stages=stages,
                              distance_labels=[int(v) for v in distance_labels])
-
-
-def _label_boxes(volume) -> dict:
-    """Bounding box (tuple of slices) of every label of ``volume``."""
-    from scipy import ndimage
-
-    array = volume.array
-    if array.min() >= 0 and array.max() < 1 << 24:
-        found = ndimage.find_objects(array.astype(np.int64, copy=False))
-        return {v + 1: box for v, box in enumerate(found) if box is not None}
-    return {int(v): ndimage.find_objects((array == v).astype(np.int8))[0] for v in volume.labels()}
 
 
 def _boundary_points(volume, value: int, box) -> np.ndarray:

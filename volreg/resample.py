@@ -117,13 +117,10 @@ def resample_labels(
 
     out = np.zeros(len(index), dtype=array.dtype)
     best = np.zeros(len(index), dtype=np.float32)  # a point is a label's only where its distance < 0
-    objects = ndimage.find_objects(np.where(array > 0, array, 0).astype(np.int64)) if array.min() >= 0 else None
+    boxes = image.label_boxes()
     labels = image.labels()
     for n, value in enumerate(labels):
-        if objects is not None and value - 1 < len(objects) and objects[value - 1] is not None:
-            box = objects[value - 1]
-        else:
-            box = ndimage.find_objects((array == value).astype(np.int8))[0]
+        box = boxes[int(value)]
         lo = np.array([max(s.start - margin, 0) for s in box])
         hi = np.array([min(s.stop + margin, size) for s, size in zip(box, image.shape)])
         # Points whose linear stencil touches the crop.

@@ -132,6 +132,24 @@ class LabelVolume:
         values = np.unique(self.array)
         return values[values != 0]
 
+    def label_boxes(self) -> dict[int, tuple[slice, ...]]:
+        """Bounding box of every non-zero label present, as index slices.
+
+        One pass over the array (``scipy.ndimage.find_objects``) when the labels
+        are non-negative and below 2^24; otherwise one pass per label, so that a
+        large label value does not ask for a list of that length.
+
+        Returns
+        -------
+        dict of int to tuple of ``ndim`` slices
+        """
+        from scipy import ndimage
+
+        array = self.array.view(np.uint8) if self.array.dtype == np.bool_ else self.array
+        if array.size and array.min() >= 0 and array.max() < 1 << 24:
+            return {v + 1: box for v, box in enumerate(ndimage.find_objects(array)) if box is not None}
+        return {int(v): ndimage.find_objects((array == v).view(np.uint8))[0] for v in self.labels()}
+
     def same_geometry(self, other: "LabelVolume", atol: float = 1e-6) -> bool:
         """True when ``other`` has the same grid size, origin, spacing and direction."""
         return (
