@@ -1,4 +1,4 @@
-"""Surface registration: the paper's Figure 2 (2-D) and a known 3-D deformation.
+"""Surface registration: the paper's Figure 2 (2-D) and known 3-D deformations.
 
 Run:  .venv/bin/python benchmarks/bench_register.py
 
@@ -21,6 +21,7 @@ from shapes import Ellipsoid, label_volume  # noqa: E402
 from volreg.implicit import ImplicitSurface  # noqa: E402
 from volreg.pipeline import WarpSettings, register_surfaces  # noqa: E402
 from volreg.surfaces import label_surface, vertex_normals  # noqa: E402
+from volreg.synthetic import GaussianBumps  # noqa: E402
 from volreg.volume import LabelVolume  # noqa: E402
 
 
@@ -46,11 +47,17 @@ def figure2(alpha: float) -> str:
             f"| {surf:.3f} | {det:.2f} | {res.log[-1]['samples']} | {dt:.1f} |")
 
 
-def blob(bumpy: bool, alpha: float) -> str:
+def blob(bumps: int, alpha: float, seed: int | None = None) -> str:
+    """An ellipsoid with 0, 2 or 4 spherical bumps under a known warp: the near-linear shear
+    below (``seed`` None) or 6 random Gaussian bumps of 15 mm (``seed``), max |u| = 15 % of
+    the diameter over the box."""
     ell = Ellipsoid((20, 14, 10), (0.37, -0.21, 0.13))
-    b1, b2 = Ellipsoid((6, 6, 6), (14.0, 8.0, 3.0)), Ellipsoid((5, 5, 5), (-6.0, -9.0, 7.0))
-    sdf = (lambda p: np.minimum(np.minimum(ell.signed_distance(p), b1.signed_distance(p)), b2.signed_distance(p))
-           ) if bumpy else ell.signed_distance
+    extra = [Ellipsoid((6, 6, 6), (14.0, 8.0, 3.0)), Ellipsoid((5, 5, 5), (-6.0, -9.0, 7.0)),
+             Ellipsoid((7, 5, 5), (-15.0, 4.0, -4.0)), Ellipsoid((5, 5, 6), (3.0, 6.0, -9.0))][:bumps]
+
+    def sdf(p):
+        return np.min([ell.signed_distance(p)] + [b.signed_distance(p) for b in extra], axis=0)
+
     vol = label_volume((60,) * 3, (1, 1, 1), np.eye(3), (-29.5,) * 3, sdf)
     s = label_surface(vol, 1)
     diameter = float(np.linalg.norm(s.vertices.max(0) - s.vertices.min(0)))
@@ -59,6 +66,9 @@ def blob(bumpy: bool, alpha: float) -> str:
         u = np.stack([np.sin(x[:, 1] / 15), 0.8 * np.sin(x[:, 2] / 15), 0.8 * np.sin(x[:, 0] / 15)], 1)
         return x + 0.15 * diameter * u
 
+    if seed is not None:
+        phi = GaussianBumps.random((-30,) * 3, (30,) * 3, max_displacement=0.15 * diameter, scale=15.0,
+                                   count=6, rng=np.random.default_rng(seed))
     v2 = phi(s.vertices)
     f1 = ImplicitSurface(s.vertices, s.normals, min_width=4.0)
     f2 = ImplicitSurface(v2, vertex_normals(v2, s.cells), min_width=4.0)
@@ -69,7 +79,8 @@ def blob(bumpy: bool, alpha: float) -> str:
     centres = np.concatenate([lev.centres for lev in res.warp.levels])
     det = np.linalg.det(res.warp.jacobian(centres)).min()
     surf = np.abs(f2(res.warp(s.vertices))).mean()
-    name = "ellipsoid + 2 bumps" if bumpy else "ellipsoid"
+    name = f"ellipsoid + {bumps} bumps" if bumps else "ellipsoid"
+    name += ", shear" if seed is None else f", Gaussian bumps (seed {seed})"
     return (f"| 3-D {name}, known deformation (max {np.linalg.norm(v2 - s.vertices, axis=1).max():.1f} mm, "
             f"diameter {diameter:.1f} mm), alpha = {alpha:g} | mean {err.mean():.2f} mm "
             f"({100 * err.mean() / diameter:.1f} % of diameter) | {surf:.3f} | {det:.2f} "
@@ -81,9 +92,12 @@ def main() -> None:
           "| finest-level samples | seconds |\n|---|---|---|---|---|---|")
     for alpha in (0.0, 10.0):
         print(figure2(alpha), flush=True)
-    for bumpy in (False, True):
+    for bumps in (0, 2):
         for alpha in (0.0, 10.0):
-            print(blob(bumpy, alpha), flush=True)
+            print(blob(bumps, alpha), flush=True)
+    for bumps in (0, 4):
+        for seed in range(4):
+            print(blob(bumps, 10.0, seed), flush=True)
 
 
 if __name__ == "__main__":
