@@ -187,6 +187,9 @@ def test_distance_maps_alone_drive_when_no_label_gives_a_surface():
     fixed, moving = LabelVolume(fixed_a, **geometry), LabelVolume(moving_a, **geometry)
     result = register_labels(fixed, moving)
     assert result.labels == [] and result.distance_labels == [1, 2, 3]
+    assert result.skipped[0] == ("fixed volume: Skipping label 1: Label 1 has 7 voxels, fewer than min_voxels=8; "
+                                 "its voxel distance map drives instead.")
+    assert result.skipped[5].startswith("moving volume: Skipping label 3:")
     u, _ = fields_on_grid(result.warp, fixed)
     warped = resample_labels(moving, fixed.grid_points() + u)
     for label in (1, 2, 3):

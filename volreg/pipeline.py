@@ -704,11 +704,17 @@ def register_labels(
                 "Every common label is speckled (many small pieces) and the protocol's distance_weight is 0; "
                 "choose drive_labels explicitly, or set distance_weight > 0 so that the labels' distance maps drive."
             )
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        s_fixed = label_surfaces(clean_fixed, labels, on_small="warn", smoothing=protocol.surface.smoothing, progress=progress)
-        s_moving = label_surfaces(clean_moving, labels, on_small="warn", smoothing=protocol.surface.smoothing, progress=progress)
-    skipped += [str(w.message) for w in caught]
+    surfaces = {}
+    for name, volume in (("fixed", clean_fixed), ("moving", clean_moving)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            surfaces[name] = label_surfaces(volume, labels, on_small="warn", smoothing=protocol.surface.smoothing,
+                                            progress=progress)
+        if protocol.surface.distance_weight > 0:
+            skipped += [f"{name} volume: {str(w.message).rstrip('.')}; its voxel distance map drives instead." for w in caught]
+        else:
+            skipped += [f"{name} volume: {w.message}" for w in caught]
+    s_fixed, s_moving = surfaces["fixed"], surfaces["moving"]
     used = [v for v in labels if v in s_fixed and v in s_moving]
     if not used and protocol.surface.distance_weight <= 0:
         # With distance maps (distance_weight > 0) every label drives, with a surface or not.
