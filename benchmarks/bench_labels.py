@@ -127,12 +127,14 @@ def run_one(method: str) -> dict:
 
         import dataclasses
 
-        # volreg-NAME[+key=value...]: a preset with warp settings overridden, e.g. volreg-default+alpha=20
+        # volreg-NAME[+key=value...]: a preset with settings overridden, e.g. volreg-default+alpha=20
+        # (a [warp] key) or volreg-accurate+distance_smoothing=0.5 (a [surface] key).
         name, *overrides = method.split("-", 1)[1].split("+")
         protocol = load_protocol(name)
-        if overrides:
-            warp = dataclasses.replace(protocol.warp, **{k: float(v) for k, v in (o.split("=") for o in overrides)})
-            protocol = dataclasses.replace(protocol, warp=warp)
+        for key, value in (o.split("=") for o in overrides):
+            section = "surface" if key in {f.name for f in dataclasses.fields(protocol.surface)} else "warp"
+            part = dataclasses.replace(getattr(protocol, section), **{key: float(value)})
+            protocol = dataclasses.replace(protocol, **{section: part})
         result = register_labels(fixed, moving, protocol=protocol)
         u, det = fields_on_grid(result.warp, fixed)
     else:
@@ -164,7 +166,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--peers", action="store_true")
     parser.add_argument("--methods", default=None,
-                        help="comma-separated subset, e.g. ants-SyNOnly,volreg-fast,volreg-default+alpha=20")
+                        help="comma-separated subset, e.g. ants-SyNOnly,volreg-fast,volreg-default+alpha=20"
+                             ",volreg-accurate+distance_smoothing=0.5")
     parser.add_argument("--no-interpolation", action="store_true", help="skip the interpolation table")
     parser.add_argument("--full", action="store_true", help="the frog at its native 1 x 1 x 1.5 mm (default 3 mm)")
     parser.add_argument("--one", help=argparse.SUPPRESS)
