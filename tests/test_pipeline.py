@@ -88,6 +88,23 @@ def test_log_records_every_level(warps):
         assert set(entry["terms"]) == {"regulariser", "landmarks", "distance", "gradient", "folding", "consistency"}
 
 
+def test_finer_samples_only_at_the_levels_narrower_than_four_finest_widths(shapes, warps):
+    """sample_scale 0.5: the levels of width >= 4 min_width keep the default samples (the
+    finest width's boxes); the finer levels get the denser set, and the fit stays as good."""
+    (_, f1), (_, f2) = shapes
+    dense = register_surfaces(f1, f2, settings=WarpSettings(alpha=10.0, sample_scale=0.5))
+    plain = warps[10.0].log
+    min_width = plain[-1]["width"]
+    assert len(dense.log) == len(plain) >= 3
+    for d, p in zip(dense.log, plain):
+        if d["width"] >= 4 * min_width * (1 - 1e-9):
+            assert d["samples"] == p["samples"]
+        else:
+            assert d["samples"] > 2 * p["samples"]
+    assert any(d["samples"] > p["samples"] for d, p in zip(dense.log, plain))
+    assert np.all(_errors(dense.warp) <= 1.5)
+
+
 def test_registering_a_surface_to_itself_is_the_identity(shapes):
     (_, f1), _ = shapes
     result = register_surfaces(f1, f1)

@@ -147,8 +147,12 @@ class WarpSettings:
         Determinant below which the barrier acts.
     sample_spacing : float, mm, optional
         The locational cost is sampled at the centres of octree boxes of X
-        smaller than ``fraction * sample_spacing``, at every level; default
-        ``sample_scale * min_width`` (1: the finest level's boxes).
+        smaller than ``fraction * s``, with ``s = max(sample_spacing,
+        min(width / 4, min_width))`` at a level of kernel width ``width``:
+        ``sample_spacing`` at every level when it is ``min_width`` or more, and
+        where it is finer, only at the levels whose width is below
+        ``4 * min_width``; default ``sample_scale * min_width`` (1: the
+        finest level's boxes at every level).
     sample_scale : float
         See ``sample_spacing``; cost grows about as ``sample_scale^-2``
         (samples crowd the surfaces).
@@ -348,19 +352,31 @@ def fit_warp(
             )
     neighbourhood = simplex_vertices(dim, settings.neighbourhood) if settings.neighbourhood > 0 else None
     spacing = settings.sample_scale * min_width if settings.sample_spacing is None else settings.sample_spacing
-    samples = octree_sample(pts, pad, spacing, fraction=settings.fraction)
-    check = _with_children(samples)  # fold-check points: the samples and their octree children
-    consistency = {}
-    if prior is not None and settings.lambda_consistency > 0:
-        consistency = dict(sample_targets=np.asarray(prior(samples), float), lambda_target=settings.lambda_consistency)
     warp = KernelWarp(dim=dim, settings=dict(asdict(settings), pad=pad, min_width=min_width))
     log = []
-    # The coarser levels' Jacobian at the fold-check points and their warp at the samples, carried
-    # from level to level (not re-evaluated through every coarser level); identity at first.
-    j_prev = np.broadcast_to(np.eye(dim), (len(check), dim, dim)).copy()
-    base = samples.copy()
+    level_spacing = None
     for li, width in enumerate(widths):
         t0 = time.perf_counter()
+        # Samples of the locational cost: the finest level's boxes at every level (the
+        # paper samples each level at its own boxes, which leaves a coarse level a few
+        # dozen points to estimate an integral over X), or `spacing` where that is
+        # finer, but no finer than a quarter of the level's kernel width: on the frog
+        # demo the coarser levels gained nothing from denser samples (BENCHMARKS.md).
+        s = max(spacing, min(width / 4, min_width))
+        if s != level_spacing:
+            level_spacing = s
+            samples = octree_sample(pts, pad, s, fraction=settings.fraction)
+            check = _with_children(samples)  # fold-check points: the samples and their octree children
+            # The coarser levels' Jacobian at the fold-check points and their warp at the samples,
+            # carried from level to level (not re-evaluated through every coarser level).
+            if warp.levels:
+                j_prev, base = warp.jacobian(check), warp(samples)
+            else:
+                j_prev, base = np.broadcast_to(np.eye(dim), (len(check), dim, dim)).copy(), samples.copy()
+            consistency = {}
+            if prior is not None and settings.lambda_consistency > 0:
+                consistency = dict(sample_targets=np.asarray(prior(samples), float),
+                                   lambda_target=settings.lambda_consistency)
         # Centres: octree boxes of half the width (Section 3.5), plus the source landmarks
         # (the representer theorem puts kernels at every training point, so landmarks
         # away from X can be fitted too).
@@ -369,9 +385,6 @@ def fit_warp(
         centres = np.concatenate([boxes, src_l]) if use_landmarks else boxes
         grid = CellGrid.build(centres, width)
         k_cc = kernel_matrix(centres, grid, width)
-        # Samples of the locational cost: the finest level's boxes at every level (the
-        # paper samples each level at its own boxes, which leaves a coarse level a few
-        # dozen points to estimate an integral over X).
         k_xc = kernel_matrix(samples, grid, width)
         kw = {}
         if use_landmarks:
