@@ -4,16 +4,17 @@ Run:  .venv/bin/python benchmarks/bench_labels.py [--repeats 3] [--peers] [--ful
 
 The pair is `volreg demo`'s: pyvista's frog tissues block-downsampled to 3 mm (fixed; with --full
 the native 1 x 1 x 1.5 mm grid, as `volreg demo --full`) and a copy deformed by a known smooth warp
-of up to 8 mm (moving).  Every method gets the same two label
-volumes; each run is a fresh process (its own peak RSS).  Reported per method: mean Dice over the
-labels, endpoint error against the known warp at the fixed voxels inside the labels (mean, 95th
+of up to 8 mm (moving). Every method gets the same two label volumes; each run is a fresh process
+(its own peak RSS). Reported per method: mean Dice over the labels (and over the labels of at least
+100 voxels), endpoint error against the known warp at the fixed voxels inside the labels (mean, 95th
 percentile, mm), folded fraction (det <= 0 over the grid), wall time and peak RSS; medians of the
-repeats.  With --peers the peers run too, each on the label images as float with 2 threads:
-ANTs SyNOnly and SyN (affine + SyN; antspyx), greedy (picsl_greedy: SSD, 100x50x20 iterations,
-smoothing 2 and 1 voxels) and elastix B-spline (itk-elastix: its default 4-resolution B-spline map
-with a 12 mm final grid; `elastix-bspline-ms` with mean squares, `elastix-bspline` with the map's
-mutual information).  Peers' folded fractions come from central differences
-of their displacement fields (ANTs SyNOnly: ANTs' own Jacobian).
+repeats; below them the true warp's Dice (the moving volume is the fixed one resampled through it,
+so labels of a few voxels do not come back whole even through the truth). With --peers the peers run
+too, each on the label images as float with 2 threads: ANTs SyNOnly and SyN (affine + SyN; antspyx),
+greedy (picsl_greedy: SSD, 100x50x20 iterations, smoothing 2 and 1 voxels) and elastix B-spline
+(itk-elastix: its default 4-resolution B-spline map with a 12 mm final grid; `elastix-bspline-ms`
+with mean squares, `elastix-bspline` with the map's mutual information). Peers' folded fractions
+come from central differences of their displacement fields (ANTs SyNOnly: ANTs' own Jacobian).
 
 Also measured once: label interpolation by per-label signed distances against nearest neighbour,
 both through the *true* warp (so the only error is the interpolation), as Dice with the fixed labels.
@@ -47,13 +48,25 @@ def _scores(fixed, moving, positions, truth, det):
     from volreg.resample import resample_labels
 
     warped = resample_labels(moving, positions)
-    labels = fixed.labels()
     inside = fixed.array > 0
     x = fixed.grid_points()[inside]
     err = np.linalg.norm(positions[inside] - truth(x), axis=1)
-    return dict(dice=float(np.mean([dice(fixed.array == v, warped == v) for v in labels])),
-                epe_mean=float(err.mean()), epe_p95=float(np.percentile(err, 95)),
-                folded=float(np.mean(det <= 0)))
+    out = dict(epe_mean=float(err.mean()), epe_p95=float(np.percentile(err, 95)), folded=float(np.mean(det <= 0)))
+    return out | _dice(fixed, warped)
+
+
+def _dice(fixed, warped: np.ndarray) -> dict:
+    """Mean Dice over the fixed labels, and over those of at least LARGE voxels: a generated
+    moving volume keeps labels of a few dozen voxels only approximately (resampled once), so
+    that even the true warp brings some back with Dice 0 (see BENCHMARKS.md)."""
+    from volreg.metrics import dice
+
+    scores = {v: dice(fixed.array == v, warped == v) for v in fixed.labels()}
+    large = [d for v, d in scores.items() if np.count_nonzero(fixed.array == v) >= LARGE]
+    return dict(dice=float(np.mean(list(scores.values()))), dice_large=float(np.mean(large)))
+
+
+LARGE = 100  # voxels: the "labels >= 100 voxels" column
 
 
 def _read_field(path) -> np.ndarray:
@@ -184,8 +197,9 @@ def main() -> None:
     if not args.no_interpolation:
         print(interpolation_check())
         print()
-    print("| method | mean Dice | endpoint error mean / p95 (mm) | folded | wall s (runs) | peak RSS GB |")
-    print("|---|---|---|---|---|---|")
+    print(f"| method | mean Dice | mean Dice, labels >= {LARGE} voxels | endpoint error mean / p95 (mm) | folded "
+          "| wall s (runs) | peak RSS GB |")
+    print("|---|---|---|---|---|---|---|")
     for method in methods:
         runs = []
         for _ in range(args.repeats):
@@ -199,15 +213,19 @@ def main() -> None:
             continue
         med = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
         times = ", ".join(f"{r['seconds']:.0f}" for r in runs)
-        print(f"| {method} | {med['dice']:.3f} | {med['epe_mean']:.2f} / {med['epe_p95']:.2f} | {med['folded']:.4f} "
-              f"| {med['seconds']:.0f} ({times}) | {med['peak_rss_gb']:.2f} |", flush=True)
+        print(f"| {method} | {med['dice']:.4f} | {med['dice_large']:.4f} | {med['epe_mean']:.2f} / {med['epe_p95']:.2f} "
+              f"| {med['folded']:.4f} | {med['seconds']:.0f} ({times}) | {med['peak_rss_gb']:.2f} |", flush=True)
+    from volreg.resample import resample_labels
+
     fixed, moving, truth = _pair()
     x = fixed.grid_points()[fixed.array > 0]
     err0 = np.linalg.norm(truth(x) - x, axis=1)
-    from volreg.metrics import dice
-
-    d0 = np.mean([dice(fixed.array == v, moving.array == v) for v in fixed.labels()])
-    print(f"| identity (no registration) | {d0:.3f} | {err0.mean():.2f} / {np.percentile(err0, 95):.2f} | 0 | - | - |")
+    d0 = _dice(fixed, moving.array)
+    print(f"| identity (no registration) | {d0['dice']:.4f} | {d0['dice_large']:.4f} "
+          f"| {err0.mean():.2f} / {np.percentile(err0, 95):.2f} | 0 | - | - |")
+    positions = truth(fixed.grid_points().reshape(-1, 3)).reshape(*fixed.shape, 3)
+    dt = _dice(fixed, resample_labels(moving, positions))
+    print(f"| the true warp | {dt['dice']:.4f} | {dt['dice_large']:.4f} | 0 / 0 | 0 | - | - |")
 
 
 if __name__ == "__main__":
