@@ -48,12 +48,14 @@ def figure2(alpha: float) -> str:
 
 
 def blob(bumps: int, alpha: float, seed: int | None = None) -> str:
-    """An ellipsoid with 0, 2 or 4 spherical bumps under a known warp: the near-linear shear
+    """An ellipsoid with 0, 2, 4 or 8 bumps under a known warp: the near-linear shear
     below (``seed`` None) or 6 random Gaussian bumps of 15 mm (``seed``), max |u| = 15 % of
     the diameter over the box."""
     ell = Ellipsoid((20, 14, 10), (0.37, -0.21, 0.13))
     extra = [Ellipsoid((6, 6, 6), (14.0, 8.0, 3.0)), Ellipsoid((5, 5, 5), (-6.0, -9.0, 7.0)),
-             Ellipsoid((7, 5, 5), (-15.0, 4.0, -4.0)), Ellipsoid((5, 5, 6), (3.0, 6.0, -9.0))][:bumps]
+             Ellipsoid((7, 5, 5), (-15.0, 4.0, -4.0)), Ellipsoid((5, 5, 6), (3.0, 6.0, -9.0)),
+             Ellipsoid((5, 6, 5), (10.0, -8.0, -5.0)), Ellipsoid((6, 5, 5), (-10.0, 10.0, 6.0)),
+             Ellipsoid((5, 5, 5), (18.0, -3.0, 4.0)), Ellipsoid((5, 5, 5), (-3.0, -2.0, 11.0))][:bumps]
 
     def sdf(p):
         return np.min([ell.signed_distance(p)] + [b.signed_distance(p) for b in extra], axis=0)
@@ -95,7 +97,7 @@ def main() -> None:
     for bumps in (0, 2):
         for alpha in (0.0, 10.0):
             print(blob(bumps, alpha), flush=True)
-    for bumps in (0, 4):
+    for bumps in (0, 4, 8):
         for seed in range(4):
             print(blob(bumps, 10.0, seed), flush=True)
 
