@@ -347,6 +347,36 @@ def test_interrupted_registration_leaves_nothing(tmp_path, sig):
     assert not out.exists() and not list(tmp_path.glob("**/*.tmp*"))
 
 
+def test_interrupt_lost_in_a_ctypes_callback_still_stops_the_run(tmp_path, monkeypatch, capsys):
+    """Ctrl-C during numba's first compilation of a kernel lands in an llvmlite ctypes callback,
+    where Python only reports it ("Exception ignored") and the run went on to finish with exit 0
+    (seen on a fresh clone). The next progress report must raise it again: exit 130, one line,
+    OUTDIR gone."""
+    import ctypes
+
+    import volreg._register_cli as register_cli
+    from test_register import blob_volume
+
+    def raise_sigint() -> None:
+        raise KeyboardInterrupt("SIGINT")
+
+    def register_labels(*args, progress=None, **kwargs):
+        ctypes.CFUNCTYPE(None)(raise_sigint)()  # swallowed by ctypes: reaches sys.unraisablehook
+        progress("fit warp", 1, 4)
+        raise AssertionError("the interrupt was not raised again")
+
+    monkeypatch.setattr(register_cli, "register_labels", register_labels)
+    vol = blob_volume()
+    write_labels(vol, tmp_path / "a.nii.gz")
+    write_labels(vol, tmp_path / "b.nii.gz")
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["register", str(tmp_path / "a.nii.gz"), str(tmp_path / "b.nii.gz"), "-o", str(out), "--quiet"]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["volreg register: interrupted by SIGINT; the outputs of this run were removed."]
+    assert not out.exists()
+
+
 # ----------------------------------------------------------------------------- determinism
 
 

@@ -29,7 +29,7 @@ from pathlib import Path
 from . import __version__
 from .io import VolregIOError, VolregWarning, check_writable, read_labels, write_json, write_mesh, write_scalar
 from .pipeline import RegistrationDiverged, RegistrationInputError
-from .progress import ProgressBars
+from .progress import ProgressBars, clear_interrupt, note_interrupt
 from .protocol import ProtocolError
 from .surfaces import SurfaceError, implicit_on_grid, implicit_surfaces, label_surfaces
 from .volume import GeometryError, LabelVolume
@@ -453,6 +453,23 @@ def _install_sigterm():
     return signal.signal(signal.SIGTERM, _raise_interrupt)
 
 
+def _unraisable_hook(previous):
+    """A ``sys.unraisablehook`` that keeps a KeyboardInterrupt raised where it could not propagate.
+
+    Ctrl-C or SIGTERM during numba's first compilation of a kernel lands in an llvmlite
+    ctypes callback; Python reports it there as "Exception ignored" and the run went on to
+    finish (exit 0).  Recorded instead, it is raised again at the next progress report.
+    """
+
+    def hook(unraisable) -> None:
+        if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
+            note_interrupt(str(unraisable.exc_value or "") or "SIGINT")
+            return
+        previous(unraisable)
+
+    return hook
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``volreg`` command line.
 
@@ -484,6 +501,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     # SIGTERM (a scheduler or `kill` stopping the job) unwinds like Ctrl-C, so every command's
     # clean-up runs: outputs written so far are removed and temporary files deleted.
     previous = _install_sigterm()
+    clear_interrupt()
+    unraisable = sys.unraisablehook
+    sys.unraisablehook = _unraisable_hook(unraisable)
     show = warnings.showwarning
 
     def one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -520,5 +540,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         filters.__exit__(None, None, None)
         warnings.showwarning = show
+        sys.unraisablehook = unraisable
+        clear_interrupt()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

@@ -11,7 +11,30 @@ from types import TracebackType
 
 from tqdm import tqdm
 
-__all__ = ["ProgressBars"]
+__all__ = ["ProgressBars", "note_interrupt", "clear_interrupt", "raise_if_interrupted"]
+
+#: Names of signals (``"SIGINT"``, ``"SIGTERM"``) whose KeyboardInterrupt was raised where it
+#: could not propagate: inside a ctypes callback, as while numba compiles (llvmlite reports it as
+#: "Exception ignored" and carries on).  The next progress report raises it again.
+_pending: list[str] = []
+
+
+def note_interrupt(name: str) -> None:
+    """Record an interrupt (a signal name) for the next :func:`raise_if_interrupted`."""
+    _pending.append(name)
+
+
+def clear_interrupt() -> None:
+    """Forget recorded interrupts (at the start and end of a command)."""
+    _pending.clear()
+
+
+def raise_if_interrupted() -> None:
+    """Raise ``KeyboardInterrupt(name)`` if an interrupt was recorded and not yet raised."""
+    if _pending:
+        name = _pending[0]
+        _pending.clear()
+        raise KeyboardInterrupt(name)
 
 
 class ProgressBars:
@@ -39,7 +62,9 @@ class ProgressBars:
         self._bars: dict[str, tqdm] = {}
 
     def __call__(self, stage: str, done: int, total: int) -> None:
-        """Report that ``done`` of ``total`` steps of ``stage`` are finished."""
+        """Report that ``done`` of ``total`` steps of ``stage`` are finished (and raise an
+        interrupt recorded by :func:`note_interrupt` since the last report)."""
+        raise_if_interrupted()
         done, total = int(done), int(total)
         bar = self._bars.get(stage)
         if bar is not None and (bar.total != total or done < bar.n):
