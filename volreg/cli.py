@@ -501,9 +501,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     # SIGTERM (a scheduler or `kill` stopping the job) unwinds like Ctrl-C, so every command's
     # clean-up runs: outputs written so far are removed and temporary files deleted.
     previous = _install_sigterm()
-    clear_interrupt()
     unraisable = sys.unraisablehook
-    sys.unraisablehook = _unraisable_hook(unraisable)
+    if previous is not None:  # the main thread: signals are delivered here
+        clear_interrupt()
+        sys.unraisablehook = _unraisable_hook(unraisable)
     show = warnings.showwarning
 
     def one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -540,7 +541,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         filters.__exit__(None, None, None)
         warnings.showwarning = show
-        sys.unraisablehook = unraisable
-        clear_interrupt()
         if previous is not None:
+            sys.unraisablehook = unraisable
+            clear_interrupt()
             signal.signal(signal.SIGTERM, previous)

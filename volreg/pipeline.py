@@ -362,10 +362,10 @@ def fit_warp(
         # dozen points to estimate an integral over X), or `spacing` where that is
         # finer, but no finer than a quarter of the level's kernel width: on the frog
         # demo the coarser levels gained nothing from denser samples (BENCHMARKS.md).
-        s = max(spacing, min(width / 4, min_width))
-        if s != level_spacing:
-            level_spacing = s
-            samples = octree_sample(pts, pad, s, fraction=settings.fraction)
+        step = max(spacing, min(width / 4, min_width))
+        if step != level_spacing:
+            level_spacing = step
+            samples = octree_sample(pts, pad, step, fraction=settings.fraction)
             check = _with_children(samples)  # fold-check points: the samples and their octree children
             # The coarser levels' Jacobian at the fold-check points and their warp at the samples,
             # carried from level to level (not re-evaluated through every coarser level).
