@@ -1,10 +1,12 @@
-"""BLAS held to one thread inside volreg's entry points (volreg/_threads.py)."""
+"""BLAS held to one thread inside volreg's entry points, and independent fits on threads
+(volreg/_threads.py)."""
 
 import numpy as np
 import pytest
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from volreg._threads import single_blas
+from volreg._threads import _concurrent_numba, single_blas, thread_map
+from volreg.implicit import ImplicitSurface
 from volreg.field import fields_on_grid
 from volreg.pipeline import fit_warp, register_labels, register_surfaces
 from volreg.surfaces import implicit_surfaces
@@ -40,3 +42,38 @@ def test_single_blas_passes_results_and_errors_through():
 def test_entry_points_run_with_one_blas_thread(func):
     assert callable(func.__wrapped__)  # functools.wraps of the wrapper below
     assert func.__code__ is single_blas(lambda: None).__code__
+
+
+def test_thread_map_keeps_the_order_and_raises_a_jobs_error():
+    assert list(thread_map(lambda i: i * i, list(range(25)))) == [i * i for i in range(25)]
+
+    def boom(i):
+        if i == 3:
+            raise ValueError("bad `x`")
+        return i
+
+    with pytest.raises(ValueError, match="bad `x`"):
+        list(thread_map(boom, list(range(8))))
+
+
+def test_implicit_fits_on_threads_equal_serial_fits():
+    """The labels' implicit surfaces are fitted on numba's threads in register_labels: the
+    same fits as one after another, to the bit."""
+    import numba
+    from shapes import Ellipsoid
+
+    rng = np.random.default_rng(0)
+    shapes = [Ellipsoid((20, 14, 10), (0, 0, 0)), Ellipsoid((8, 8, 12), (5, -3, 2)), Ellipsoid((15, 6, 6), (0, 9, 0))]
+    jobs = [s.surface_points(1500, rng) for s in shapes]
+
+    def fit(job):
+        return ImplicitSurface(*job, min_width=3.0)
+
+    if numba.get_num_threads() < 2 or not _concurrent_numba():
+        pytest.skip("thread_map is serial here (one numba thread, or numba's workqueue layer)")
+    threaded = list(thread_map(fit, jobs))
+    for a, b in zip(threaded, map(fit, jobs)):
+        assert len(a.levels) == len(b.levels) > 1
+        for la, lb in zip(a.levels, b.levels):
+            np.testing.assert_array_equal(la.alpha, lb.alpha)
+            np.testing.assert_array_equal(la.centres, lb.centres)

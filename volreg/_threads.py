@@ -14,11 +14,17 @@ vector operations, which gain nothing from threads.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from functools import wraps
+from typing import Callable, Iterator, Sequence, TypeVar
 
+import numba
 from threadpoolctl import threadpool_limits
 
-__all__ = ["single_blas"]
+__all__ = ["single_blas", "thread_map"]
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 
 def single_blas(func):
@@ -30,3 +36,37 @@ def single_blas(func):
             return func(*args, **kwargs)
 
     return wrapper
+
+
+@numba.njit(parallel=True, cache=True)
+def _touch(n):  # pragma: no cover - compiled
+    total = 0
+    for i in numba.prange(n):
+        total += i
+    return total
+
+
+def _concurrent_numba() -> bool:
+    """Whether numba's parallel loops may be entered from two Python threads at once: its
+    OpenMP and TBB layers allow it, the fallback workqueue layer aborts the process."""
+    _touch(2)  # the threading layer is chosen at the first parallel call
+    return numba.threading_layer() in ("omp", "tbb")
+
+
+def thread_map(func: Callable[[T], R], items: Sequence[T]) -> Iterator[R]:
+    """``map(func, items)`` on ``numba.get_num_threads()`` Python threads (in order).
+
+    For independent jobs whose compiled loops release the GIL (the implicit-surface fits
+    of several labels).  Serial with one numba thread or where numba's threading layer
+    does not allow concurrent parallel loops.  On an exception (a KeyboardInterrupt
+    too) jobs not yet started are cancelled; running ones finish first.
+    """
+    workers = min(numba.get_num_threads(), len(items))
+    if workers <= 1 or not _concurrent_numba():
+        yield from map(func, items)
+        return
+    pool = ThreadPoolExecutor(max_workers=workers)
+    try:
+        yield from pool.map(func, items)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)

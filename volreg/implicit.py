@@ -162,7 +162,7 @@ def _offsurface(points, normals, delta, tree) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(pts), np.concatenate(vals)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)  # nogil: labels are fitted on parallel threads
 def _svr_coordinate_descent(indptr, indices, data, y, eps, box, beta, kbeta, max_sweeps, tol):
     """Cyclic coordinate descent on the fixed-offset SVR dual (in place).
 
