@@ -46,6 +46,9 @@ def test_entry_points_run_with_one_blas_thread(func):
 
 def test_thread_map_keeps_the_order_and_raises_a_jobs_error():
     assert list(thread_map(lambda i: i * i, list(range(25)))) == [i * i for i in range(25)]
+    partial = thread_map(lambda i: i + 1, list(range(25)))
+    assert next(partial) == 1
+    partial.close()  # stops early: the remaining jobs are cancelled, the threads joined
 
     def boom(i):
         if i == 3:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from functools import wraps
-from typing import Callable, Iterator, Sequence, TypeVar
+from typing import Callable, Generator, Sequence, TypeVar
 
 import numba
 from threadpoolctl import threadpool_limits
@@ -53,13 +53,14 @@ def _concurrent_numba() -> bool:
     return numba.threading_layer() in ("omp", "tbb")
 
 
-def thread_map(func: Callable[[T], R], items: Sequence[T]) -> Iterator[R]:
+def thread_map(func: Callable[[T], R], items: Sequence[T]) -> Generator[R, None, None]:
     """``map(func, items)`` on ``numba.get_num_threads()`` Python threads (in order).
 
     For independent jobs whose compiled loops release the GIL (the implicit-surface fits
     of several labels).  Serial with one numba thread or where numba's threading layer
     does not allow concurrent parallel loops.  On an exception (a KeyboardInterrupt
-    too) jobs not yet started are cancelled; running ones finish first.
+    too) jobs not yet started are cancelled; running ones finish first.  A caller that may
+    stop before the last result calls ``.close()`` on the generator to join the threads.
     """
     workers = min(numba.get_num_threads(), len(items))
     if workers <= 1 or not _concurrent_numba():
