@@ -35,6 +35,9 @@ import time
 import numpy as np
 
 
+LARGE = 100  # voxels: the "labels >= 100 voxels" Dice
+
+
 def _pair():
     from volreg.demo import frog_pair, frog_path
     from volreg.io import read_labels
@@ -65,8 +68,6 @@ def _dice(fixed, warped: np.ndarray) -> dict:
     large = [d for v, d in scores.items() if np.count_nonzero(fixed.array == v) >= LARGE]
     return dict(dice=float(np.mean(list(scores.values()))), dice_large=float(np.mean(large)))
 
-
-LARGE = 100  # voxels: the "labels >= 100 voxels" column
 
 
 def _read_field(path) -> np.ndarray:
@@ -168,10 +169,10 @@ def interpolation_check() -> str:
     rows = []
     for method in ("label", "nearest"):
         warped = resample_labels(moving, positions, method=method)
-        big = [v for v in fixed.labels() if np.count_nonzero(fixed.array == v) >= 100]
+        big = [v for v in fixed.labels() if np.count_nonzero(fixed.array == v) >= LARGE]
         rows.append(f"| {method} | {np.mean([dice(fixed.array == v, warped == v) for v in fixed.labels()]):.3f} "
                     f"| {np.mean([dice(fixed.array == v, warped == v) for v in big]):.3f} |")
-    return "| interpolation through the true warp | mean Dice, all labels | labels >= 100 voxels |\n|---|---|---|\n" + "\n".join(rows)
+    return f"| interpolation through the true warp | mean Dice, all labels | labels >= {LARGE} voxels |\n|---|---|---|\n" + "\n".join(rows)
 
 
 def main() -> None:

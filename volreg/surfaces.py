@@ -21,7 +21,7 @@ import numpy as np
 from scipy import ndimage
 from skimage import measure
 
-from ._threads import single_blas
+from ._threads import single_blas, thread_map
 from .implicit import ImplicitSurface
 from .volume import LabelVolume
 
@@ -309,13 +309,20 @@ def implicit_surfaces(
     **kwargs
         Passed to :class:`ImplicitSurface`.
     """
+    min_width = min_width_voxels * voxel_size(volume)
+
+    def fit(surf: Surface) -> ImplicitSurface:
+        return ImplicitSurface(surf.vertices, surf.normals, min_width=min_width, **kwargs)
+
     out = {}
-    for i, (lab, surf) in enumerate(surfaces.items()):
-        out[lab] = ImplicitSurface(
-            surf.vertices, surf.normals, min_width=min_width_voxels * voxel_size(volume), **kwargs
-        )
-        if progress is not None:
-            progress("fit implicit surfaces", i + 1, len(surfaces))
+    fits = thread_map(fit, list(surfaces.values()))  # independent fits, on numba's threads
+    try:
+        for i, (lab, f) in enumerate(zip(surfaces, fits)):
+            out[lab] = f
+            if progress is not None:
+                progress("fit implicit surfaces", i + 1, len(surfaces))
+    finally:
+        fits.close()  # joins the threads, also when progress raises (an interrupt)
     return out
 
 
