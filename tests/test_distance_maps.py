@@ -34,10 +34,9 @@ def test_clipped_distance_without_boundary():
     assert np.all(clipped_signed_distance(np.zeros((5, 6, 7), bool), spacing, 3.0) == 3.0)
 
 
-def _oblique_sphere(radius=12.0):
+def _oblique_sphere(radius=12.0, t=0.3):
     spacing = np.array([1.0, 1.2, 1.5])
     origin = np.array([-10.0, 5.0, 3.0])
-    t = 0.3
     direction = np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1]])
     shape = (50, 44, 36)
     index = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
@@ -67,10 +66,14 @@ def test_sphere_signed_distance_on_an_oblique_grid():
 
 
 @pytest.mark.parametrize("smoothing", [0.0, 0.4, 1.5])
-def test_derivatives_match_finite_differences(smoothing):
+@pytest.mark.parametrize("angle", [0.3, 0.0], ids=["oblique", "axis-aligned"])
+def test_derivatives_match_finite_differences(smoothing, angle):
     """Gradient and Hessian are the interpolant's exact derivatives (both the prefiltered and
-    the blurred-coefficient paths), also in world axes on an oblique grid."""
-    mask, spacing, origin, direction, centre = _oblique_sphere()
+    the blurred-coefficient paths), in world axes on an oblique grid and on an axis-aligned
+    one (whose Hessian takes the diagonal shortcut)."""
+    mask, spacing, origin, direction, centre = _oblique_sphere(t=angle)
+    diagonal_shortcut = VoxelDistance(mask, spacing, origin, direction, clip=6.0)._step_outer is not None
+    assert diagonal_shortcut == (angle == 0.0)
     f = VoxelDistance(mask, spacing, origin, direction, clip=6.0, smoothing=smoothing)
     rng = np.random.default_rng(2)
     points = centre + rng.normal(size=(500, 3)) * 9

@@ -112,6 +112,25 @@ def test_halving_width_multiplies_count_by_eight(sphere, sphere_samples):
     assert len(fine) / len(sphere_samples) == pytest.approx(8.0, rel=0.1)
 
 
+@pytest.mark.parametrize("pad, width", [(15.0, 4.0), (PAD, WIDTH), (0.3, 4.0)])
+def test_samples_are_exactly_the_lattice_centres_within_pad(sphere, pad, width):
+    """The octree keeps exactly the final-lattice centres within ``pad`` of a vertex, also
+    where whole boxes are taken without a query (a wide pad: most of X is deep inside)."""
+    s = octree_sample(sphere, pad, width)
+    lo, hi = sphere.min(axis=0) - pad, sphere.max(axis=0) + pad
+    root = float(np.max(hi - lo))
+    origin = 0.5 * (lo + hi) - 0.5 * root
+    levels = 0
+    while root / 2.0**levels >= 0.5 * width:
+        levels += 1
+    n, edge = 2**levels, root / 2**levels
+    idx = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    centres = origin + (idx + 0.5) * edge
+    brute = centres[cKDTree(sphere).query(centres, distance_upper_bound=pad * 1.01)[0] <= pad]
+    assert len(s) == len(brute) > 0
+    np.testing.assert_array_equal(np.unique(s, axis=0), np.unique(brute, axis=0))
+
+
 def test_circle_2d():
     rng = np.random.default_rng(2)
     c = circle(4_000, R)

@@ -289,6 +289,10 @@ class VoxelDistance:
         coef = coef.astype(np.float32, copy=False)
         self._coef = np.ascontiguousarray(coef if self.dim == 3 else coef[:, :, None])
         self._step = self.direction / spacing[None, :]  # d world-gradient = step @ d index-gradient
+        # Axis-aligned grids (a diagonal step): the Hessian's change of variables is a product
+        # with the outer product of the diagonal, not two matrix products per point.
+        diagonal = not np.any(self._step - np.diag(np.diag(self._step)))
+        self._step_outer = np.outer(np.diag(self._step), np.diag(self._step)) if diagonal else None
         self._to_index = np.linalg.inv(self.direction * spacing[None, :]).T  # index = (x - origin) @ this
         corners = np.array(np.meshgrid(*[[a, b - 1] for a, b in zip(self.lo, hi)], indexing="ij")).reshape(self.dim, -1).T
         world = self.origin + (corners * spacing) @ self.direction.T
@@ -324,5 +328,8 @@ class VoxelDistance:
         if order >= 1:
             out.append(g[:, :d] @ self._step.T)
         if order >= 2:
-            out.append(np.einsum("ab,nbc,dc->nad", self._step, h[:, :d, :d], self._step))
+            if self._step_outer is not None:
+                out.append(h[:, :d, :d] * self._step_outer)
+            else:
+                out.append(self._step @ h[:, :d, :d] @ self._step.T)
         return tuple(out)

@@ -16,6 +16,7 @@ import numpy as np
 
 from ._threads import single_blas
 from .volume import LabelVolume
+from .warp import jacobian_det
 
 __all__ = ["displacement_on_grid", "fields_on_grid", "jacobian_determinant_on_grid", "support_slices"]
 
@@ -87,7 +88,7 @@ def jacobian_determinant_on_grid(
     """
     out = np.ones(int(np.prod(reference.shape)))
     for flat, _, (_, jac) in _on_grid(warp, reference, 1, chunk, progress, "Jacobian"):
-        out[flat] = np.linalg.det(jac)
+        out[flat] = jacobian_det(jac)
     return out.reshape(reference.shape)
 
 
@@ -114,5 +115,5 @@ def fields_on_grid(
     det = np.ones(n)
     for flat, points, (tau, jac) in _on_grid(warp, reference, 1, chunk, progress, "evaluate warp"):
         u[flat] = tau - points
-        det[flat] = np.linalg.det(jac)
+        det[flat] = jacobian_det(jac)
     return u.reshape(*reference.shape, reference.ndim), det.reshape(reference.shape)

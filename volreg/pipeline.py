@@ -38,7 +38,7 @@ from .implicit import ImplicitSurface
 from .kernels import CellGrid, SharedPatternCSR, _check_points, kernel_gradient_matrices, kernel_matrix, kernel_sum
 from .objective import FeaturePair, LevelObjective, simplex_vertices
 from .sampling import octree_sample
-from .warp import KernelWarp, WarpLevel
+from .warp import KernelWarp, WarpLevel, jacobian_det
 
 __all__ = [
     "WarpSettings",
@@ -366,13 +366,16 @@ def fit_warp(
         if step != level_spacing:
             level_spacing = step
             samples = octree_sample(pts, pad, step, fraction=settings.fraction)
-            check = _with_children(samples)  # fold-check points: the samples and their octree children
+            # Fold-check points: the samples and their octree children, a lattice of at most half
+            # min_width; samples that dense (sample_scale <= 0.5) are checked as they are.
+            check = samples if step <= 0.5 * min_width * (1 + 1e-9) else _with_children(samples)
             # The coarser levels' Jacobian at the fold-check points and their warp at the samples,
             # carried from level to level (not re-evaluated through every coarser level).
             if warp.levels:
                 j_prev, base = warp.jacobian(check), warp(samples)
             else:
                 j_prev, base = np.broadcast_to(np.eye(dim), (len(check), dim, dim)).copy(), samples.copy()
+            subsets = _feature_samples(features, samples, settings.band, reach=settings.neighbourhood)
             consistency = {}
             if prior is not None and settings.lambda_consistency > 0:
                 consistency = dict(sample_targets=np.asarray(prior(samples), float),
@@ -410,10 +413,9 @@ def fit_warp(
             return SharedPatternCSR(kernel_gradient_matrices(check[idx], centres, width)), j_prev[idx]
 
         if settings.lambda_fold > 0:
-            gradients, fold_base = fold_rows(np.linalg.det(j_prev + j_level))
+            gradients, fold_base = fold_rows(jacobian_det(j_prev + j_level))
             kw.update(lambda_fold=settings.lambda_fold, fold_margin=settings.fold_margin, fold_gradients=gradients,
                       fold_base=fold_base, fold_count=len(check))
-        subsets = _feature_samples(features, samples, settings.band, reach=settings.neighbourhood)
         objective = LevelObjective(kernel=k_xc, kernel_centres=k_cc, base=base, samples=samples,
                                    features=features, lambda_loc=settings.lambda_loc, alpha=settings.alpha,
                                    neighbourhood=neighbourhood, feature_samples=subsets, robust=settings.robust, **consistency, **kw)
@@ -437,7 +439,7 @@ def fit_warp(
             converged = bool(res.success)
             rounds += 1
             j_level = kernel_sum(check, grid, coeffs, width, order=1)[1]
-            det = np.linalg.det(j_prev + j_level)  # at every check point
+            det = jacobian_det(j_prev + j_level)  # at every check point
             if settings.lambda_fold <= 0 or rounds >= FOLD_ROUNDS:
                 break
             if not np.any(~active & (det < settings.fold_margin)):
@@ -447,13 +449,13 @@ def fit_warp(
         # and at the centres of their octree children (the next level's samples).
         # If the level folds space there (det J < min_det), shrink its coefficients;
         # where coarser levels are already below min_det, it must not make it worse.
-        floor = min(settings.min_det, float(np.linalg.det(j_prev).min()))
+        floor = min(settings.min_det, float(jacobian_det(j_prev).min()))
         scale = 1.0
         for _ in range(20):
             if det.min() >= floor:
                 break
             scale *= 0.7
-            det = np.linalg.det(j_prev + scale * j_level)
+            det = jacobian_det(j_prev + scale * j_level)
         else:
             scale = 0.0
         coeffs = scale * coeffs
