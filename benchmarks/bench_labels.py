@@ -213,9 +213,9 @@ def main() -> None:
         if not runs:
             continue
         med = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
-        times = ", ".join(f"{r['seconds']:.0f}" for r in runs)
+        times = ", ".join(f"{r['seconds']:.1f}" for r in runs)
         print(f"| {method} | {med['dice']:.4f} | {med['dice_large']:.4f} | {med['epe_mean']:.2f} / {med['epe_p95']:.2f} "
-              f"| {med['folded']:.4f} | {med['seconds']:.0f} ({times}) | {med['peak_rss_gb']:.2f} |", flush=True)
+              f"| {med['folded']:.4f} | {med['seconds']:.1f} ({times}) | {med['peak_rss_gb']:.2f} |", flush=True)
     from volreg.resample import resample_labels
 
     fixed, moving, truth = _pair()
