@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from volreg.io import VolregIOError
-from volreg.warp import FORMAT, ComposedWarp, KernelWarp, WarpLevel
+from volreg.warp import FORMAT, ComposedWarp, KernelWarp, WarpLevel, jacobian_det
 
 FD_STEP = 1e-4  # mm
 
@@ -307,3 +307,23 @@ def test_bad_points():
         warp(np.zeros((4, 3)), chunk=0)
     with pytest.raises(ValueError, match="`order`"):
         warp.evaluate(np.zeros((4, 3)), order=2)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_jacobian_det_matches_numpy(dim):
+    """Closed-form determinants equal np.linalg.det's on random stacks (also with leading axes);
+    a rotation gives 1, a reflection -1."""
+    rng = np.random.default_rng(dim)
+    jac = rng.normal(size=(4, 50, dim, dim))
+    np.testing.assert_allclose(jacobian_det(jac), np.linalg.det(jac), rtol=1e-12, atol=1e-12)
+    t = 0.7
+    rot = np.eye(dim)
+    rot[:2, :2] = [[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]
+    flip = np.diag([-1.0] + [1.0] * (dim - 1))
+    np.testing.assert_allclose(jacobian_det(np.stack([rot, flip])), [1.0, -1.0], atol=1e-14)
+
+
+@pytest.mark.parametrize("shape", [(5, 4, 4), (5, 3), (3,), (5, 2, 3)])
+def test_jacobian_det_rejects_other_shapes(shape):
+    with pytest.raises(ValueError, match="jac"):
+        jacobian_det(np.zeros(shape))

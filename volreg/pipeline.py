@@ -445,8 +445,8 @@ def fit_warp(
             if not np.any(~active & (det < settings.fold_margin)):
                 break
             objective.set_fold(*fold_rows(det), count=len(check))
-        # Fold guard: tau must stay orientation-preserving, checked at the samples
-        # and at the centres of their octree children (the next level's samples).
+        # Fold guard: tau must stay orientation-preserving, checked at the fold-check points
+        # (the samples and, where they are sparser than half min_width, their octree children).
         # If the level folds space there (det J < min_det), shrink its coefficients;
         # where coarser levels are already below min_det, it must not make it worse.
         floor = min(settings.min_det, float(jacobian_det(j_prev).min()))
