@@ -17,7 +17,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 
-from shapes import Ellipsoid, label_volume  # noqa: E402
+from shapes import bumpy_ellipsoid, label_volume  # noqa: E402
 from volreg.implicit import ImplicitSurface  # noqa: E402
 from volreg.pipeline import WarpSettings, register_surfaces  # noqa: E402
 from volreg.surfaces import label_surface, vertex_normals  # noqa: E402
@@ -51,15 +51,7 @@ def blob(bumps: int, alpha: float, seed: int | None = None, **settings) -> str:
     """An ellipsoid with 0, 2, 4 or 8 bumps under a known warp: the near-linear shear
     below (``seed`` None) or 6 random Gaussian bumps of 15 mm (``seed``), max |u| = 15 % of
     the diameter over the box.  ``settings``: further `WarpSettings` (e.g. a wider ``pad``)."""
-    ell = Ellipsoid((20, 14, 10), (0.37, -0.21, 0.13))
-    extra = [Ellipsoid((6, 6, 6), (14.0, 8.0, 3.0)), Ellipsoid((5, 5, 5), (-6.0, -9.0, 7.0)),
-             Ellipsoid((7, 5, 5), (-15.0, 4.0, -4.0)), Ellipsoid((5, 5, 6), (3.0, 6.0, -9.0)),
-             Ellipsoid((5, 6, 5), (10.0, -8.0, -5.0)), Ellipsoid((6, 5, 5), (-10.0, 10.0, 6.0)),
-             Ellipsoid((5, 5, 5), (18.0, -3.0, 4.0)), Ellipsoid((5, 5, 5), (-3.0, -2.0, 11.0))][:bumps]
-
-    def sdf(p):
-        return np.min([ell.signed_distance(p)] + [b.signed_distance(p) for b in extra], axis=0)
-
+    sdf = bumpy_ellipsoid(bumps)
     vol = label_volume((60,) * 3, (1, 1, 1), np.eye(3), (-29.5,) * 3, sdf)
     s = label_surface(vol, 1)
     diameter = float(np.linalg.norm(s.vertices.max(0) - s.vertices.min(0)))

@@ -17,27 +17,19 @@ sliding along it (default pad: 0.67 / 1.02 / 0.91 / 0.91 %).  The samples are tw
 import numpy as np
 import pytest
 
-from shapes import Ellipsoid, label_volume
+from shapes import bumpy_ellipsoid, label_volume
 from volreg.implicit import ImplicitSurface
 from volreg.pipeline import WarpSettings, register_surfaces
 from volreg.surfaces import label_surface, vertex_normals
 from volreg.synthetic import GaussianBumps
 from volreg.warp import jacobian_det
 
-BODY = Ellipsoid((20, 14, 10), (0.37, -0.21, 0.13))
-BUMPS = [Ellipsoid((6, 6, 6), (14.0, 8.0, 3.0)), Ellipsoid((5, 5, 5), (-6.0, -9.0, 7.0)),
-         Ellipsoid((7, 5, 5), (-15.0, 4.0, -4.0)), Ellipsoid((5, 5, 6), (3.0, 6.0, -9.0)),
-         Ellipsoid((5, 6, 5), (10.0, -8.0, -5.0)), Ellipsoid((6, 5, 5), (-10.0, 10.0, 6.0)),
-         Ellipsoid((5, 5, 5), (18.0, -3.0, 4.0)), Ellipsoid((5, 5, 5), (-3.0, -2.0, 11.0))]
 SETTINGS = WarpSettings(pad=15.0, sample_scale=2.0)
 
 
 @pytest.fixture(scope="module")
 def source():
-    def sdf(p):
-        return np.min([BODY.signed_distance(p)] + [b.signed_distance(p) for b in BUMPS], axis=0)
-
-    surf = label_surface(label_volume((60,) * 3, (1, 1, 1), np.eye(3), (-29.5,) * 3, sdf), 1)
+    surf = label_surface(label_volume((60,) * 3, (1, 1, 1), np.eye(3), (-29.5,) * 3, bumpy_ellipsoid(8)), 1)
     diameter = float(np.linalg.norm(surf.vertices.max(0) - surf.vertices.min(0)))
     return surf, diameter, ImplicitSurface(surf.vertices, surf.normals, min_width=4.0)
 
