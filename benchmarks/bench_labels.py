@@ -69,7 +69,6 @@ def _dice(fixed, warped: np.ndarray) -> dict:
     return dict(dice=float(np.mean(list(scores.values()))), dice_large=float(np.mean(large)))
 
 
-
 def _read_field(path) -> np.ndarray:
     from volreg.io.fields import read_displacement
 
