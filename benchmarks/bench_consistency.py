@@ -49,9 +49,9 @@ def run_one(method: str) -> dict:
     out: dict = {}
     t0 = time.perf_counter()
     if method.startswith("volreg"):
-        from volreg.inverse import InverseWarp
-        from volreg.pipeline import register_labels
-        from volreg.protocol import load_protocol
+        from volreg.warp.inverse import InverseWarp
+        from volreg.register import register_labels
+        from volreg.io.protocol import load_protocol
 
         name = method.split("-")[1]
         protocol = load_protocol(name)
@@ -72,7 +72,7 @@ def run_one(method: str) -> dict:
 
         from volreg.io import write_labels
         from volreg.io.fields import read_displacement
-        from volreg.resample import resample_image
+        from volreg.warp.resample import resample_image
 
         def field_at(field, grid, points):
             return np.stack([resample_image(field[..., d], grid, points, order=1) for d in range(3)], axis=-1)
@@ -97,7 +97,7 @@ def run_one(method: str) -> dict:
 
         from volreg.io import write_labels
         from volreg.io.fields import read_displacement
-        from volreg.resample import resample_image
+        from volreg.warp.resample import resample_image
 
         def field_at(field, grid, points):
             return np.stack([resample_image(field[..., d], grid, points, order=1) for d in range(3)], axis=-1)

@@ -28,7 +28,7 @@ def frog_body():
     from pyvista import examples
 
     from volreg.io import read_labels
-    from volreg.volume import LabelVolume
+    from volreg.grid import LabelVolume
 
     vol = read_labels(os.path.join(os.path.dirname(examples.__file__), "frog_tissues.vti"))
     return LabelVolume((vol.array > 0).astype(np.uint8), vol.origin, vol.spacing, vol.direction)
@@ -37,9 +37,9 @@ def frog_body():
 def _child(task: str, arg: float) -> dict:
     import resource
 
-    from volreg.implicit import ImplicitSurface
+    from volreg.features.implicit import ImplicitSurface
     from volreg.kernels import kernel_sum, kernel_sum_reference
-    from volreg.surfaces import label_surface, voxel_size
+    from volreg.features.label_surfaces import label_surface, voxel_size
 
     cache = os.path.join(HERE, "out", "frog_body_surface.npz")
     if not os.path.exists(cache):
@@ -56,7 +56,7 @@ def _child(task: str, arg: float) -> dict:
     if task == "mesh":
         vol = frog_body()
         t0 = time.perf_counter()
-        from volreg.surfaces import label_surface as ls
+        from volreg.features.label_surfaces import label_surface as ls
 
         s = ls(vol, 1)
         out = dict(seconds=time.perf_counter() - t0, vertices=len(s.vertices))

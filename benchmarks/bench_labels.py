@@ -47,8 +47,8 @@ def _pair():
 
 
 def _scores(fixed, moving, positions, truth, det):
-    from volreg.metrics import dice
-    from volreg.resample import resample_labels
+    from volreg.evaluation.metrics import dice
+    from volreg.warp.resample import resample_labels
 
     warped = resample_labels(moving, positions)
     inside = fixed.array > 0
@@ -62,7 +62,7 @@ def _dice(fixed, warped: np.ndarray) -> dict:
     """Mean Dice over the fixed labels, and over those of at least LARGE voxels: a generated
     moving volume keeps labels of a few dozen voxels only approximately (resampled once), so
     that even the true warp brings some back with Dice 0 (see BENCHMARKS.md)."""
-    from volreg.metrics import dice
+    from volreg.evaluation.metrics import dice
 
     scores = {v: dice(fixed.array == v, warped == v) for v in fixed.labels()}
     large = [d for v, d in scores.items() if np.count_nonzero(fixed.array == v) >= LARGE]
@@ -134,9 +134,9 @@ def run_one(method: str) -> dict:
     fixed, moving, truth = _pair()
     t0 = time.perf_counter()
     if method.startswith("volreg"):
-        from volreg.field import fields_on_grid
-        from volreg.pipeline import register_labels
-        from volreg.protocol import load_protocol
+        from volreg.warp.field import fields_on_grid
+        from volreg.register import register_labels
+        from volreg.io.protocol import load_protocol
 
         import dataclasses
 
@@ -160,8 +160,8 @@ def run_one(method: str) -> dict:
 
 
 def interpolation_check() -> str:
-    from volreg.metrics import dice
-    from volreg.resample import resample_labels
+    from volreg.evaluation.metrics import dice
+    from volreg.warp.resample import resample_labels
 
     fixed, moving, truth = _pair()
     positions = truth(fixed.grid_points().reshape(-1, 3)).reshape(*fixed.shape, 3)
@@ -215,7 +215,7 @@ def main() -> None:
         times = ", ".join(f"{r['seconds']:.1f}" for r in runs)
         print(f"| {method} | {med['dice']:.4f} | {med['dice_large']:.4f} | {med['epe_mean']:.2f} / {med['epe_p95']:.2f} "
               f"| {med['folded']:.4f} | {med['seconds']:.1f} ({times}) | {med['peak_rss_gb']:.2f} |", flush=True)
-    from volreg.resample import resample_labels
+    from volreg.warp.resample import resample_labels
 
     fixed, moving, truth = _pair()
     x = fixed.grid_points()[fixed.array > 0]

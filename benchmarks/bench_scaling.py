@@ -46,8 +46,9 @@ def run_one(pad_fraction: float) -> dict:
     sys.path.insert(0, HERE)
     from bench_surfaces import _pair
 
-    from volreg.pipeline import WarpSettings, register_surfaces
-    from volreg.surface_registration import surface_normals
+    from volreg.settings import WarpSettings
+    from volreg.register import register_surfaces
+    from volreg.morph import surface_normals
 
     v, faces, truth, diameter = _pair(10**9)  # all 117k vertices
     target = truth(v)

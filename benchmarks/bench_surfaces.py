@@ -54,8 +54,9 @@ def run_one(method: str, size: int) -> dict:
     target = truth(v)
     t0 = time.perf_counter()
     if method == "volreg":
-        from volreg.pipeline import WarpSettings, register_surfaces
-        from volreg.surface_registration import surface_normals
+        from volreg.settings import WarpSettings
+        from volreg.register import register_surfaces
+        from volreg.morph import surface_normals
 
         src = (v, surface_normals(v, faces))
         tgt = (target, surface_normals(target, faces))

@@ -14,7 +14,7 @@ import numpy as np
 
 from volreg.cli import main as volreg
 from volreg.io import read_labels, write_labels
-from volreg.metrics import dice
+from volreg.evaluation.metrics import dice
 from volreg.synthetic import GaussianBumps, deform_labels
 
 sys.path.insert(0, str(Path(__file__).parent))

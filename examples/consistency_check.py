@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from volreg.inverse import InverseWarp, invert_points
-from volreg.pipeline import register_labels
-from volreg.protocol import load_protocol
+from volreg.warp.inverse import InverseWarp, invert_points
+from volreg.register import register_labels
+from volreg.io.protocol import load_protocol
 from volreg.synthetic import GaussianBumps, deform_labels
 
 sys.path.insert(0, str(Path(__file__).parent))

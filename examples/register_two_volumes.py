@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 
 from volreg import LabelVolume
-from volreg.field import displacement_on_grid
+from volreg.warp.field import displacement_on_grid
 from volreg.io import write_labels
 from volreg.io.fields import write_displacement
-from volreg.metrics import dice
-from volreg.pipeline import register_labels
-from volreg.protocol import load_protocol
-from volreg.resample import resample_labels
+from volreg.evaluation.metrics import dice
+from volreg.register import register_labels
+from volreg.io.protocol import load_protocol
+from volreg.warp.resample import resample_labels
 from volreg.synthetic import GaussianBumps, deform_labels
 
 

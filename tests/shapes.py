@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from volreg.volume import LabelVolume
+from volreg.grid import LabelVolume
 
 
 class Ellipsoid:

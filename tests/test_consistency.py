@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from volreg import LabelVolume
-from volreg.consistency import error_on_grid, error_summary, padded_region, round_trip_error, round_trip_labels
-from volreg.inverse import InverseWarp
+from volreg.evaluation.consistency import error_on_grid, error_summary, padded_region, round_trip_error, round_trip_labels
+from volreg.warp.inverse import InverseWarp
 from volreg.io import write_labels
 from volreg.io.fields import write_displacement
 from volreg.synthetic import GaussianBumps, deform_labels
-from volreg.warp import KernelWarp, WarpLevel
+from volreg.warp.model import KernelWarp, WarpLevel
 
 from test_inverse import smooth_warp
 from test_register import TEST_PROTOCOL, blob_volume, run

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from volreg.distance_maps import VoxelDistance, clipped_signed_distance
-from volreg.resample import signed_distance_map
+from volreg.features.distance_maps import VoxelDistance, clipped_signed_distance
+from volreg.warp.resample import signed_distance_map
 
 
 def _blobs(shape, seed=0):
@@ -135,12 +135,12 @@ def test_distance_maps_carry_a_label_without_a_surface():
     """A label of a few voxels (no surface: too small) drives the warp through its distance map:
     a cube of 2 x 2 x 2 voxels less one 10 voxels from a sphere, shifted by 2 voxels in the moving volume, comes
     back in place (Dice 1) with the maps and is missed without them."""
-    from volreg.metrics import dice
-    from volreg.protocol import load_protocol
-    from volreg.pipeline import register_labels
-    from volreg.field import fields_on_grid
-    from volreg.resample import resample_labels
-    from volreg.volume import LabelVolume
+    from volreg.evaluation.metrics import dice
+    from volreg.io.protocol import load_protocol
+    from volreg.register import register_labels
+    from volreg.warp.field import fields_on_grid
+    from volreg.warp.resample import resample_labels
+    from volreg.grid import LabelVolume
 
     shape = (40, 40, 40)
     index = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
@@ -173,12 +173,13 @@ def test_distance_maps_alone_drive_when_no_label_gives_a_surface():
     """Three labels of 7 voxels each (none gives a surface), shifted 3 mm along i in the moving
     volume: the distance maps alone register them (Dice 1, measured shifts 2.98-3.00 mm); with
     distance_weight 0 nothing drives and the registration stops with a clear error."""
-    from volreg.metrics import dice
-    from volreg.pipeline import RegistrationInputError, register_labels
-    from volreg.protocol import load_protocol
-    from volreg.field import fields_on_grid
-    from volreg.resample import resample_labels
-    from volreg.volume import LabelVolume
+    from volreg.evaluation.metrics import dice
+    from volreg.errors import RegistrationInputError
+    from volreg.register import register_labels
+    from volreg.io.protocol import load_protocol
+    from volreg.warp.field import fields_on_grid
+    from volreg.warp.resample import resample_labels
+    from volreg.grid import LabelVolume
 
     fixed_a = np.zeros((40, 40, 40), np.uint8)
     moving_a = fixed_a.copy()

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from shapes import Disc2D, Ellipsoid, Torus, label_volume, rotation
-from volreg.implicit import ImplicitSurface, estimate_normals
-from volreg.surfaces import implicit_surfaces, label_surfaces, voxel_size
+from volreg.features.implicit import ImplicitSurface, estimate_normals
+from volreg.features.label_surfaces import implicit_surfaces, label_surfaces, voxel_size
 
 ELLIPSOID = Ellipsoid((20, 15, 11), (0.37, -0.21, 0.13))
 TORUS = Torus(16, 6, (0.37, -0.21, 0.13))

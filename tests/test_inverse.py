@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from volreg import LabelVolume
-from volreg.field import displacement_on_grid
-from volreg.inverse import InverseWarp, invert_points
-from volreg.warp import KernelWarp, WarpLevel
+from volreg.warp.field import displacement_on_grid
+from volreg.warp.inverse import InverseWarp, invert_points
+from volreg.warp.model import KernelWarp, WarpLevel
 
 
 def smooth_warp(dim: int, seed: int = 0, strength: float = 1.0) -> KernelWarp:

@@ -14,17 +14,7 @@ import pyvista as pv
 import SimpleITK as sitk
 
 from volreg import LabelVolume
-from volreg.io import (
-    VolregIOError,
-    atomic_output,
-    check_writable,
-    read_image,
-    read_labels,
-    read_mesh,
-    write_labels,
-    write_mesh,
-    write_scalar,
-)
+from volreg.io import VolregIOError, atomic_output, check_writable, read_image, read_labels, read_mesh, write_labels, write_mesh, write_scalar
 
 # NIfTI stores origin, spacing and the qform quaternion as float32: relative
 # error ~6e-8, i.e. well under 1e-5 mm for coordinates of a few hundred mm.

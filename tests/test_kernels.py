@@ -6,18 +6,7 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from volreg.kernels import (
-    _MIN_MEAN_BLOCK,
-    _QBLOCK,
-    CellGrid,
-    SharedPatternCSR,
-    kernel_matrix,
-    kernel_sum,
-    kernel_sum_reference,
-    _query_blocks,
-    wu,
-    wu_derivatives,
-)
+from volreg.kernels import _MIN_MEAN_BLOCK, _QBLOCK, CellGrid, SharedPatternCSR, kernel_matrix, kernel_sum, kernel_sum_reference, _query_blocks, wu, wu_derivatives
 
 
 def test_wu_profile_values():

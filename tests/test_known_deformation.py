@@ -18,11 +18,12 @@ import numpy as np
 import pytest
 
 from shapes import bumpy_ellipsoid, label_volume
-from volreg.implicit import ImplicitSurface
-from volreg.pipeline import WarpSettings, register_surfaces
-from volreg.surfaces import label_surface, vertex_normals
+from volreg.features.implicit import ImplicitSurface
+from volreg.settings import WarpSettings
+from volreg.register import register_surfaces
+from volreg.features.label_surfaces import label_surface, vertex_normals
 from volreg.synthetic import GaussianBumps
-from volreg.warp import jacobian_det
+from volreg.warp.model import jacobian_det
 
 SETTINGS = WarpSettings(pad=15.0, sample_scale=2.0)
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from volreg.kernels import kernel_gradient_matrices, kernel_matrix, kernel_sum
-from volreg.objective import FeaturePair, LevelObjective, simplex_vertices
+from volreg.warp.objective import FeaturePair, LevelObjective, simplex_vertices
 
 
 class SphereSDF:

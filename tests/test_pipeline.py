@@ -9,10 +9,11 @@ land on their partners.
 import numpy as np
 import pytest
 
-from volreg.implicit import ImplicitSurface
-from volreg.pipeline import WarpSettings, register_surfaces
-from volreg.surfaces import label_surface
-from volreg.volume import LabelVolume
+from volreg.features.implicit import ImplicitSurface
+from volreg.settings import WarpSettings
+from volreg.register import register_surfaces
+from volreg.features.label_surfaces import label_surface
+from volreg.grid import LabelVolume
 
 # Protrusion: base on x = 20 from y = s - 8 to s + 8, tip at (30, s).
 TOP_MID, BOTTOM_MID, TIP = np.array([25.0, 4.0]), np.array([25.0, -4.0]), np.array([30.0, 0.0])
@@ -155,7 +156,7 @@ def test_bad_inputs():
 def test_fold_barrier_on_its_active_set_fits_as_the_barrier_on_every_point(shapes, monkeypatch):
     """The fold barrier is carried only by check points near fold_margin (plus those that
     cross it, in further rounds); the fit must be that of the barrier on every point."""
-    import volreg.pipeline as pipeline
+    import volreg.warp.fit as pipeline
 
     (_, f1), _ = shapes
     src = np.array([[20.0, -3.0], [20.0, 3.0]])  # two outline points that swap places: the warp must fold
@@ -173,7 +174,7 @@ def test_fold_barrier_on_its_active_set_fits_as_the_barrier_on_every_point(shape
 
 
 def test_despeckle_removes_pieces_under_the_speck_fraction_and_judges_at_another():
-    from volreg.pipeline import SPECK_FRACTION, despeckle
+    from volreg.register import SPECK_FRACTION, despeckle
 
     a = np.zeros((30, 30, 30), np.uint8)
     a[2:12, 2:12, 2:12] = 3  # 1000 voxels

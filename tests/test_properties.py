@@ -7,9 +7,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from volreg import LabelVolume
-from volreg.inverse import invert_points
-from volreg.resample import resample_labels
-from volreg.warp import KernelWarp, WarpLevel
+from volreg.warp.inverse import invert_points
+from volreg.warp.resample import resample_labels
+from volreg.warp.model import KernelWarp, WarpLevel
 
 FAST = settings(max_examples=25, deadline=None)
 

@@ -2,8 +2,10 @@
 
 import pytest
 
-from volreg.pipeline import WarpSettings
-from volreg.protocol import PROTOCOL_DIR, Protocol, ProtocolError, SurfaceSettings, load_protocol
+from volreg.settings import WarpSettings
+from volreg.io.protocol import PROTOCOL_DIR, load_protocol
+from volreg.settings import Protocol, SurfaceSettings
+from volreg.errors import ProtocolError
 
 
 def test_default_preset_names_every_default():

@@ -14,9 +14,9 @@ from volreg import LabelVolume
 from volreg.cli import main
 from volreg.io import read_labels, write_labels
 from volreg.io.fields import read_displacement
-from volreg.metrics import dice
+from volreg.evaluation.metrics import dice
 from volreg.synthetic import GaussianBumps, deform_labels
-from volreg.warp import KernelWarp
+from volreg.warp.model import KernelWarp
 
 from shapes import rotation
 

@@ -21,9 +21,10 @@ import SimpleITK as sitk
 from volreg import LabelVolume
 from volreg.cli import main
 from volreg.io import VolregIOError, read_mesh, write_labels
-from volreg.pipeline import RegistrationDiverged, fit_warp
-from volreg.warp import KernelWarp
-from volreg.objective import FeaturePair
+from volreg.errors import RegistrationDiverged
+from volreg.warp.fit import fit_warp
+from volreg.warp.model import KernelWarp
+from volreg.warp.objective import FeaturePair
 
 from test_register import TEST_PROTOCOL
 
@@ -360,7 +361,7 @@ def test_interrupt_lost_in_a_ctypes_callback_still_stops_the_run(tmp_path, monke
     OUTDIR gone."""
     import ctypes
 
-    import volreg._register_cli as register_cli
+    import volreg.cli.register as register_cli
     from test_register import blob_volume
 
     def raise_sigint() -> None:
@@ -389,7 +390,7 @@ def test_interrupt_lost_in_a_ctypes_callback_still_stops_the_run(tmp_path, monke
 def test_registration_is_deterministic_across_runs_and_threads(tmp_path):
     """Two runs give byte-identical outputs; 1 and 2 threads give the same warp (within 1e-6 mm)."""
     from volreg.synthetic import GaussianBumps, deform_labels
-    from volreg.warp import KernelWarp
+    from volreg.warp.model import KernelWarp
     from test_register import blob_volume
 
     a = blob_volume()
@@ -425,7 +426,7 @@ class _NaNFeature:
 
 
 def test_divergence_stops_with_the_level_named():
-    from volreg.pipeline import WarpSettings
+    from volreg.settings import WarpSettings
 
     pts = np.random.default_rng(0).uniform(-10, 10, (200, 3))
     with pytest.raises(RegistrationDiverged, match=r"Warp level 0 \(kernel width .* mm\) diverged.*protocol"):
@@ -434,7 +435,7 @@ def test_divergence_stops_with_the_level_named():
 
 def _folding_warp(volume: LabelVolume) -> KernelWarp:
     """Level 0: a gentle 1 mm shift bump; level 1: a 6 mm-wide bump of 10 mm that folds around the centre."""
-    from volreg.warp import WarpLevel
+    from volreg.warp.model import WarpLevel
 
     centre = volume.index_to_world((np.array(volume.shape)[None] - 1) / 2.0)
     gentle = WarpLevel(centre, np.array([[1.0, 0.0, 0.0]]), width=40.0)
@@ -443,8 +444,8 @@ def _folding_warp(volume: LabelVolume) -> KernelWarp:
 
 
 def test_a_warp_folding_the_grid_stops_with_the_level_named():
-    from volreg.field import jacobian_determinant_on_grid
-    from volreg.pipeline import check_folding
+    from volreg.warp.field import jacobian_determinant_on_grid
+    from volreg.warp.fit import check_folding
 
     volume = _cube()
     warp = _folding_warp(volume)
@@ -458,7 +459,7 @@ def test_a_warp_folding_the_grid_stops_with_the_level_named():
 
 
 def test_register_writes_nothing_when_the_warp_folds(files, tmp_path, capsys, monkeypatch):
-    import volreg._register_cli as rc
+    import volreg.cli.register as rc
 
     real = rc.register_labels
 
@@ -504,7 +505,7 @@ def test_header_without_orientation_is_reported(tmp_path, capsys):
 
 
 def test_fields_on_grid_is_displacement_and_jacobian_determinant_in_one_pass():
-    from volreg.field import displacement_on_grid, fields_on_grid, jacobian_determinant_on_grid
+    from volreg.warp.field import displacement_on_grid, fields_on_grid, jacobian_determinant_on_grid
 
     volume = _cube()
     warp = _folding_warp(volume)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from volreg.sampling import morton_order, octree_sample
+from volreg.warp.sampling import morton_order, octree_sample
 
 R, PAD, WIDTH = 20.0, 5.0, 8.0
 ROUND = 1e-9  # mm, float round-off on coordinates of order 50 mm

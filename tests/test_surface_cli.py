@@ -13,7 +13,7 @@ import pyvista as pv
 from volreg.cli import main
 from volreg.io.meshes import read_surface, write_gifti
 from volreg.synthetic import GaussianBumps
-from volreg.warp import KernelWarp
+from volreg.warp.model import KernelWarp
 
 DIAMETER = 40.0
 PROTOCOL = "[protocol]\nname = \"surface-test\"\n[warp]\nmin_width = 8.0\n"

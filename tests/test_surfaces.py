@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from shapes import Disc2D, Ellipsoid, label_volume, rotation
-from volreg.implicit import ImplicitSurface
-from volreg.surfaces import SurfaceError, implicit_on_grid, label_surface, label_surfaces
+from volreg.features.implicit import ImplicitSurface
+from volreg.errors import SurfaceError
+from volreg.features.label_surfaces import implicit_on_grid, label_surface, label_surfaces
 
 SPHERE = Ellipsoid((12, 12, 12), (0.31, 0.17, -0.23))
 

@@ -6,10 +6,11 @@ import pytest
 from threadpoolctl import threadpool_info, threadpool_limits
 
 from volreg._threads import _concurrent_numba, single_blas, thread_map
-from volreg.implicit import ImplicitSurface
-from volreg.field import fields_on_grid
-from volreg.pipeline import fit_warp, register_labels, register_surfaces
-from volreg.surfaces import implicit_surfaces
+from volreg.features.implicit import ImplicitSurface
+from volreg.warp.field import fields_on_grid
+from volreg.warp.fit import fit_warp
+from volreg.register import register_labels, register_surfaces
+from volreg.features.label_surfaces import implicit_surfaces
 
 
 def _blas_threads() -> list[int]:

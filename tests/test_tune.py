@@ -7,10 +7,12 @@ import csv
 import numpy as np
 import pytest
 
-from volreg.cli import UsageError  # before volreg._tune_cli, which it imports
-from volreg._tune_cli import parse_grid
+from volreg.errors import UsageError  # before volreg._tune_cli, which it imports
+from volreg.cli.tune import parse_grid
 from volreg.io import write_labels
-from volreg.protocol import ProtocolError, load_protocol, protocol_to_toml, replace_settings
+from volreg.errors import ProtocolError
+from volreg.io.protocol import load_protocol, protocol_to_toml
+from volreg.settings import replace_settings
 from volreg.synthetic import GaussianBumps, deform_labels
 
 from test_register import TEST_PROTOCOL, blob_volume, run

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from volreg.io import VolregIOError
-from volreg.warp import FORMAT, ComposedWarp, KernelWarp, WarpLevel, jacobian_det
+from volreg.warp.model import FORMAT, ComposedWarp, KernelWarp, WarpLevel, jacobian_det
 
 FD_STEP = 1e-4  # mm
 

@@ -2,8 +2,17 @@
 
 Implements Schölkopf, Steinke & Blanz, "Object Correspondence as a Machine
 Learning Problem" (ICML 2005).  World coordinates are ITK physical space (LPS, mm).
+
+The public API is importable from here (loaded on first use, so ``import volreg``
+stays light)::
+
+    import volreg
+    fixed = volreg.read_labels("fixed.nii.gz")
+    moving = volreg.read_labels("moving.nii.gz")
+    result = volreg.register_labels(fixed, moving)   # result.warp maps fixed -> moving points
 """
 
+from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 
 try:
@@ -11,6 +20,58 @@ try:
 except PackageNotFoundError:  # running from a source tree without installation
     __version__ = "0.0.0+unknown"
 
-from .volume import LabelVolume  # noqa: E402
+#: Public name -> the module that defines it.
+_API = {
+    # the main jobs
+    "register_labels": "volreg.register",
+    "register_surfaces": "volreg.register",
+    "LabelRegistration": "volreg.register",
+    "RegistrationResult": "volreg.warp.fit",
+    # data and files
+    "LabelVolume": "volreg.grid",
+    "read_labels": "volreg.io",
+    "read_image": "volreg.io",
+    "write_labels": "volreg.io",
+    "read_mesh": "volreg.io",
+    "write_mesh": "volreg.io",
+    "read_landmarks": "volreg.io.landmarks",
+    "read_displacement": "volreg.io.fields",
+    "write_displacement": "volreg.io.fields",
+    # settings
+    "load_protocol": "volreg.io.protocol",
+    "Protocol": "volreg.settings",
+    "SurfaceSettings": "volreg.settings",
+    "WarpSettings": "volreg.settings",
+    # the warp
+    "KernelWarp": "volreg.warp.model",
+    "InverseWarp": "volreg.warp.inverse",
+    "resample_labels": "volreg.warp.resample",
+    "displacement_on_grid": "volreg.warp.field",
+    # evaluation
+    "label_scores": "volreg.evaluation.metrics",
+    # errors
+    "VolregError": "volreg.errors",
+    "VolregIOError": "volreg.errors",
+    "GeometryError": "volreg.errors",
+    "SurfaceError": "volreg.errors",
+    "ProtocolError": "volreg.errors",
+    "RegistrationInputError": "volreg.errors",
+    "RegistrationDiverged": "volreg.errors",
+    "UsageError": "volreg.errors",
+    "VolregWarning": "volreg.errors",
+}
 
-__all__ = ["LabelVolume", "__version__"]
+__all__ = sorted(_API) + ["__version__"]
+
+
+def __getattr__(name: str):
+    module = _API.get(name)
+    if module is None:
+        raise AttributeError(f"module 'volreg' has no attribute {name!r}")
+    value = getattr(import_module(module), name)
+    globals()[name] = value  # later lookups skip this hook
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_API))

@@ -1,6 +1,6 @@
 """``python -m volreg``: the same as the ``volreg`` command."""
 
-from .cli import main
+from volreg.cli import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -10,8 +10,8 @@ import os
 
 import numpy as np
 
-from .synthetic import GaussianBumps, deform_labels
-from .volume import LabelVolume
+from volreg.synthetic import GaussianBumps, deform_labels
+from volreg.grid import LabelVolume
 
 __all__ = ["frog_path", "block_mode", "frog_pair"]
 

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .resample import resample_labels
-from .volume import LabelVolume
+from volreg.warp.resample import resample_labels
+from volreg.grid import LabelVolume
 
 __all__ = ["GaussianBumps", "deform_labels"]
 

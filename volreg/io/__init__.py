@@ -6,10 +6,11 @@ with one line naming the file and the problem; writers are atomic and refuse
 to overwrite unless ``force=True``.
 """
 
-from ._atomic import VolregIOError, VolregWarning, atomic_output, check_writable
-from .images import read_image, read_labels, write_labels, write_scalar
-from .meshes import read_mesh, write_mesh
-from .summary import write_json, write_text
+from volreg.errors import VolregIOError, VolregWarning
+from volreg.io._atomic import atomic_output, check_writable
+from volreg.io.images import read_image, read_labels, write_labels, write_scalar
+from volreg.io.meshes import read_mesh, write_mesh
+from volreg.io.summary import write_json, write_text
 
 __all__ = [
     "VolregIOError",

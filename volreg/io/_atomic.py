@@ -12,16 +12,9 @@ import secrets
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from volreg.errors import VolregIOError
 
 __all__ = ["VolregIOError", "atomic_output", "check_writable"]
-
-
-class VolregIOError(ValueError):
-    """Raised when a file cannot be read or written; the message names the file."""
-
-
-class VolregWarning(UserWarning):
-    """An input that is read, but not unambiguously (the command line prints it as one line)."""
 
 
 def _exists_message(path: Path) -> str:

@@ -19,9 +19,10 @@ import nibabel as nib
 import numpy as np
 import SimpleITK as sitk
 
-from ..volume import LabelVolume
-from ._atomic import VolregIOError, atomic_output
-from .images import _check_input, _check_nifti, _sitk_reason
+from volreg.grid import LabelVolume
+from volreg.errors import VolregIOError
+from volreg.io._atomic import atomic_output
+from volreg.io.images import _check_input, _check_nifti, _sitk_reason
 
 __all__ = ["write_displacement", "read_displacement"]
 

@@ -26,9 +26,11 @@ import nibabel as nib
 import numpy as np
 import SimpleITK as sitk
 
-from ..volume import GeometryError, LabelVolume
-from ._atomic import VolregIOError, VolregWarning, atomic_output
-from .vti import read_vti
+from volreg.errors import GeometryError
+from volreg.grid import LabelVolume
+from volreg.errors import VolregIOError, VolregWarning
+from volreg.io._atomic import atomic_output
+from volreg.io.vti import read_vti
 
 __all__ = ["read_labels", "write_labels", "write_scalar", "read_image"]
 

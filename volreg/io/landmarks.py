@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import VolregIOError
+from volreg.errors import VolregIOError
 
 __all__ = ["read_landmarks"]
 

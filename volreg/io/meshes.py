@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-from ._atomic import VolregIOError, VolregWarning, atomic_output
+from volreg.errors import VolregIOError, VolregWarning
+from volreg.io._atomic import atomic_output
 
 __all__ = ["write_mesh", "read_mesh", "read_surface", "write_gifti", "SurfaceData"]
 

@@ -18,7 +18,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 
-from ._atomic import VolregIOError, atomic_output
+from volreg.errors import VolregIOError
+from volreg.io._atomic import atomic_output
 
 __all__ = ["write_report_figure", "write_error_figure"]
 

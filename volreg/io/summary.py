@@ -7,7 +7,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from ._atomic import VolregIOError, atomic_output
+from volreg.errors import VolregIOError
+from volreg.io._atomic import atomic_output
 
 __all__ = ["write_json", "write_text"]
 

@@ -20,7 +20,7 @@ import pyvista as pv
 from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
 from vtkmodules.vtkIOXML import vtkXMLImageDataReader
 
-from ._atomic import VolregIOError
+from volreg.errors import VolregIOError
 
 __all__ = ["read_vti"]
 

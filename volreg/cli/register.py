@@ -8,137 +8,33 @@ renamed when complete; on any failure the files this run wrote are removed.
 from __future__ import annotations
 
 import argparse
-import hashlib
-import importlib.metadata
 import os
-import resource
 import sys
 import time
 from pathlib import Path
-
 import numpy as np
+from volreg import __version__
+from volreg.cli._common import PROG, _check_pair, _json_safe, _load_landmarks, _peak_rss_gb, _prepare_outdir, _remove_directories, _sha256, _versions
+from volreg.errors import UsageError
+from volreg.warp.field import displacement_on_grid, fields_on_grid
+from volreg.warp.inverse import InverseWarp
+from volreg.io import check_writable, read_image, read_labels, write_json, write_labels, write_scalar
+from volreg.io.fields import read_displacement, write_displacement
+from volreg.io.report_figure import write_report_figure
+from volreg.evaluation.metrics import folded_fraction, label_scores
+from volreg.warp.fit import check_folding
+from volreg.register import register_labels
+from volreg.progress import ProgressBars
+from volreg.io.protocol import PROTOCOL_DIR, load_protocol
+from volreg.settings import Protocol
+from volreg.warp.resample import resample_image, resample_labels
+from volreg.grid import LabelVolume
+from volreg.warp.model import KernelWarp
 
-from . import __version__
-from .cli import PROG, UsageError, _make_directory, _remove_directories
-from .field import displacement_on_grid, fields_on_grid
-from .inverse import InverseWarp
-from .io import check_writable, read_image, read_labels, write_json, write_labels, write_scalar
-from .io.fields import read_displacement, write_displacement
-from .io.landmarks import read_landmarks
-from .io.report_figure import write_report_figure
-from .metrics import folded_fraction, label_scores
-from .pipeline import check_folding, register_labels
-from .progress import ProgressBars
-from .protocol import PROTOCOL_DIR, Protocol, load_protocol
-from .resample import resample_image, resample_labels
-from .volume import LabelVolume
-from .warp import KernelWarp
 
 OUTPUTS = (
     "warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz", "model.npz", "jacobian.nii.gz", "report.json", "report.png",
 )
-
-
-def _peak_rss_gb() -> float:
-    """Peak resident memory of this process so far, GB (Linux reports kB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def _versions() -> dict[str, str]:
-    out = {"volreg": __version__, "python": sys.version.split()[0]}
-    for name in ("numpy", "scipy", "SimpleITK", "nibabel", "scikit-image", "pyvista", "numba"):
-        try:
-            out[name] = importlib.metadata.version(name)
-        except importlib.metadata.PackageNotFoundError:  # pragma: no cover
-            out[name] = "unknown"
-    return out
-
-
-def _world_box(volume: LabelVolume) -> tuple[np.ndarray, np.ndarray]:
-    """LPS bounding box (mm) of the voxel domain of ``volume``."""
-    corners = np.array(list(np.ndindex(*([2] * volume.ndim))), dtype=float)
-    pts = volume.index_to_world(corners * (np.array(volume.shape) - 1)[None] + (corners - 0.5))
-    return pts.min(axis=0), pts.max(axis=0)
-
-
-#: Peak memory of a registration, estimated before it starts: a base plus bytes per voxel of the
-#: two grids (measured on the frog demo: 1.71 GB peak for two grids of 1.76 M voxels).
-_BASE_GB = 0.4
-_BYTES_PER_VOXEL = 400
-
-
-def _available_bytes() -> int | None:
-    """MemAvailable from /proc/meminfo (Linux), else None."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:  # pragma: no cover - not Linux
-        return None
-    return None
-
-
-def estimated_peak_gb(fixed: LabelVolume, moving: LabelVolume) -> float:
-    """Rough peak memory (GB) of registering ``moving`` to ``fixed``."""
-    voxels = int(np.prod(fixed.shape)) + int(np.prod(moving.shape))
-    return _BASE_GB + _BYTES_PER_VOXEL * voxels / 1024**3
-
-
-def _check_memory(fixed: LabelVolume, moving: LabelVolume, fixed_path, moving_path) -> None:
-    """Refuse a job that would not fit in the memory available now, before it starts."""
-    need = estimated_peak_gb(fixed, moving)
-    available = _available_bytes()
-    if available is not None and need * 1024**3 > available:
-        raise UsageError(
-            f"Registering `{moving_path}` ({moving.shape}) to `{fixed_path}` ({fixed.shape}) would need about "
-            f"{need:.1f} GB of memory and {available / 1024**3:.1f} GB is available; expected smaller grids "
-            "(downsample the label volumes) or more free memory."
-        )
-
-
-def _check_pair(fixed: LabelVolume, moving: LabelVolume, fixed_path, moving_path) -> None:
-    if fixed.ndim != moving.ndim:
-        raise UsageError(f"`{fixed_path}` is {fixed.ndim}-D and `{moving_path}` {moving.ndim}-D; expected two volumes of one dimension.")
-    lo1, hi1 = _world_box(fixed)
-    lo2, hi2 = _world_box(moving)
-    if np.any(hi1 < lo2) or np.any(hi2 < lo1):
-        raise UsageError(
-            f"The grids of `{fixed_path}` and `{moving_path}` do not overlap in world (LPS) space "
-            f"(fixed {np.round(lo1, 1).tolist()}..{np.round(hi1, 1).tolist()} mm, moving "
-            f"{np.round(lo2, 1).tolist()}..{np.round(hi2, 1).tolist()} mm); check their origins and orientations."
-        )
-    _check_memory(fixed, moving, fixed_path, moving_path)
-
-
-def _json_safe(value):
-    """NaN and Inf -> None (JSON null), recursively; numpy scalars -> Python numbers."""
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, (float, np.floating)):
-        return float(value) if np.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    return value
-
-
-def _prepare_outdir(outdir: Path, force: bool) -> list[Path]:
-    """Create OUTDIR; refuse a non-empty one without ``force``."""
-    if outdir.is_dir() and any(outdir.iterdir()) and not force:
-        raise UsageError(f"Output directory `{outdir}` exists and is not empty; pass --force to write into it.")
-    return _make_directory(outdir)
 
 
 def run_registration(
@@ -281,34 +177,6 @@ def run_registration(
     return report
 
 
-def _load_landmarks(args, fixed: LabelVolume | None = None, moving: LabelVolume | None = None):
-    """The ``--landmarks`` pair, checked for equal counts and (given the volumes) to lie in their images."""
-    if args.landmarks is None:
-        return None
-    a = read_landmarks(args.landmarks[0])
-    b = read_landmarks(args.landmarks[1])
-    if len(a) != len(b):
-        raise UsageError(
-            f"--landmarks: `{args.landmarks[0]}` has {len(a)} points and `{args.landmarks[1]}` {len(b)}; "
-            "expected the same number, in corresponding order."
-        )
-    for points, volume, path, role in ((a, fixed, args.landmarks[0], "first"), (b, moving, args.landmarks[1], "second")):
-        if volume is None:
-            continue
-        if points.shape[1] != volume.ndim:
-            raise UsageError(f"--landmarks: `{path}` holds {points.shape[1]}-D points for a {volume.ndim}-D image.")
-        lo, hi = _world_box(volume)
-        outside = np.flatnonzero(np.any((points < lo) | (points > hi), axis=1))
-        if outside.size:
-            i = int(outside[0])
-            raise UsageError(
-                f"--landmarks: point {i + 1} of `{path}` ({', '.join(f'{v:.1f}' for v in points[i])} mm) lies outside the "
-                f"{role} image's extent ({np.round(lo, 1).tolist()}..{np.round(hi, 1).tolist()} mm LPS); expected "
-                "points inside it (check the file's coordinate system: LPS or RAS)."
-            )
-    return a, b
-
-
 def _summary_line(command: str, report: dict, outdir: Path) -> str:
     d = report["mean_dice"]
     line = (f"{PROG} {command}: mean Dice {d['before']:.3f} -> {d['after']:.3f} over {len(report['labels'])} labels, "
@@ -388,7 +256,7 @@ def _protocols(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from .demo import frog_pair, frog_path
+    from volreg.demo import frog_pair, frog_path
 
     protocol = load_protocol(args.protocol)
     path = Path(frog_path())

@@ -16,76 +16,25 @@ with its traceback.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import signal
 import sys
 import threading
-import time
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-from . import __version__
-from .io import VolregIOError, VolregWarning, check_writable, read_labels, write_json, write_mesh, write_scalar
-from .pipeline import RegistrationDiverged, RegistrationInputError
-from .progress import ProgressBars, clear_interrupt, note_interrupt
-from .protocol import ProtocolError
-from .surfaces import SurfaceError, implicit_on_grid, implicit_surfaces, label_surfaces
-from .volume import GeometryError, LabelVolume
+from volreg import __version__
+from volreg.cli._common import EXPECTED_ERRORS, PROG, UsageError, _float_at_least, _label_list, _warn
+from volreg.cli.consistency import run_consistency as _consistency
+from volreg.cli.register import _apply, _demo, _protocols, _register
+from volreg.cli.register_surfaces import add_surface_commands
+from volreg.cli.surface import _surface
+from volreg.cli.tune import run_tune as _tune
+from volreg.errors import VolregWarning
+from volreg.progress import clear_interrupt, note_interrupt
 
 __all__ = ["main", "build_parser", "UsageError"]
-
-PROG = "volreg"
-
-
-class UsageError(ValueError):
-    """A command-line request that cannot be carried out (bad argument or combination)."""
-
-
-#: Errors that are the user's input, not volreg's bug: reported in one line, exit status 2.
-EXPECTED_ERRORS = (
-    VolregIOError, SurfaceError, GeometryError, UsageError, ProtocolError, RegistrationInputError, RegistrationDiverged,
-)
-
-#: How many label values an error message lists before eliding the rest.
-_MAX_LISTED = 30
-
-
-# --------------------------------------------------------------------------- argument types
-
-
-def _label_list(text: str) -> list[int]:
-    """``"1,3"`` -> ``[1, 3]``; for ``--labels``."""
-    expected = "expected comma-separated non-zero integer labels such as 1,3"
-    items = [t.strip() for t in text.split(",")]
-    try:
-        labels = [int(t) for t in items]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{expected}, got {text!r}") from None
-    if 0 in labels:
-        raise argparse.ArgumentTypeError(f"{expected}, got {text!r} (0 is the background)")
-    duplicates = sorted({v for v in labels if labels.count(v) > 1})
-    if duplicates:
-        raise argparse.ArgumentTypeError(f"{expected}, got {text!r} (label {duplicates[0]} is listed twice)")
-    return labels
-
-
-def _float_at_least(lower: float, *, strict: bool, upper: float = math.inf):
-    """An argparse type for a finite float ``> lower`` (``strict``) or ``>= lower``, and ``<= upper``."""
-    relation = ">" if strict else ">="
-    expected = f"a number {relation} {lower:g}" + (f" and <= {upper:g}" if upper < math.inf else "")
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
-        if not math.isfinite(value) or (value <= lower if strict else value < lower) or value > upper:
-            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
-        return value
-
-    return parse
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -263,183 +212,11 @@ def _common_register_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="store_true", help="log each stage and warp level to stderr")
 
 
-# --------------------------------------------------------------------------- helpers
-
-
-def _listing(values: Sequence[int]) -> str:
-    shown = ", ".join(str(v) for v in values[:_MAX_LISTED])
-    return shown + (f", ... ({len(values)} in all)" if len(values) > _MAX_LISTED else "")
-
-
-def _warn(command: str, message: str) -> None:
-    print(f"{PROG} {command}: warning: {message}", file=sys.stderr)
-
-
-def _select_labels(volume: LabelVolume, image: Path, requested: list[int] | None, skip: bool) -> list[int]:
-    """The labels to process: ``requested`` (checked against the volume) or all present."""
-    present = volume.labels().tolist()
-    if not present:
-        raise UsageError(f"Label image `{image}` holds no labels (every voxel is 0); expected a segmentation.")
-    if requested is None:
-        return present
-    present_set = set(present)
-    absent = [v for v in requested if v not in present_set]
-    for v in absent:
-        message = f"label {v} of --labels is absent from `{image}` (labels present: {_listing(present)})"
-        if not skip:
-            raise UsageError(message[0].upper() + message[1:] + "; pass --skip-small to skip it.")
-        _warn("surface", f"skipping {message}.")
-    labels = [v for v in requested if v not in absent]
-    if not labels:
-        raise UsageError(f"None of --labels {_listing(requested)} is present in `{image}`; nothing to do.")
-    return labels
-
-
-def _make_directory(path: Path) -> list[Path]:
-    """Create ``path`` and any missing parents; return the directories created, outermost first."""
-    if path.exists() and not path.is_dir():
-        raise UsageError(f"Output directory `{path}` exists and is not a directory; expected a directory for -o.")
-    missing = []
-    p = path
-    while not p.exists():
-        missing.append(p)
-        if p.parent == p:
-            break
-        p = p.parent
-    created: list[Path] = []
-    for d in reversed(missing):
-        try:
-            d.mkdir()
-        except OSError as exc:
-            _remove_directories(created)
-            raise VolregIOError(f"Output directory `{d}` could not be created: {exc.strerror}.") from exc
-        created.append(d)
-    return created
-
-
-def _remove_directories(created: list[Path]) -> None:
-    """Remove directories this run created, innermost first, if they are empty."""
-    for d in reversed(created):
-        try:
-            d.rmdir()
-        except OSError:
-            return
-
-
-# --------------------------------------------------------------------------- volreg surface
-
-
-def _surface(args: argparse.Namespace) -> int:
-    """``volreg surface``: meshes, implicit surfaces and their signed distances for each label."""
-    start = time.perf_counter()
-    volume = read_labels(args.image)
-    labels = _select_labels(volume, args.image, args.labels, args.skip_small)
-
-    outdir: Path = args.output
-    meshes = {v: outdir / f"label_{v}.vtk" for v in labels}
-    sdfs = {v: outdir / f"sdf_{v}.nii.gz" for v in labels}
-    summary_path = outdir / "surface.json"
-    created = _make_directory(outdir)
-    written: list[Path] = []
-    try:
-        check_writable([*meshes.values(), *sdfs.values(), summary_path], force=args.force)
-        with ProgressBars(quiet=args.quiet) as progress:
-            with warnings.catch_warnings(record=True) as caught:
-                # label_surfaces warns for each label it skips (on_small="warn").
-                warnings.simplefilter("always")
-                surfaces = label_surfaces(
-                    volume,
-                    labels,
-                    on_small="warn" if args.skip_small else "error",
-                    smoothing=args.smoothing,
-                    progress=progress,
-                )
-            for w in caught:
-                _warn("surface", str(w.message))
-            if not surfaces:
-                raise UsageError(f"No label of `{args.image}` gave a surface; nothing to write.")
-
-            records = []
-            implicit = {}
-            for i, (label, surf) in enumerate(surfaces.items()):
-                t0 = time.perf_counter()
-                implicit[label] = implicit_surfaces(volume, {label: surf}, min_width_voxels=args.min_width)[label]
-                fit_seconds = time.perf_counter() - t0
-                model = implicit[label]
-                records.append(
-                    {
-                        "label": int(label),
-                        "mesh": meshes[label].name,
-                        "sdf": sdfs[label].name,
-                        "vertices": int(len(surf.vertices)),
-                        "cells": int(len(surf.cells)),
-                        "smoothing_mm": float(surf.smoothing),
-                        "levels": [float(w) for w in model.widths],
-                        "centres": int(sum(len(level.centres) for level in model.levels)),
-                        "fit_seconds": round(fit_seconds, 3),
-                    }
-                )
-                progress("fit implicit surfaces", i + 1, len(surfaces))
-
-            for i, (label, surf) in enumerate(surfaces.items()):
-                write_mesh(surf.vertices, surf.cells, meshes[label], normals=surf.normals, force=args.force)
-                written.append(meshes[label])
-                sdf = implicit_on_grid(implicit[label], volume)
-                write_scalar(sdf, volume, sdfs[label], force=args.force)
-                written.append(sdfs[label])
-                progress("sample and write", i + 1, len(surfaces))
-
-            summary = {
-                "volreg_version": __version__,
-                "command": "surface",
-                "input": str(args.image),
-                "grid": {
-                    "shape": [int(n) for n in volume.shape],
-                    "origin_mm": volume.origin.tolist(),
-                    "spacing_mm": volume.spacing.tolist(),
-                    "direction": volume.direction.tolist(),
-                    "frame": "LPS",
-                },
-                "parameters": {
-                    "smoothing_voxels": args.smoothing,
-                    "min_width_voxels": args.min_width,
-                    "skip_small": bool(args.skip_small),
-                },
-                "labels": records,
-                "skipped": [int(v) for v in (args.labels or labels) if v not in surfaces],
-                "seconds": round(time.perf_counter() - start, 3),
-            }
-            write_json(summary, summary_path, force=args.force)
-            written.append(summary_path)
-    except BaseException:
-        # Leave nothing behind: remove what this run wrote and the directories it created.
-        for path in written:
-            path.unlink(missing_ok=True)
-        _remove_directories(created)
-        raise
-
-    done = sorted(surfaces)
-    print(
-        f"{PROG} surface: {len(done)} label{'s' if len(done) != 1 else ''} ({_listing(done)}) -> "
-        f"{outdir}{os.sep} ({len(written)} files) in {time.perf_counter() - start:.1f} s"
-    )
-    return 0
-
-
-from ._register_cli import _apply, _demo, _protocols, _register  # noqa: E402  (they use the helpers above)
-from ._consistency_cli import run_consistency as _consistency  # noqa: E402
-from ._tune_cli import run_tune as _tune  # noqa: E402
-from ._surface_cli import add_surface_commands  # noqa: E402
-
-
 def _batch(args: argparse.Namespace) -> int:
-    # Imported when run: Dask workers import volreg._batch_cli (its task) before volreg.cli.
-    from ._batch_cli import run_batch
+    # Imported when run: Dask and its workers are needed only here.
+    from volreg.cli.batch import run_batch
 
     return run_batch(args)
-
-
-# --------------------------------------------------------------------------- entry point
 
 
 def _raise_interrupt(signum, frame) -> None:

@@ -24,12 +24,12 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .consistency import error_on_grid, padded_region
-from .inverse import InverseWarp
-from .pipeline import register_labels
-from .protocol import Protocol, replace_settings
-from .surfaces import Surface
-from .volume import LabelVolume
+from volreg.evaluation.consistency import error_on_grid, padded_region
+from volreg.warp.inverse import InverseWarp
+from volreg.register import register_labels
+from volreg.settings import Protocol, replace_settings
+from volreg.features.label_surfaces import Surface
+from volreg.grid import LabelVolume
 
 __all__ = ["grid_settings", "holdout_surface_distance", "score_setting"]
 

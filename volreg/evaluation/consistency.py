@@ -19,10 +19,10 @@ from typing import Callable
 import numpy as np
 from scipy import ndimage
 
-from .field import displacement_on_grid
-from .metrics import dice
-from .resample import resample_labels
-from .volume import LabelVolume
+from volreg.warp.field import displacement_on_grid
+from volreg.evaluation.metrics import dice
+from volreg.warp.resample import resample_labels
+from volreg.grid import LabelVolume
 
 __all__ = [
     "padded_region",

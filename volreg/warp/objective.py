@@ -33,7 +33,7 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from .kernels import SharedPatternCSR
+from volreg.kernels import SharedPatternCSR
 
 __all__ = ["FeaturePair", "LevelObjective", "simplex_vertices"]
 

@@ -33,7 +33,7 @@ from typing import Any, Callable, Union
 
 import numpy as np
 
-from .kernels import CellGrid, _check_points, kernel_sum, put_rows, spatial_order, take_rows
+from volreg.kernels import CellGrid, _check_points, kernel_sum, put_rows, spatial_order, take_rows
 
 __all__ = ["WarpLevel", "KernelWarp", "ComposedWarp", "FORMAT", "FORMAT_VERSION", "DEFAULT_CHUNK", "jacobian_det"]
 
@@ -402,7 +402,7 @@ class KernelWarp(_PointMap):
             ``dim`` (0-d int), ``widths`` ((L,) float, mm), and per level ``i``
             ``centres_<i>`` and ``coeffs_<i>`` ((M_i, D) float, mm).
         """
-        from . import __version__
+        from volreg import __version__
 
         out: dict[str, np.ndarray] = {
             "format": np.array(FORMAT),
@@ -450,7 +450,7 @@ class KernelWarp(_PointMap):
         volreg.io.VolregIOError
             If ``path`` exists and ``force`` is false, or cannot be written.
         """
-        from .io import atomic_output
+        from volreg.io import atomic_output
 
         arrays = self.to_arrays()
         with atomic_output(path, force=force) as tmp:
@@ -467,7 +467,7 @@ class KernelWarp(_PointMap):
             (a ``ValueError``) with one line naming the file and the problem,
             if it does not exist or is not a valid kernel warp.
         """
-        from .io import VolregIOError
+        from volreg.io import VolregIOError
 
         name = os.fspath(path)
         if not os.path.exists(name):

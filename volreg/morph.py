@@ -12,7 +12,7 @@ import numpy as np
 import pyvista as pv
 from scipy.spatial import cKDTree
 
-from .implicit import estimate_normals
+from volreg.features.implicit import estimate_normals
 
 __all__ = ["surface_normals", "closest_points", "morph_vertices", "transfer_values"]
 

@@ -28,8 +28,8 @@ from typing import Callable
 
 import numpy as np
 
-from .kernels import _check_points
-from .warp import _PointMap
+from volreg.kernels import _check_points
+from volreg.warp.model import _PointMap
 
 __all__ = ["InverseSolution", "invert_points", "InverseWarp"]
 

@@ -14,9 +14,9 @@ from typing import Callable
 
 import numpy as np
 
-from ._threads import single_blas
-from .volume import LabelVolume
-from .warp import jacobian_det
+from volreg._threads import single_blas
+from volreg.grid import LabelVolume
+from volreg.warp.model import jacobian_det
 
 __all__ = ["displacement_on_grid", "fields_on_grid", "jacobian_determinant_on_grid", "support_slices"]
 

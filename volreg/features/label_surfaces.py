@@ -21,9 +21,10 @@ import numpy as np
 from scipy import ndimage
 from skimage import measure
 
-from ._threads import single_blas, thread_map
-from .implicit import ImplicitSurface
-from .volume import LabelVolume
+from volreg._threads import single_blas, thread_map
+from volreg.features.implicit import ImplicitSurface
+from volreg.grid import LabelVolume
+from volreg.errors import SurfaceError
 
 __all__ = [
     "Surface",
@@ -34,10 +35,6 @@ __all__ = [
     "implicit_on_grid",
     "voxel_size",
 ]
-
-
-class SurfaceError(ValueError):
-    """A label cannot give a surface (absent from the volume, or too small)."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -12,20 +12,22 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
-from .cli import PROG, UsageError, _remove_directories
-from .consistency import error_on_grid, error_summary, padded_region, round_trip_dice, round_trip_labels
-from .io import check_writable, read_labels, write_json, write_scalar
-from .io.fields import read_displacement
-from .inverse import InverseWarp
-from .io.report_figure import write_error_figure
-from .progress import ProgressBars
-from .protocol import load_protocol
-from .surfaces import label_surfaces
-from .volume import LabelVolume
-from .warp import KernelWarp
-from ._register_cli import OUTPUTS as REGISTER_OUTPUTS
-from ._register_cli import _check_pair, _json_safe, _prepare_outdir, _sha256, _versions, run_registration
+from volreg import __version__
+from volreg.cli._common import PROG, _remove_directories
+from volreg.errors import UsageError
+from volreg.evaluation.consistency import error_on_grid, error_summary, padded_region, round_trip_dice, round_trip_labels
+from volreg.io import check_writable, read_labels, write_json, write_scalar
+from volreg.io.fields import read_displacement
+from volreg.warp.inverse import InverseWarp
+from volreg.io.report_figure import write_error_figure
+from volreg.progress import ProgressBars
+from volreg.io.protocol import load_protocol
+from volreg.features.label_surfaces import label_surfaces
+from volreg.grid import LabelVolume
+from volreg.warp.model import KernelWarp
+from volreg.cli.register import OUTPUTS as REGISTER_OUTPUTS
+from volreg.cli._common import _check_pair, _json_safe, _prepare_outdir, _sha256, _versions
+from volreg.cli.register import run_registration
 
 __all__ = ["run_consistency"]
 

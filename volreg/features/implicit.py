@@ -34,12 +34,11 @@ from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 import scipy.sparse as sp
 
-from .kernels import CellGrid, _check_points, kernel_matrix, kernel_sum, put_rows, spatial_order, take_rows
+from volreg.kernels import CellGrid, _check_points, kernel_matrix, kernel_sum, put_rows, spatial_order, take_rows
 
 __all__ = ["ImplicitSurface", "ImplicitLevel", "estimate_normals", "thin_points"]
 
 ProgressCallback = Callable[[str, int, int], None]
-
 
 
 # --------------------------------------------------------------------------------------

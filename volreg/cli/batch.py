@@ -17,8 +17,9 @@ import sys
 import time
 from pathlib import Path
 
-from .cli import EXPECTED_ERRORS, PROG, UsageError, _make_directory
-from .io import write_text
+from volreg.cli._common import EXPECTED_ERRORS, PROG, _make_directory
+from volreg.errors import UsageError
+from volreg.io import write_text
 
 __all__ = ["read_manifest", "plan_pairs", "run_pair", "run_batch"]
 
@@ -83,9 +84,10 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
     ``failed`` row with the one-line message (not an exception, which Dask would
     retry); anything else propagates (a bug).
     """
-    from ._register_cli import _check_pair, _sha256, run_registration
-    from .io import read_labels, write_json
-    from .protocol import load_protocol
+    from volreg.cli._common import _check_pair, _sha256
+    from volreg.cli.register import run_registration
+    from volreg.io import read_labels, write_json
+    from volreg.io.protocol import load_protocol
 
     start = time.perf_counter()
     out, fpath, mpath = Path(outdir), Path(fixed), Path(moving)
@@ -99,7 +101,7 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
         proto = load_protocol(protocol)
         _check_pair(a, b, fpath, mpath)
         if consistency:
-            from ._consistency_cli import run_consistency
+            from volreg.cli.consistency import run_consistency
 
             args = argparse.Namespace(a=fpath, b=mpath, output=out, forward=None, backward=None, protocol=protocol,
                                       drive_labels=None, force=True, quiet=True, verbose=False)
@@ -133,7 +135,7 @@ def _write_plot(rows: list[dict], path: Path) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from .io import atomic_output
+    from volreg.io import atomic_output
 
     done = [r for r in rows if r.get("status") == "done"]
     fig = Figure(figsize=(9, 4), dpi=90, facecolor="white")
@@ -158,8 +160,8 @@ def run_batch(args: argparse.Namespace) -> int:
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError:
         raise UsageError("volreg batch needs Dask: pip install 'dask[distributed]' (or volreg[batch]).") from None
-    from .progress import ProgressBars
-    from .protocol import load_protocol
+    from volreg.progress import ProgressBars
+    from volreg.io.protocol import load_protocol
 
     start = time.perf_counter()
     load_protocol(args.protocol)  # validate before starting a cluster

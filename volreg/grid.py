@@ -13,12 +13,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from volreg.errors import GeometryError
 
 __all__ = ["LabelVolume"]
-
-
-class GeometryError(ValueError):
-    """Raised when a volume's geometry (origin, spacing, direction) is invalid."""
 
 
 @dataclass(frozen=True, eq=False)

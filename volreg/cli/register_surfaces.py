@@ -10,17 +10,18 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
-from .cli import PROG, UsageError, _remove_directories
-from .io import check_writable, write_json, write_mesh, write_text
-from .io.landmarks import read_landmarks
-from .io.meshes import SurfaceData, read_surface
-from .pipeline import register_surfaces
-from .progress import ProgressBars
-from .protocol import load_protocol
-from .surface_registration import closest_points, morph_vertices, surface_normals, transfer_values
-from .warp import KernelWarp
-from ._register_cli import _json_safe, _prepare_outdir, _sha256, _versions
+from volreg import __version__
+from volreg.cli._common import PROG, _remove_directories
+from volreg.errors import UsageError
+from volreg.io import check_writable, write_json, write_mesh, write_text
+from volreg.io.landmarks import read_landmarks
+from volreg.io.meshes import SurfaceData, read_surface
+from volreg.register import register_surfaces
+from volreg.progress import ProgressBars
+from volreg.io.protocol import load_protocol
+from volreg.morph import closest_points, morph_vertices, surface_normals, transfer_values
+from volreg.warp.model import KernelWarp
+from volreg.cli._common import _json_safe, _prepare_outdir, _sha256, _versions
 
 __all__ = ["add_surface_commands"]
 
@@ -137,7 +138,7 @@ def _render(frames: list[np.ndarray], triangles: np.ndarray, colours: list[np.nd
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from .io import atomic_output
+    from volreg.io import atomic_output
 
     allpts = np.concatenate(frames)
     lo, hi = allpts.min(axis=0), allpts.max(axis=0)
@@ -207,7 +208,7 @@ def _run_morph(args: argparse.Namespace) -> int:
         written += [outdir / f"{n}.png" for n in names]
         from PIL import Image
 
-        from .io import atomic_output
+        from volreg.io import atomic_output
 
         pil = [Image.fromarray(im) for im in images]
         with atomic_output(outdir / "morph.gif", force=args.force) as tmp:

@@ -27,7 +27,7 @@ from typing import Callable, Literal
 import numpy as np
 from scipy import ndimage
 
-from .volume import LabelVolume
+from volreg.grid import LabelVolume
 
 __all__ = ["resample_labels", "resample_image", "signed_distance_map"]
 

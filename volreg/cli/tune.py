@@ -10,12 +10,15 @@ import sys
 import time
 from pathlib import Path
 
-from .cli import PROG, UsageError, _remove_directories
-from .io import check_writable, read_labels, write_text
-from .protocol import ProtocolError, load_protocol, protocol_to_toml, replace_settings
-from .surfaces import label_surfaces
-from .tune import grid_settings, score_setting
-from ._register_cli import _check_pair, _load_landmarks, _prepare_outdir
+from volreg.cli._common import PROG, _remove_directories
+from volreg.errors import UsageError
+from volreg.io import check_writable, read_labels, write_text
+from volreg.errors import ProtocolError
+from volreg.io.protocol import load_protocol, protocol_to_toml
+from volreg.settings import replace_settings
+from volreg.features.label_surfaces import label_surfaces
+from volreg.evaluation.tune import grid_settings, score_setting
+from volreg.cli._common import _check_pair, _load_landmarks, _prepare_outdir
 
 __all__ = ["run_tune", "parse_grid"]
 

@@ -1,0 +1,133 @@
+"""``volreg surface``: boundary meshes and kernel implicit surfaces (paper Section 4) of a label volume's labels."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+import warnings
+from pathlib import Path
+from volreg import __version__
+from volreg.io import check_writable, read_labels, write_json, write_mesh, write_scalar
+from volreg.progress import ProgressBars
+from volreg.features.label_surfaces import implicit_on_grid, implicit_surfaces, label_surfaces
+from volreg.grid import LabelVolume
+from volreg.cli._common import PROG, _listing, _make_directory, _remove_directories, _warn
+from volreg.errors import UsageError
+
+
+def _select_labels(volume: LabelVolume, image: Path, requested: list[int] | None, skip: bool) -> list[int]:
+    """The labels to process: ``requested`` (checked against the volume) or all present."""
+    present = volume.labels().tolist()
+    if not present:
+        raise UsageError(f"Label image `{image}` holds no labels (every voxel is 0); expected a segmentation.")
+    if requested is None:
+        return present
+    present_set = set(present)
+    absent = [v for v in requested if v not in present_set]
+    for v in absent:
+        message = f"label {v} of --labels is absent from `{image}` (labels present: {_listing(present)})"
+        if not skip:
+            raise UsageError(message[0].upper() + message[1:] + "; pass --skip-small to skip it.")
+        _warn("surface", f"skipping {message}.")
+    labels = [v for v in requested if v not in absent]
+    if not labels:
+        raise UsageError(f"None of --labels {_listing(requested)} is present in `{image}`; nothing to do.")
+    return labels
+
+
+def _surface(args: argparse.Namespace) -> int:
+    """``volreg surface``: meshes, implicit surfaces and their signed distances for each label."""
+    start = time.perf_counter()
+    volume = read_labels(args.image)
+    labels = _select_labels(volume, args.image, args.labels, args.skip_small)
+
+    outdir: Path = args.output
+    meshes = {v: outdir / f"label_{v}.vtk" for v in labels}
+    sdfs = {v: outdir / f"sdf_{v}.nii.gz" for v in labels}
+    summary_path = outdir / "surface.json"
+    created = _make_directory(outdir)
+    written: list[Path] = []
+    try:
+        check_writable([*meshes.values(), *sdfs.values(), summary_path], force=args.force)
+        with ProgressBars(quiet=args.quiet) as progress:
+            with warnings.catch_warnings(record=True) as caught:
+                # label_surfaces warns for each label it skips (on_small="warn").
+                warnings.simplefilter("always")
+                surfaces = label_surfaces(
+                    volume,
+                    labels,
+                    on_small="warn" if args.skip_small else "error",
+                    smoothing=args.smoothing,
+                    progress=progress,
+                )
+            for w in caught:
+                _warn("surface", str(w.message))
+            if not surfaces:
+                raise UsageError(f"No label of `{args.image}` gave a surface; nothing to write.")
+
+            records = []
+            implicit = {}
+            for i, (label, surf) in enumerate(surfaces.items()):
+                t0 = time.perf_counter()
+                implicit[label] = implicit_surfaces(volume, {label: surf}, min_width_voxels=args.min_width)[label]
+                fit_seconds = time.perf_counter() - t0
+                model = implicit[label]
+                records.append(
+                    {
+                        "label": int(label),
+                        "mesh": meshes[label].name,
+                        "sdf": sdfs[label].name,
+                        "vertices": int(len(surf.vertices)),
+                        "cells": int(len(surf.cells)),
+                        "smoothing_mm": float(surf.smoothing),
+                        "levels": [float(w) for w in model.widths],
+                        "centres": int(sum(len(level.centres) for level in model.levels)),
+                        "fit_seconds": round(fit_seconds, 3),
+                    }
+                )
+                progress("fit implicit surfaces", i + 1, len(surfaces))
+
+            for i, (label, surf) in enumerate(surfaces.items()):
+                write_mesh(surf.vertices, surf.cells, meshes[label], normals=surf.normals, force=args.force)
+                written.append(meshes[label])
+                sdf = implicit_on_grid(implicit[label], volume)
+                write_scalar(sdf, volume, sdfs[label], force=args.force)
+                written.append(sdfs[label])
+                progress("sample and write", i + 1, len(surfaces))
+
+            summary = {
+                "volreg_version": __version__,
+                "command": "surface",
+                "input": str(args.image),
+                "grid": {
+                    "shape": [int(n) for n in volume.shape],
+                    "origin_mm": volume.origin.tolist(),
+                    "spacing_mm": volume.spacing.tolist(),
+                    "direction": volume.direction.tolist(),
+                    "frame": "LPS",
+                },
+                "parameters": {
+                    "smoothing_voxels": args.smoothing,
+                    "min_width_voxels": args.min_width,
+                    "skip_small": bool(args.skip_small),
+                },
+                "labels": records,
+                "skipped": [int(v) for v in (args.labels or labels) if v not in surfaces],
+                "seconds": round(time.perf_counter() - start, 3),
+            }
+            write_json(summary, summary_path, force=args.force)
+            written.append(summary_path)
+    except BaseException:
+        # Leave nothing behind: remove what this run wrote and the directories it created.
+        for path in written:
+            path.unlink(missing_ok=True)
+        _remove_directories(created)
+        raise
+
+    done = sorted(surfaces)
+    print(
+        f"{PROG} surface: {len(done)} label{'s' if len(done) != 1 else ''} ({_listing(done)}) -> "
+        f"{outdir}{os.sep} ({len(written)} files) in {time.perf_counter() - start:.1f} s"
+    )
+    return 0

@@ -1,0 +1,59 @@
+"""Errors and warnings volreg raises for its users' inputs.
+
+Every error that describes a user's input (a file, an argument, a protocol, a pair of
+volumes that cannot be registered) derives from :class:`VolregError`; the command line
+reports any of them as one line and exits with status 2.  Each also derives from the
+built-in class it has always been (``ValueError`` or ``RuntimeError``), so code that
+catches those keeps working.  Anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "VolregError",
+    "VolregIOError",
+    "GeometryError",
+    "SurfaceError",
+    "ProtocolError",
+    "RegistrationInputError",
+    "RegistrationDiverged",
+    "UsageError",
+    "VolregWarning",
+]
+
+
+class VolregError(Exception):
+    """Base of every error volreg raises about its users' inputs; the message is one line."""
+
+
+class VolregIOError(VolregError, ValueError):
+    """Raised when a file cannot be read or written; the message names the file."""
+
+
+class GeometryError(VolregError, ValueError):
+    """Raised when a volume's geometry (origin, spacing, direction) is invalid."""
+
+
+class SurfaceError(VolregError, ValueError):
+    """A label cannot give a surface (absent from the volume, or too small)."""
+
+
+class ProtocolError(VolregError, ValueError):
+    """A protocol file that cannot be used: unreadable, unknown key, bad value."""
+
+
+class RegistrationInputError(VolregError, ValueError):
+    """Inputs that cannot be registered (no common label, grids far apart, ...)."""
+
+
+class RegistrationDiverged(VolregError, RuntimeError):
+    """The optimisation of a level failed (NaN/Inf objective or coefficients, or a warp that folds
+    too much of the output grid): no warp is returned or written."""
+
+
+class UsageError(VolregError, ValueError):
+    """A command-line request that cannot be carried out (bad argument or combination)."""
+
+
+class VolregWarning(UserWarning):
+    """An input that is read, but not unambiguously (the command line prints it as one line)."""

@@ -1,0 +1,97 @@
+"""Protocols: named, validated presets of every setting, read from TOML.
+
+A protocol file has the sections ``[protocol]`` (``name``, ``description``),
+``[surface]`` (:class:`~volreg.settings.SurfaceSettings`) and ``[warp]``
+(:class:`~volreg.settings.WarpSettings`).  Keys left out take their defaults;
+an unknown section or key, or a value of the wrong type, is an error naming it.
+Presets ship in the repository's ``protocols/`` folder; TOML is parsed with the
+standard library's safe parser (``tomllib``; ``tomli`` before Python 3.11).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+from pathlib import Path
+from typing import Any, Mapping
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+from volreg.settings import Protocol, SurfaceSettings, WarpSettings, settings_from_mapping
+from volreg.errors import ProtocolError
+
+__all__ = ["PROTOCOL_DIR", "load_protocol", "protocol_to_toml"]
+
+
+def _protocol_dir() -> Path:
+    """The shipped presets: ``volreg/protocols`` in an installed wheel (package data,
+    mapped from the repository's top-level ``protocols/`` by ``pyproject.toml``), else
+    the repository's ``protocols/`` (source checkout, editable install)."""
+    package = Path(__file__).resolve().parent.parent  # volreg/
+    installed = package / "protocols"
+    return installed if installed.is_dir() else package.parent / "protocols"
+
+
+#: Where the shipped presets live.
+PROTOCOL_DIR = _protocol_dir()
+
+
+def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
+    """Read a protocol: a preset name (``protocols/<name>.toml``) or a path to a TOML file.
+
+    Raises
+    ------
+    ProtocolError
+        One line naming the file and the problem.
+    """
+    text = str(name_or_path)
+    path = Path(text) if (text.endswith(".toml") or os.sep in text) else PROTOCOL_DIR / f"{text}.toml"
+    if not path.is_file():
+        presets = sorted(p.stem for p in PROTOCOL_DIR.glob("*.toml"))
+        raise ProtocolError(f"Protocol `{text}` not found: expected a .toml file or a preset ({', '.join(presets)}).")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ProtocolError(f"Protocol `{path}` is not valid TOML: {exc}.") from None
+    unknown = set(data) - {"protocol", "surface", "warp"}
+    if unknown:
+        raise ProtocolError(f"Unknown section [{sorted(unknown)[0]}] in `{path}`; expected [protocol], [surface], [warp].")
+    head = data.get("protocol", {})
+    if not isinstance(head, Mapping) or set(head) - {"name", "description"}:
+        extra = sorted(set(head) - {"name", "description"}) if isinstance(head, Mapping) else ["?"]
+        raise ProtocolError(f"Unknown setting `protocol.{extra[0]}` in `{path}`; expected name, description.")
+    try:
+        return Protocol(
+            name=str(head.get("name", path.stem)),
+            description=str(head.get("description", "")),
+            surface=settings_from_mapping(SurfaceSettings, data.get("surface", {}), "surface"),
+            warp=settings_from_mapping(WarpSettings, data.get("warp", {}), "warp"),
+        )
+    except ProtocolError as exc:
+        raise ProtocolError(f"{exc} (in `{path}`)") from None
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def protocol_to_toml(protocol: Protocol, *, comment: str = "") -> str:
+    """The protocol as TOML text that :func:`load_protocol` reads back to an equal ``Protocol``.
+
+    Settings that are ``None`` (derived from the data) are written as comments.
+    """
+    lines = [f"# {line}" for line in comment.splitlines()] if comment else []
+    lines += ["[protocol]", f"name = {_toml_value(protocol.name)}", f"description = {_toml_value(protocol.description)}"]
+    for section in ("surface", "warp"):
+        lines += ["", f"[{section}]"]
+        for key, value in dataclasses.asdict(getattr(protocol, section)).items():
+            lines.append(f"# {key}: default (derived from the data)" if value is None else f"{key} = {_toml_value(value)}")
+    return "\n".join(lines) + "\n"

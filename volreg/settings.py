@@ -1,0 +1,238 @@
+"""Every setting of a registration, with its default, in one place.
+
+A :class:`Protocol` holds one :class:`SurfaceSettings` (how label surfaces and their
+implicit surfaces are made) and one :class:`WarpSettings` (the warp fit).  The
+presets in ``protocols/*.toml`` are data read into these classes
+(:func:`volreg.io.protocol.load_protocol`); a test checks that ``default.toml``
+states exactly these defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+from volreg.errors import ProtocolError
+
+__all__ = ["Protocol", "SurfaceSettings", "WarpSettings", "replace_settings", "settings_from_mapping"]
+
+
+@dataclass(frozen=True)
+class WarpSettings:
+    """Settings of the warp fit (the protocol's warp section).
+
+    Attributes
+    ----------
+    pad : float, mm, optional
+        Padding of the warp volume X around the source surfaces; default 10 % of
+        the source diameter.  A wider pad puts signed distances further from the
+        surface into the cost (11), which carry more of the shape around each point:
+        on a blob with eight bumps under a known warp, 15 mm (24 % of the diameter,
+        with ``sample_scale = 2``) took the worst of four endpoint errors from 1.02 to
+        0.90 % of the diameter; on an ellipsoid it did not help (BENCHMARKS.md).
+    min_width : float, mm, optional
+        Finest kernel width; default 1/16 of the source diameter.
+    lambda_loc : float
+        Weight of the locational cost (11), per unit of mean cost.
+    alpha : float, mm^2
+        Weight of the gradient term (4); 0 gives the distance-only cost (3).
+    lambda_p : float
+        Landmark weight (8).
+    neighbourhood : float, mm
+        If > 0, the neighbourhood cost (5) over a regular simplex of this radius.
+    fraction : float
+        Octree boxes stop below ``fraction * width`` (paper: 1/2).
+    max_iter : int
+        L-BFGS iterations per level.
+    tolerance : float
+        L-BFGS stops a level when an iteration lowers the objective by less than this
+        fraction of it (scipy's ``ftol``).  On the frog demo 1e-6 gave the same endpoint
+        error as scipy's default 2.2e-9 (0.611 mm mean, 1.47 mm p95) in 80 instead of 173
+        iterations over the 4 levels; 1e-5: 0.611 / 1.47 mm in 55; 1e-4: 0.612 / 1.47 mm in 37.
+    lambda_fold : float
+        Weight of the fold barrier (not in the paper): ``lambda_fold mean
+        max(0, fold_margin - det d tau/dx)^2`` over the samples and their
+        octree children, so that L-BFGS keeps the warp orientation-preserving.
+        During a level's fit only the points with ``det < fold_margin + FOLD_SLACK``
+        carry it; points that end below ``fold_margin`` join them for another fit
+        (up to ``FOLD_ROUNDS``), so the result is the barrier's over every point.
+    fold_margin : float
+        Determinant below which the barrier acts.
+    sample_spacing : float, mm, optional
+        The locational cost is sampled at the centres of octree boxes of X
+        smaller than ``fraction * s``, with ``s = max(sample_spacing,
+        min(width / 4, min_width))`` at a level of kernel width ``width``:
+        ``sample_spacing`` at every level when it is ``min_width`` or more, and
+        where it is finer, only at the levels whose width is below
+        ``4 * min_width``; default ``sample_scale * min_width`` (1: the
+        finest level's boxes at every level).
+    sample_scale : float
+        See ``sample_spacing``; cost grows about as ``sample_scale^-2``
+        (samples crowd the surfaces).
+    band : float, mm, optional
+        The locational cost of a feature counts only at samples within this
+        distance of its source surface; default half the finest kernel width
+        of that feature's ``f1`` (see ``_feature_samples``).
+    lambda_consistency : float
+        Symmetric option (not in the paper): weight of ``mean_x |tau(x) - t(x)|^2`` over
+        the locational-cost samples, where ``t`` is the inverse of a registration in the
+        opposite direction (``fit_warp(prior=...)``; ``volreg consistency`` passes the
+        forward warp's Newton inverse to the backward fit).  0 = off; ignored when no
+        ``prior`` is given.
+    robust : float, mm
+        If > 0, the distance term uses a pseudo-Huber loss of this scale (not in the
+        paper; see :class:`~volreg.objective.LevelObjective`); 0 = squared residuals,
+        as in (3).  Implicit surfaces of resampled labels disagree by tens of mm at a
+        few samples (seen on thin, fragmented labels), which the squared loss
+        lets dominate: on the frog demo (``fast``) the true warp's squared distance
+        cost was 14x the fitted warp's, 90 % of it from one label.  Measured there
+        (endpoint error, mean mm): 0 -> 2.15, 1 -> 1.37, 0.5 -> 1.28, 0.25 -> 1.24.
+    max_folded_fraction : float
+        Health check on the output grid (:func:`check_folding`): if the warp folds space
+        (``det d tau / dx <= 0``) at more than this fraction of the fixed grid's voxels,
+        the registration stops with :class:`RegistrationDiverged` naming the first level
+        that crossed it, instead of writing a folded warp.
+    min_det : float
+        Last-resort fold guard: after each level, its coefficients are shrunk (by 0.7 at a
+        time) until ``det d tau / dx >= min_det`` at every sample point (or, where
+        the coarser levels are already below that, until the level makes the
+        minimum no worse).
+    """
+
+    pad: float | None = None
+    min_width: float | None = None
+    lambda_loc: float = 100.0
+    alpha: float = 10.0
+    lambda_p: float = 100.0
+    neighbourhood: float = 0.0
+    fraction: float = 0.5
+    max_iter: int = 200
+    tolerance: float = 1e-6
+    lambda_fold: float = 1e5
+    fold_margin: float = 0.3
+    min_det: float = 0.1
+    band: float | None = None
+    sample_spacing: float | None = None
+    sample_scale: float = 1.0
+    lambda_consistency: float = 0.0
+    max_folded_fraction: float = 0.01
+    robust: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("lambda_loc", "alpha", "lambda_p", "neighbourhood", "lambda_fold", "fold_margin", "min_det",
+                     "lambda_consistency", "robust"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"Expected `{name}` >= 0, got {value}.")
+        for name in ("pad", "min_width", "band", "sample_spacing"):
+            value = getattr(self, name)
+            if value is not None and not (np.isfinite(value) and value > 0):
+                raise ValueError(f"Expected a positive `{name}` (mm), got {value}.")
+        if not (np.isfinite(self.sample_scale) and 0 < self.sample_scale <= 16):
+            raise ValueError(f"Expected `sample_scale` in (0, 16], got {self.sample_scale}.")
+        if not (np.isfinite(self.max_folded_fraction) and 0 <= self.max_folded_fraction <= 1):
+            raise ValueError(f"Expected `max_folded_fraction` in [0, 1], got {self.max_folded_fraction}.")
+        if not 0 < self.fraction <= 1:
+            raise ValueError(f"Expected `fraction` in (0, 1], got {self.fraction}.")
+        if not (np.isfinite(self.tolerance) and 0 < self.tolerance < 1):
+            raise ValueError(f"Expected `tolerance` in (0, 1), got {self.tolerance}.")
+        if self.max_iter < 0:
+            raise ValueError(f"Expected `max_iter` >= 0, got {self.max_iter}.")
+
+
+@dataclass(frozen=True)
+class SurfaceSettings:
+    """How label surfaces and their implicit surfaces are made.
+
+    Attributes
+    ----------
+    smoothing : float, voxels
+        Gaussian blur of each mask before contouring (largest spacing as unit).
+    min_width_voxels : float, voxels
+        Finest kernel width of the implicit surfaces.
+    distance_weight : float
+        Weight, relative to a label's implicit surface, of its voxel signed-distance
+        feature (:class:`~volreg.distance_maps.VoxelDistance`, not in the paper) in the
+        locational cost; it also covers labels too small or fragmented for a surface.
+        0 = off (implicit surfaces only, as in the paper).
+    distance_clip : float, voxels
+        The voxel signed distances are clipped to +- this.
+    distance_smoothing : float, voxels
+        Gaussian blur of the clipped voxel signed distances.
+    """
+
+    smoothing: float = 1.0
+    min_width_voxels: float = 4.0
+    distance_weight: float = 2.0
+    distance_clip: float = 3.0
+    distance_smoothing: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.smoothing) and 0 <= self.smoothing <= 10):
+            raise ValueError(f"Expected `smoothing` in [0, 10] voxels, got {self.smoothing}.")
+        if not (math.isfinite(self.min_width_voxels) and self.min_width_voxels > 0):
+            raise ValueError(f"Expected a positive `min_width_voxels`, got {self.min_width_voxels}.")
+        if not (math.isfinite(self.distance_weight) and self.distance_weight >= 0):
+            raise ValueError(f"Expected `distance_weight` >= 0, got {self.distance_weight}.")
+        if not (math.isfinite(self.distance_clip) and self.distance_clip > 0):
+            raise ValueError(f"Expected a positive `distance_clip` (voxels), got {self.distance_clip}.")
+        if not (math.isfinite(self.distance_smoothing) and 0 <= self.distance_smoothing <= 10):
+            raise ValueError(f"Expected `distance_smoothing` in [0, 10] voxels, got {self.distance_smoothing}.")
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """Every setting of a run, by section."""
+
+    name: str = "default"
+    description: str = ""
+    surface: SurfaceSettings = field(default_factory=SurfaceSettings)
+    warp: WarpSettings = field(default_factory=WarpSettings)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data (for reports and saved models)."""
+        return dataclasses.asdict(self)
+
+
+def settings_from_mapping(cls, values: Mapping[str, Any], where: str):
+    """Build the dataclass ``cls`` from a TOML table, checking keys and types."""
+    if not isinstance(values, Mapping):
+        raise ProtocolError(f"Expected [{where}] to be a table, got {type(values).__name__}.")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in values.items():
+        if key not in fields:
+            raise ProtocolError(f"Unknown setting `{where}.{key}`; expected one of: {', '.join(sorted(fields))}.")
+        want = fields[key].type if isinstance(fields[key].type, str) else fields[key].type.__name__
+        if "int" in want and "float" not in want:
+            ok = isinstance(value, int) and not isinstance(value, bool)
+        elif "float" in want:
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+            value = float(value) if ok else value
+        else:
+            ok = isinstance(value, str)
+        if not ok:
+            raise ProtocolError(f"Expected `{where}.{key}` to be {want.replace(' | None', '')}, got {value!r}.")
+        kwargs[key] = value
+    try:
+        return cls(**kwargs)
+    except ValueError as exc:
+        raise ProtocolError(f"In [{where}]: {exc}") from None
+
+
+def replace_settings(protocol: Protocol, warp: Mapping[str, Any], *, name: str | None = None) -> Protocol:
+    """A copy of ``protocol`` with some ``[warp]`` settings replaced, validated as a file's would be.
+
+    Raises
+    ------
+    ProtocolError
+        An unknown key or a bad value, named.
+    """
+    current = {k: v for k, v in dataclasses.asdict(protocol.warp).items() if v is not None}
+    current.update(warp)
+    return dataclasses.replace(protocol, name=protocol.name if name is None else name,
+                               warp=settings_from_mapping(WarpSettings, current, "warp"))

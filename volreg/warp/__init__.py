@@ -1,0 +1,19 @@
+"""The kernel warp tau(x) = x + sum_j c_j k(x, x_j) (paper eq. 9) and everything that fits and uses it.
+
+Modules
+-------
+model
+    :class:`~volreg.warp.model.KernelWarp` (evaluate, Jacobian, compose) and its ``.npz`` file format.
+sampling
+    Octree sampling of the warp volume X (paper Section 3.5).
+objective
+    The per-level objective (11): regulariser, locational cost (3)-(6), landmarks (8), fold barrier.
+fit
+    The coarse-to-fine driver and the per-level solver (Sections 3.4-3.5).
+inverse
+    :class:`~volreg.warp.inverse.InverseWarp`: Newton inversion with the analytic Jacobian.
+field
+    A warp sampled on a voxel grid: displacement fields and Jacobian determinants.
+resample
+    Label-preserving and intensity resampling of images at warped points.
+"""
