@@ -31,11 +31,13 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 #: cProfile categories: (name, substrings of "file:function", files of the callers that count).
 #: Calls are counted with their cumulative time as called from those files only, so that the
 #: kernel matrices built inside the implicit-surface fits are not counted twice.
-CATEGORIES = (
-    ("fit implicit surfaces", ("implicit.py:__init__",), ("pipeline.py",)),
-    ("neighbour search + assembly", ("kernels.py:kernel_matrix", "kernels.py:kernel_gradient_matrices",
-                                     "sampling.py:octree_sample", "kernels.py:build"), ("pipeline.py",)),
-    ("f2 evaluation", ("implicit.py:evaluate", "implicit.py:__call__"), ("objective.py", "pipeline.py")),
+CATEGORIES = (  # (name, (path fragment, function) callees, caller files)
+    ("fit implicit surfaces", (("features/implicit.py", "__init__"),), ("register.py", "fit.py")),
+    ("neighbour search + assembly", (("kernels/", "kernel_matrix"), ("kernels/", "kernel_gradient_matrices"),
+                                     ("warp/sampling.py", "octree_sample"), ("kernels/", "build")),
+     ("register.py", "fit.py")),
+    ("f2 evaluation", (("features/implicit.py", "evaluate"), ("features/implicit.py", "__call__")),
+     ("objective.py", "register.py", "fit.py")),
 )
 
 
@@ -66,7 +68,7 @@ def run_one(pad_fraction: float) -> dict:
     for name, keys, caller_files in CATEGORIES:
         total = 0.0
         for (file, _, func), (_, _, _, _, callers) in stats.items():
-            if any(k in f"{os.path.basename(file)}:{func}" for k in keys):
+            if any(fragment in file.replace(os.sep, "/") and func == name_ for fragment, name_ in keys):
                 total += sum(c[3] for caller, c in callers.items() if os.path.basename(caller[0]) in caller_files)
         split[name] = total
     split["sparse matvecs"] = sum(tot for (file, _, func), (_, _, tot, _, _) in stats.items()

@@ -6,7 +6,19 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from volreg.kernels import _MIN_MEAN_BLOCK, _QBLOCK, CellGrid, SharedPatternCSR, kernel_matrix, kernel_sum, kernel_sum_reference, _query_blocks, wu, wu_derivatives
+from volreg.kernels import (
+    CellGrid,
+    SharedPatternCSR,
+    kernel_gradient_matrices,
+    kernel_matrix,
+    kernel_sum,
+    kernel_sum_reference,
+    wu,
+    wu_derivatives,
+)
+from volreg.kernels._compiled import _MIN_MEAN_BLOCK, _QBLOCK, _query_blocks
+from volreg.kernels.sums import _LOOPS
+from volreg.kernels.wu import wu_slope
 
 
 def test_wu_profile_values():
@@ -28,8 +40,22 @@ def test_wu_is_c2_at_the_support_boundary():
     assert abs((k[0] - 2 * k[1] + k[2]) / h**2) < 1e-3
 
 
+def test_wu_slope_is_the_derivative_over_r():
+    # g(r) = k'(r) / r, by central differences; g(0) = -56, g = 0 outside the support.
+    r = np.linspace(0.05, 0.95, 19)
+    h = 1e-6
+    np.testing.assert_allclose(wu_slope(r) * r, (wu(r + h) - wu(r - h)) / (2 * h), rtol=0, atol=1e-7)
+    assert wu_slope(0.0) == -56.0
+    assert np.all(wu_slope(np.array([1.0, 2.0])) == 0.0)
+
+
+def test_every_case_has_a_compiled_loop():
+    assert set(_LOOPS) == {(kind, order) for kind in ("scalar", "vector", "wide") for order in (0, 1, 2)}
+    assert all(searched is not None for _, searched in _LOOPS.values())
+
+
 @pytest.mark.parametrize("dim", [2, 3])
-@pytest.mark.parametrize("m", [None, 1, 3])
+@pytest.mark.parametrize("m", [None, 1, 3, 4])
 def test_kernel_sum_matches_kdtree_reference(dim, m):
     rng = np.random.default_rng(1)
     centres = rng.uniform(0, 10, (800, dim))
@@ -144,6 +170,19 @@ def test_kernel_matrix_matches_dense(dim):
     sym = kernel_matrix(a, a, 1.9)
     assert abs(sym - sym.T).max() == 0
     np.testing.assert_allclose(sym.diagonal(), 4.0)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_kernel_gradient_matrices_match_the_kernel_sum_gradient(dim):
+    rng = np.random.default_rng(6)
+    rows = rng.uniform(0, 8, (200, dim))
+    cols = rng.uniform(0, 8, (250, dim))
+    coeffs = rng.normal(size=250)
+    mats = kernel_gradient_matrices(rows, cols, 1.9)
+    assert len(mats) == dim
+    assert all((g.indptr == mats[0].indptr).all() and (g.indices == mats[0].indices).all() for g in mats)
+    _, grad = kernel_sum(rows, cols, coeffs, 1.9, order=1)
+    np.testing.assert_allclose(np.stack([g @ coeffs for g in mats], axis=1), grad, rtol=0, atol=1e-12)
 
 
 def test_bad_arguments_are_named():

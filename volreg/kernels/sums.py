@@ -1,0 +1,319 @@
+"""Sums of the Wu kernel (13) over point sets, and the sparse kernel and gradient matrices.
+
+:func:`kernel_sum` is the fast path: it bins the centres on a
+:class:`~volreg.kernels.grid.CellGrid` and runs a compiled loop (chosen from
+:data:`_LOOPS`) that visits only the centres within ``sigma`` of each query.
+:func:`kernel_sum_reference` computes the same with scipy only and is the test
+oracle and benchmark baseline.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from volreg.kernels._compiled import (
+    _MIN_MEAN_BLOCK,
+    _QBLOCK,
+    _blocked_sum,
+    _blocked_sum_hessian,
+    _blocked_sum_vector,
+    _grid_pairs,
+    _query_blocks,
+    _searched_sum,
+    _searched_sum_hessian,
+    _strict_sum,
+)
+from volreg.kernels.grid import CellGrid, max_runs
+from volreg.kernels.wu import wu_derivatives, wu_slope
+
+__all__ = ["kernel_gradient_matrices", "kernel_matrix", "kernel_sum", "kernel_sum_reference"]
+
+
+def _check_points(name: str, x: np.ndarray, dim: int | None = None) -> np.ndarray:
+    """``x`` as a C-contiguous (N, D) float array of finite values; errors name it ``name``."""
+    x = np.asarray(x, dtype=float)
+    if x.ndim != 2 or (dim is not None and x.shape[1] != dim):
+        want = f"(N, {dim})" if dim is not None else "(N, D)"
+        raise ValueError(f"Expected `{name}` of shape {want}, got {x.shape}.")
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"Expected finite values in `{name}`, found NaN or Inf.")
+    return np.ascontiguousarray(x)
+
+
+def _as_coefficients(coeffs: np.ndarray, m_centres: int) -> tuple[np.ndarray, bool]:
+    """``coeffs`` (M,) or (M, m) as an (M, m) float array, and whether it was vector valued."""
+    coeffs = np.asarray(coeffs, dtype=float)
+    if coeffs.ndim not in (1, 2) or coeffs.shape[0] != m_centres:
+        raise ValueError(
+            f"Expected `coeffs` of shape ({m_centres},) or ({m_centres}, m), got {coeffs.shape}."
+        )
+    vector = coeffs.ndim == 2
+    return (coeffs if vector else coeffs[:, None]), vector
+
+
+# --------------------------------------------------------------------------------------
+# The compiled loops, called with one convention: (queries (N, D), grid, coef (M, m) in grid
+# order, sigma, order, blocks from _coherent_blocks or None, val, grad, hess)
+
+
+def _blocked(queries, grid, coef, sigma, order, blocks, val, grad, hess):
+    px, py, pz = grid.columns
+    _blocked_sum(queries, blocks, px, py, pz, coef, grid.start, grid.lo, grid.cell, grid.dims, sigma, val, grad)
+
+
+def _blocked_vector(queries, grid, coef, sigma, order, blocks, val, grad, hess):
+    px, py, pz = grid.columns
+    _blocked_sum_vector(queries, blocks, px, py, pz, coef, grid.start, grid.lo, grid.cell, grid.dims, sigma,
+                        val, grad)
+
+
+def _blocked_hessian(queries, grid, coef, sigma, order, blocks, val, grad, hess):
+    px, py, pz = grid.columns
+    _blocked_sum_hessian(queries, blocks, px, py, pz, coef, grid.start, grid.lo, grid.cell, grid.dims, sigma,
+                         val, grad, hess)
+
+
+def _searched(queries, grid, coef, sigma, order, blocks, val, grad, hess):
+    px, py, pz = grid.columns
+    _searched_sum(queries, px, py, pz, np.ascontiguousarray(coef[:, 0]), grid.start, grid.lo, grid.cell,
+                  grid.dims, max_runs(grid), sigma, val, grad)
+
+
+def _searched_hessian(queries, grid, coef, sigma, order, blocks, val, grad, hess):
+    px, py, pz = grid.columns
+    _searched_sum_hessian(queries, px, py, pz, np.ascontiguousarray(coef[:, 0]), grid.start, grid.lo,
+                          grid.cell, grid.dims, max_runs(grid), sigma, val, grad, hess)
+
+
+def _strict(queries, grid, coef, sigma, order, blocks, val, grad, hess):
+    _strict_sum(queries, grid.points, coef, grid.start, grid.lo, grid.cell, grid.dims, max_runs(grid), sigma,
+                order, val, grad, hess)
+
+
+#: Which compiled loop serves which case of :func:`kernel_sum`:
+#: (coefficients, order) -> (loop when the queries come in blocks of nearby ones, or None;
+#: loop with one neighbour search per query).  Coefficients are "scalar" (m = 1, implicit
+#: surfaces), "vector" (m = 2 or 3, warps) or "wide" (m > 3).  The blocked and searched
+#: loops are branch-free SIMD code (fastmath); the strict one serves every other case.
+_LOOPS = {
+    ("scalar", 0): (_blocked, _searched),
+    ("scalar", 1): (_blocked, _searched),
+    ("scalar", 2): (_blocked_hessian, _searched_hessian),
+    ("vector", 0): (_blocked_vector, _strict),
+    ("vector", 1): (_blocked_vector, _strict),
+    ("vector", 2): (None, _strict),
+    ("wide", 0): (None, _strict),
+    ("wide", 1): (None, _strict),
+    ("wide", 2): (None, _strict),
+}
+
+
+def _coefficient_kind(m: int) -> str:
+    return "scalar" if m == 1 else "vector" if m <= 3 else "wide"
+
+
+def _coherent_blocks(queries: np.ndarray, sigma: float) -> np.ndarray | None:
+    """Blocks of nearby consecutive queries (:func:`~volreg.kernels._compiled._query_blocks`,
+    at most ``sigma / 2`` wide), or None when there are few queries or they are not in
+    spatial order (too few queries per block for the shared search to pay)."""
+    n = queries.shape[0]
+    if n < _QBLOCK:
+        return None
+    blocks = _query_blocks(queries, 0.5 * sigma, _QBLOCK)
+    if n < _MIN_MEAN_BLOCK * (len(blocks) - 1):
+        return None
+    return blocks
+
+
+def kernel_sum(
+    queries: np.ndarray,
+    centres: np.ndarray | CellGrid,
+    coeffs: np.ndarray,
+    sigma: float,
+    *,
+    order: int = 0,
+    out: tuple[np.ndarray, ...] | None = None,
+) -> tuple[np.ndarray, ...]:
+    """Evaluate ``s(x) = sum_i a_i k(|x - x_i| / sigma)`` (Wu kernel (13)) and its derivatives.
+
+    Parameters
+    ----------
+    queries : (N, D) float ndarray, mm
+        Evaluation points.
+    centres : (M, D) float ndarray, mm, or CellGrid
+        Kernel centres ``x_i`` (a prebuilt :class:`CellGrid` for radius >= sigma
+        avoids re-binning when the same centres are queried repeatedly; its
+        ``order`` is applied to ``coeffs``).
+    coeffs : (M,) or (M, m) float ndarray
+        Coefficients ``a_i`` (scalar or m-vector valued).
+    sigma : float, mm
+        Kernel width (support radius).
+    order : {0, 1, 2}
+        Highest derivative to return.
+    out : tuple of arrays, optional
+        Arrays ``(value, gradient, hessian)`` (as many as ``order + 1``) shaped
+        as below, to accumulate into (added to, not overwritten).
+
+    Returns
+    -------
+    value : (N,) or (N, m) float ndarray
+    gradient : (N, D) or (N, m, D) float ndarray, 1/mm (if ``order >= 1``)
+    hessian : (N, D, D) or (N, m, D, D) float ndarray, 1/mm^2 (if ``order >= 2``)
+
+    Notes
+    -----
+    Queries given in spatial order (for instance by
+    :func:`~volreg.kernels.grid.spatial_order`) are evaluated in blocks of nearby
+    queries that share one neighbour search; see :data:`_LOOPS` for which
+    compiled loop serves which case.
+    """
+    if order not in (0, 1, 2):
+        raise ValueError(f"Expected `order` in (0, 1, 2), got {order}.")
+    if not sigma > 0:
+        raise ValueError(f"Expected a positive kernel width `sigma`, got {sigma}.")
+    grid = centres if isinstance(centres, CellGrid) else CellGrid.build(_check_points("centres", centres), sigma)
+    if grid.radius < sigma:
+        raise ValueError(f"Expected a CellGrid built for radius >= sigma={sigma}, got {grid.radius}.")
+    dim = grid.points.shape[1]
+    queries = _check_points("queries", queries, dim)
+    coef, vector = _as_coefficients(coeffs, grid.points.shape[0])
+    coef = np.ascontiguousarray(coef[grid.order])
+    n, m = queries.shape[0], coef.shape[1]
+    shapes = [(n, m), (n, m, dim), (n, m, dim, dim)]
+    if out is None:
+        bufs = [np.zeros(s) for s in shapes[: order + 1]]
+    else:
+        if len(out) < order + 1:
+            raise ValueError(f"Expected {order + 1} arrays in `out`, got {len(out)}.")
+        bufs = [b.reshape(s) for b, s in zip(out, shapes)]
+    val = bufs[0]
+    grad = bufs[1] if order >= 1 else np.zeros((0, 1, dim))
+    hess = bufs[2] if order >= 2 else np.zeros((1, 1, 1, 1))
+    blocked, searched = _LOOPS[_coefficient_kind(m), order]
+    blocks = _coherent_blocks(queries, sigma) if blocked is not None else None
+    loop = searched if blocks is None else blocked
+    loop(queries, grid, coef, float(sigma), order, blocks, val, grad, hess)
+    result = [val, grad, hess][: order + 1]
+    if not vector:
+        result = [a.reshape((n,) + a.shape[2:]) for a in result]
+    return tuple(result)
+
+
+def kernel_sum_reference(
+    queries: np.ndarray,
+    centres: np.ndarray,
+    coeffs: np.ndarray,
+    sigma: float,
+    *,
+    order: int = 0,
+    memory_budget: float = 256e6,
+) -> tuple[np.ndarray, ...]:
+    """Same as :func:`kernel_sum` with scipy only (KD-tree, chunked); the test oracle.
+
+    Parameters
+    ----------
+    queries, centres, coeffs, sigma, order
+        As :func:`kernel_sum` (``centres`` an array).
+    memory_budget : float, bytes
+        Queries are processed in chunks whose neighbour pairs take about this much.
+
+    Returns
+    -------
+    tuple of float ndarray
+        As :func:`kernel_sum`.
+    """
+    centres = _check_points("centres", centres)
+    dim = centres.shape[1]
+    queries = _check_points("queries", queries, dim)
+    coef, vector = _as_coefficients(coeffs, centres.shape[0])
+    n, m = queries.shape[0], coef.shape[1]
+    tree = cKDTree(centres)
+    # Estimate pairs per query from a small sample to size the chunks.
+    sample = queries[:: max(1, n // 256)]
+    per_query = max(1.0, tree.query_ball_point(sample, sigma, return_length=True).mean())
+    bytes_per_pair = 8 * (4 + dim + dim * dim + m * (1 + dim + dim * dim))
+    chunk = int(max(1, memory_budget // (per_query * bytes_per_pair)))
+    outs = [np.zeros((n, m)), np.zeros((n, m, dim)), np.zeros((n, m, dim, dim))][: order + 1]
+    for s in range(0, n, chunk):
+        q = queries[s : s + chunk]
+        pairs = cKDTree(q).sparse_distance_matrix(tree, sigma, output_type="ndarray")
+        i, j = pairs["i"], pairs["j"]
+        value, gradient, hessian = wu_derivatives(q[i] - centres[j], sigma)
+        c = coef[j]
+        nq = len(q)
+        for col in range(m):
+            outs[0][s : s + nq, col] = np.bincount(i, c[:, col] * value, minlength=nq)
+            if order >= 1:
+                for a in range(dim):
+                    outs[1][s : s + nq, col, a] = np.bincount(i, c[:, col] * gradient[:, a], minlength=nq)
+            if order >= 2:
+                for a in range(dim):
+                    for b in range(dim):
+                        outs[2][s : s + nq, col, a, b] = np.bincount(
+                            i, c[:, col] * hessian[:, a, b], minlength=nq
+                        )
+    if not vector:
+        outs = [a.reshape((n,) + a.shape[2:]) for a in outs]
+    return tuple(outs)
+
+
+def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float) -> sp.csr_matrix:
+    """Sparse kernel matrix ``K[i, j] = k(|rows_i - cols_j| / sigma)`` (Wu kernel (13)).
+
+    Parameters
+    ----------
+    rows : (N, D) float ndarray, mm
+    cols : (M, D) float ndarray, mm, or a CellGrid of them (radius >= sigma)
+    sigma : float, mm
+
+    Returns
+    -------
+    (N, M) scipy.sparse.csr_matrix
+        Column indices refer to the original order of ``cols``; sorted per row.
+    """
+    grid = cols if isinstance(cols, CellGrid) else CellGrid.build(_check_points("cols", cols), sigma)
+    dim = grid.points.shape[1]
+    rows = _check_points("rows", rows, dim)
+    if grid.radius < sigma:
+        raise ValueError(f"Expected a CellGrid built for radius >= sigma={sigma}, got {grid.radius}.")
+    indptr = np.zeros(len(rows) + 1, dtype=np.int64)
+    gorder = grid.order.astype(np.int64)
+    args = (rows, grid.points, gorder, grid.start, grid.lo, grid.cell, grid.dims, max_runs(grid), float(sigma))
+    _grid_pairs(*args, indptr, np.zeros(0, np.int64), np.zeros(0), False)
+    np.cumsum(indptr, out=indptr)
+    nnz = int(indptr[-1])
+    indices = np.empty(nnz, dtype=np.int64)
+    data = np.empty(nnz)
+    _grid_pairs(*args, indptr, indices, data, True)
+    index_dtype = np.int32 if max(nnz, len(grid.points)) < 2**31 - 1 else np.int64
+    indptr, indices = indptr.astype(index_dtype), indices.astype(index_dtype)
+    mat = sp.csr_matrix((data, indices, indptr), shape=(len(rows), len(grid.points)))
+    mat.sort_indices()
+    return mat
+
+
+def kernel_gradient_matrices(rows: np.ndarray, cols: np.ndarray, sigma: float) -> list[sp.csr_matrix]:
+    """Sparse matrices ``G_b[i, j] = d k(|x - c_j| / sigma) / d x_b`` at ``x = rows_i`` (Wu kernel (13)).
+
+    Parameters
+    ----------
+    rows : (N, D) float ndarray, mm
+    cols : (M, D) float ndarray, mm
+    sigma : float, mm
+
+    Returns
+    -------
+    list of D (N, M) scipy.sparse.csr_matrix, 1/mm
+        ``J(x_i) = I + sum_j c_j (G[:, i, j])^T`` is the Jacobian of
+        ``x + sum_j c_j k(x, c_j)``; the pattern is that of :func:`kernel_matrix`.
+    """
+    rows = _check_points("rows", rows)
+    cols = _check_points("cols", cols, rows.shape[1])
+    k = kernel_matrix(rows, cols, sigma)
+    i = np.repeat(np.arange(k.shape[0]), np.diff(k.indptr))
+    d = rows[i] - cols[k.indices]
+    r = np.sqrt(np.einsum("nd,nd->n", d, d)) / sigma
+    g = wu_slope(r) / sigma**2
+    return [sp.csr_matrix((g * d[:, b], k.indices, k.indptr), shape=k.shape) for b in range(rows.shape[1])]
