@@ -14,7 +14,20 @@ import pyvista as pv
 import SimpleITK as sitk
 
 from volreg import LabelVolume
-from volreg.io import VolregIOError, atomic_output, check_writable, read_image, read_labels, read_mesh, write_labels, write_mesh, write_scalar
+from volreg.grid import Grid
+from volreg.io import (
+    VolregIOError,
+    atomic_output,
+    check_writable,
+    read_grid,
+    read_image,
+    read_labels,
+    read_mesh,
+    write_labels,
+    write_mesh,
+    write_scalar,
+)
+from volreg.io.fields import read_displacement, write_displacement
 
 # NIfTI stores origin, spacing and the qform quaternion as float32: relative
 # error ~6e-8, i.e. well under 1e-5 mm for coordinates of a few hundred mm.
@@ -394,6 +407,152 @@ def test_unsupported_suffix(tmp_path):
         read_labels(path)
     with _raises(tmp_path / "out.nhdr", "unsupported suffix"):
         write_labels(_volume(np.uint8, "identity"), tmp_path / "out.nhdr")
+
+
+# --------------------------------------------------------------------------- grids from headers
+
+
+def _assert_grid(grid: Grid, shape, origin, spacing, direction) -> None:
+    assert isinstance(grid, Grid)
+    assert grid.shape == tuple(shape)
+    np.testing.assert_allclose(grid.origin, origin, atol=GEOM_ATOL_MM)
+    np.testing.assert_allclose(grid.spacing, spacing, atol=GEOM_ATOL_MM)
+    np.testing.assert_allclose(grid.direction, direction, atol=GEOM_ATOL_MM)
+
+
+@pytest.mark.parametrize("orientation", list(ORIENTATIONS))
+@pytest.mark.parametrize("suffix", SUFFIXES)
+def test_read_grid_is_the_geometry_read_image_gives(tmp_path, suffix, orientation):
+    vol = _volume(np.int16, orientation)
+    path = tmp_path / f"g{suffix}"
+    write_labels(vol, path)
+    array, origin, spacing, direction = read_image(path)
+    grid = read_grid(path)
+    assert grid.shape == array.shape
+    # exactly the same numbers: the same header, read by the same code
+    np.testing.assert_array_equal(grid.origin, origin)
+    np.testing.assert_array_equal(grid.spacing, spacing)
+    np.testing.assert_array_equal(grid.direction, direction)
+    assert grid.same_geometry(read_labels(path))
+
+
+def test_read_grid_2d_4d_and_vti(tmp_path):
+    theta = np.deg2rad(30.0)
+    rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    flat = LabelVolume(np.zeros((9, 6), np.uint8), (3.5, -2.0), (0.5, 1.25), rot)
+    write_labels(flat, tmp_path / "slice.nrrd")
+    _assert_grid(read_grid(tmp_path / "slice.nrrd"), (9, 6), (3.5, -2.0), (0.5, 1.25), rot)
+
+    data = np.zeros((5, 4, 3, 1), dtype=np.uint8).T.copy()
+    img = sitk.GetImageFromArray(data, isVector=False)
+    img.SetSpacing((0.5, 0.6, 0.7, 1.0))
+    sitk.WriteImage(img, str(tmp_path / "one.nrrd"))
+    _assert_grid(read_grid(tmp_path / "one.nrrd"), (5, 4, 3), (0, 0, 0), (0.5, 0.6, 0.7), np.eye(3))
+
+    direction, spacing, origin = ORIENTATIONS["oblique_20deg"]
+    _vti(tmp_path / "lab.vti", np.zeros(60, np.uint8), dims=(5, 4, 3), spacing=spacing, origin=origin,
+         direction=direction)
+    _assert_grid(read_grid(tmp_path / "lab.vti"), (5, 4, 3), origin, spacing, direction)
+
+
+def test_read_grid_reads_only_the_header(tmp_path):
+    # The voxels are not read: a file whose data are cut short still has a grid.
+    vol = _volume(np.int16, "oblique_20deg", shape=(30, 20, 10))
+    path = tmp_path / "cut.nii"
+    write_labels(vol, path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    _assert_grid(read_grid(path), vol.shape, vol.origin, vol.spacing, vol.direction)
+    with _raises(path, "truncated"):
+        read_image(path)
+
+
+def test_read_grid_refuses_what_the_header_shows(tmp_path):
+    missing = tmp_path / "nope.nii.gz"
+    with _raises(missing, "does not exist"):
+        read_grid(missing)
+    four = _nifti(tmp_path / "four.nii.gz", np.zeros((5, 4, 3, 3), dtype=np.int16))
+    with _raises(four, r"4-D with size \(5, 4, 3, 3\)"):
+        read_grid(four)
+    img = nib.Nifti1Image(np.zeros((5, 4, 3, 1, 3), dtype=np.float32), np.eye(4))
+    img.header.set_intent("vector")
+    nib.save(img, tmp_path / "vec.nii.gz")
+    with _raises(tmp_path / "vec.nii.gz", r"3 components per voxel \(vector of 32-bit float\)"):
+        read_grid(tmp_path / "vec.nii.gz")
+    img = nib.Nifti1Image(np.zeros((5, 4, 3), dtype=np.int16), None)
+    img.set_sform(np.diag([2.0, 3.0, 4.0, 1.0]), code=1)
+    img.set_qform(None, code=0)
+    img.header.set_zooms((1.0, 1.0, 1.0))
+    nib.save(img, tmp_path / "pixdim.nii.gz")
+    with _raises(tmp_path / "pixdim.nii.gz", "pixdim disagrees with the sform/qform"):
+        read_grid(tmp_path / "pixdim.nii.gz")
+
+
+def test_write_scalar_on_a_grid_equals_on_the_volume(tmp_path):
+    like = _volume(np.uint8, "oblique_20deg")
+    values = np.random.default_rng(5).normal(size=like.shape)
+    write_scalar(values, like, tmp_path / "a.nii.gz")
+    write_scalar(values, like.grid, tmp_path / "b.nii.gz")
+    assert (tmp_path / "a.nii.gz").read_bytes() == (tmp_path / "b.nii.gz").read_bytes()
+    with pytest.raises(VolregIOError, match="Expected `like` to be a Grid or a LabelVolume, got tuple"):
+        write_scalar(values, (like.shape, like.affine), tmp_path / "c.nii.gz")
+
+
+# --------------------------------------------------------------------------- readers own their arrays
+
+
+def _owns_memory(array: np.ndarray) -> bool:
+    """True when ``array`` and every array it is a view of are numpy arrays, the last owning its data."""
+    while True:
+        if not isinstance(array, np.ndarray):
+            return False  # e.g. a memoryview of a SimpleITK image, or a memory map
+        if array.base is None:
+            return array.flags.owndata
+        array = array.base
+
+
+@pytest.mark.parametrize("suffix", [*SUFFIXES, ".vti"])
+def test_thin_image_read_twice_owns_its_memory(tmp_path, suffix):
+    # With at most one axis longer than 1, a transposed view is already contiguous:
+    # the array must still be a copy, not a view into the reader's (freed) buffer.
+    values = np.arange(64, dtype=np.int16) * 3 - 50
+    path = tmp_path / f"thin{suffix}"
+    if suffix == ".vti":
+        _vti(path, values, dims=(64, 1, 1), spacing=(1, 1, 1), origin=(0, 0, 0), direction=np.eye(3))
+        shape = (64, 1)  # a single z slice is read as 2-D
+    else:
+        write_labels(LabelVolume(values.reshape(64, 1, 1), (1, 2, 3), (1, 1, 1), np.eye(3)), path)
+        shape = (64, 1, 1)
+    first = read_labels(path).array
+    second = read_labels(path).array
+    for array in (first, second):
+        assert array.shape == shape and array.flags.c_contiguous
+        assert array.flags.owndata and _owns_memory(array)
+        np.testing.assert_array_equal(array.ravel(), values)
+    image = read_image(path)[0]
+    assert _owns_memory(image)
+    np.testing.assert_array_equal(image.ravel(), values.astype(np.float32))
+
+
+def test_thin_float_nifti_does_not_map_the_file(tmp_path):
+    # Float NIfTI voxels come from nibabel, which may memory-map an uncompressed file.
+    values = np.linspace(-1.0, 1.0, 64, dtype=np.float32)
+    path = _nifti(tmp_path / "thin.nii", values.reshape(64, 1, 1))
+    for _ in range(2):
+        array = read_image(path)[0]
+        assert array.flags.owndata and _owns_memory(array)
+        np.testing.assert_array_equal(array.ravel(), values)
+
+
+def test_thin_displacement_field_owns_its_memory(tmp_path):
+    like = LabelVolume(np.zeros((64, 1, 2), np.uint8), (1, 2, 3), (1, 1, 1), np.eye(3))
+    u = np.random.default_rng(6).normal(size=(64, 1, 2, 3))
+    write_displacement(u, like, tmp_path / "warp.nii.gz")
+    for _ in range(2):
+        back, grid = read_displacement(tmp_path / "warp.nii.gz")
+        assert back.flags.owndata and back.flags.c_contiguous and _owns_memory(back)
+        np.testing.assert_array_equal(back, u.astype(np.float32))
+        assert isinstance(grid, Grid) and grid.same_geometry(like)
 
 
 # --------------------------------------------------------------------------- atomic output

@@ -94,6 +94,7 @@ def test_implicit_on_grid_matches_pointwise_evaluation(size_mm):
     f = ImplicitSurface(surf.vertices, surf.normals, min_width=8.0)
     grid = implicit_on_grid(f, vol, chunk=1000)
     assert grid.shape == vol.shape and grid.dtype == np.float32
+    np.testing.assert_array_equal(implicit_on_grid(f, vol.grid, chunk=1000), grid)  # the grid alone suffices
     direct = f(vol.grid_points().reshape(-1, 3)).reshape(vol.shape)
     np.testing.assert_allclose(grid, direct, rtol=1e-6, atol=1e-5)
     lo, hi = f.bounds()

@@ -23,8 +23,9 @@ from skimage import measure
 
 from volreg._threads import single_blas, thread_map
 from volreg.features.implicit import ImplicitSurface
-from volreg.grid import LabelVolume
+from volreg.grid import GridLike, LabelVolume, as_grid
 from volreg.errors import SurfaceError
+from volreg.settings import SurfaceSettings
 
 __all__ = [
     "Surface",
@@ -171,7 +172,7 @@ def label_surface(
     volume: LabelVolume,
     label: int,
     *,
-    smoothing: float = 1.0,
+    smoothing: float = SurfaceSettings.smoothing,
     min_voxels: int = 8,
 ) -> Surface:
     """Boundary mesh of one label, in world mm with outward normals.
@@ -244,7 +245,7 @@ def label_surfaces(
     labels: Iterable[int] | None = None,
     *,
     on_small: Literal["error", "warn"] = "error",
-    smoothing: float = 1.0,
+    smoothing: float = SurfaceSettings.smoothing,
     min_voxels: int = 8,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> dict[int, Surface]:
@@ -288,7 +289,7 @@ def implicit_surfaces(
     volume: LabelVolume,
     surfaces: dict[int, Surface],
     *,
-    min_width_voxels: float = 4.0,
+    min_width_voxels: float = SurfaceSettings.min_width_voxels,
     progress: Callable[[str, int, int], None] | None = None,
     **kwargs,
 ) -> dict[int, ImplicitSurface]:
@@ -323,27 +324,32 @@ def implicit_surfaces(
     return out
 
 
-def implicit_on_grid(surface: ImplicitSurface, volume: LabelVolume, *, chunk: int = 1 << 20) -> np.ndarray:
-    """Sample an implicit surface at every voxel centre of ``volume``.
+def implicit_on_grid(surface: ImplicitSurface, volume: GridLike, *, chunk: int = 1 << 20) -> np.ndarray:
+    """Sample an implicit surface at every voxel centre of a grid.
 
     Only the voxels inside the surface's :meth:`~ImplicitSurface.bounds` are
-    evaluated (in chunks of ``chunk`` points); elsewhere ``f`` equals its
-    offset exactly and is filled in without evaluation.
+    evaluated (in chunks of ``chunk`` points, :meth:`~volreg.grid.Grid.chunks`);
+    elsewhere ``f`` equals its offset exactly and is filled in without
+    evaluation.
+
+    Parameters
+    ----------
+    surface : ImplicitSurface
+    volume : Grid, LabelVolume or (shape, affine)
+        The grid whose voxel centres are sampled (a volume's array is not used).
+    chunk : int
+        Points evaluated at a time.
 
     Returns
     -------
     ndarray of float32, shape ``volume.shape``, mm
     """
-    out = np.full(volume.shape, surface.offset, dtype=np.float32)
-    window = volume.index_window(*surface.bounds())
+    grid = as_grid(volume, "volume")
+    out = np.full(grid.shape, surface.offset, dtype=np.float32)
+    window = grid.index_window(*surface.bounds())
     if window is None:
         return out
-    start = np.array([w.start for w in window])
-    sub_shape = tuple(w.stop - w.start for w in window)
-    total = int(np.prod(sub_shape))
-    values = np.empty(total, dtype=np.float32)
-    for s in range(0, total, chunk):
-        idx = np.stack(np.unravel_index(np.arange(s, min(s + chunk, total)), sub_shape), axis=1) + start
-        values[s : s + chunk] = surface(volume.index_to_world(idx))
-    out[window] = values.reshape(sub_shape)
+    flat_out = out.reshape(-1)  # a view: ``out`` is C-contiguous
+    for part in grid.chunks(chunk, window):
+        flat_out[part.flat] = surface(part.points)
     return out

@@ -1,6 +1,6 @@
 """Displacement fields as ANTs and ITK read and write them (NIfTI-1, 5-D, intent vector).
 
-Convention (``../shared/DESIGN.md``): a displacement field lives on the fixed
+Convention (docs/conventions.md): a displacement field lives on the fixed
 (reference) grid; voxel ``x`` holds ``u(x) = tau(x) - x`` in ITK physical
 space (LPS, mm), so that a moving image is pulled back as
 ``moving(x + u(x))``.  On disk: NIfTI-1, float32, shape ``(X, Y, Z, 1, 3)``
@@ -19,7 +19,7 @@ import nibabel as nib
 import numpy as np
 import SimpleITK as sitk
 
-from volreg.grid import LabelVolume
+from volreg.grid import Grid, GridLike, as_grid
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
 from volreg.io.images import _check_input, _check_nifti, _sitk_reason
@@ -35,7 +35,7 @@ def _nifti_suffix(path: Path, what: str) -> None:
         raise VolregIOError(f"{what} `{path}` must be NIfTI (.nii or .nii.gz), the format ANTs and ITK read fields from.")
 
 
-def _ras_affine(like: LabelVolume) -> np.ndarray:
+def _ras_affine(like: Grid) -> np.ndarray:
     """4x4 RAS affine of a 2-D or 3-D LPS grid (2-D grids get a unit third axis)."""
     a = np.eye(4)
     d = like.ndim
@@ -45,7 +45,7 @@ def _ras_affine(like: LabelVolume) -> np.ndarray:
 
 
 def write_displacement(
-    displacement: np.ndarray, like: LabelVolume, path: str | os.PathLike[str], *, force: bool = False
+    displacement: np.ndarray, like: GridLike, path: str | os.PathLike[str], *, force: bool = False
 ) -> None:
     """Write a displacement field in the ANTs/ITK convention, atomically.
 
@@ -53,8 +53,8 @@ def write_displacement(
     ----------
     displacement : (*like.shape, D) float ndarray, LPS mm
         ``u(x) = tau(x) - x`` at the voxel centres of ``like``.
-    like : LabelVolume
-        The reference (fixed) grid: origin, spacing, direction.
+    like : Grid, LabelVolume or (shape, affine)
+        The reference (fixed) grid: origin, spacing, direction (a volume's array is not used).
     path : path-like
         ``.nii.gz`` (or ``.nii``).
     force : bool
@@ -66,6 +66,7 @@ def write_displacement(
         On a shape mismatch, a non-finite value, a non-NIfTI path, or an
         existing ``path`` without ``force``.
     """
+    like = as_grid(like, "like")
     p = Path(path)
     _nifti_suffix(p, "Displacement field")
     u = np.asarray(displacement)
@@ -88,14 +89,15 @@ def write_displacement(
         nib.save(img, str(tmp))
 
 
-def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, LabelVolume]:
+def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     """Read an ANTs/ITK displacement field.
 
     Returns
     -------
     displacement : (*shape, D) float64 ndarray, LPS mm
-    grid : LabelVolume
-        The field's grid (a ``uint8`` array of zeros carries the geometry).
+        A new C-order array that owns its memory.
+    grid : Grid
+        The field's grid: shape, origin, spacing, direction.
 
     Raises
     ------
@@ -117,14 +119,15 @@ def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, LabelVo
             f"Displacement field `{p}` has {img.GetNumberOfComponentsPerPixel()} components on a {dim}-D grid; "
             "expected a 2-D or 3-D vector image with one component per axis (ANTs/ITK warp)."
         )
-    array = sitk.GetArrayFromImage(img).astype(np.float64)  # (k, j, i, D)
-    u = array.transpose(*range(dim - 1, -1, -1), dim)  # (i, j, k, D)
+    array = sitk.GetArrayFromImage(img)  # (k, j, i, D), a copy
+    # (i, j, k, D) as float64 in one more copy, C order, owning its memory.
+    u = np.array(array.transpose(*range(dim - 1, -1, -1), dim), dtype=np.float64, order="C")
     if not np.all(np.isfinite(u)):
         raise VolregIOError(f"Displacement field `{p}` holds NaN or Inf; expected finite displacements in mm.")
-    grid = LabelVolume(
-        np.zeros(u.shape[:-1], dtype=np.uint8),
+    grid = Grid(
+        u.shape[:-1],
         np.array(img.GetOrigin()),
         np.array(img.GetSpacing()),
         np.array(img.GetDirection()).reshape(dim, dim),
     )
-    return np.ascontiguousarray(u), grid
+    return u, grid

@@ -10,7 +10,10 @@ VTK image IO does (see :mod:`volreg.io.vti`).
 
 Readers validate aggressively, because a silently wrong label volume is worse
 than a refusal: every problem raises :class:`VolregIOError` with one line
-naming the file and what was expected.
+naming the file and what was expected.  The arrays they return are new and
+own their memory (never views into a SimpleITK image, a VTK array or a
+memory-mapped file).  :func:`read_grid` reads only the geometry (a
+:class:`~volreg.grid.Grid`) from the header.
 """
 
 from __future__ import annotations
@@ -26,13 +29,12 @@ import nibabel as nib
 import numpy as np
 import SimpleITK as sitk
 
-from volreg.errors import GeometryError
-from volreg.grid import LabelVolume
-from volreg.errors import VolregIOError, VolregWarning
+from volreg.errors import GeometryError, VolregIOError, VolregWarning
+from volreg.grid import Grid, LabelVolume, as_grid
 from volreg.io._atomic import atomic_output
 from volreg.io.vti import read_vti
 
-__all__ = ["read_labels", "write_labels", "write_scalar", "read_image"]
+__all__ = ["read_labels", "write_labels", "write_scalar", "read_image", "read_grid"]
 
 #: Suffixes the readers accept (lower case).
 READ_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".vti")
@@ -167,33 +169,8 @@ def _sitk_reason(exc: BaseException) -> str:
     return reason.rstrip(".")
 
 
-def _check_nifti(path: Path, suffix: str, what: str) -> nib.Nifti1Image:
-    """Checks SimpleITK does not do for NIfTI: truncated data and qform/sform conflicts.
-
-    Returns the (lazily loaded) nibabel image for the checks after reading.
-    """
-    try:
-        with warnings.catch_warnings():
-            # nibabel warns about odd but legal headers; we only need the fields below.
-            warnings.simplefilter("ignore")
-            img = nib.load(str(path))
-            header = img.header
-            offset = int(header.get_data_offset())
-            shape = tuple(int(n) for n in header.get_data_shape())
-            itemsize = np.dtype(header.get_data_dtype()).itemsize
-            qform, qcode = img.get_qform(coded=True)
-            sform, scode = img.get_sform(coded=True)
-    except Exception as exc:  # nibabel raises many types for garbage input
-        raise VolregIOError(f"{what} `{path}` is not a readable NIfTI file: {_first_line(exc)}.") from exc
-
-    _check_size(path, shape, itemsize, what)  # before decompressing: a header may claim terabytes
-    # Spatial axes only (a displacement field's 4th and 5th axes are time and vector components).
-    pixdim = _raw_pixdim(path, suffix)[1 : min(len(shape), 3) + 1]  # nibabel's loader silently makes them positive
-    spatial = np.asarray(shape[: len(pixdim)]) > 1  # a singleton axis may carry pixdim 0
-    if np.any(~np.isfinite(pixdim)) or np.any((pixdim <= 0) & spatial):
-        raise VolregIOError(
-            f"{what} `{path}` has voxel sizes (pixdim) {pixdim.tolist()}; expected positive, finite spacings."
-        )
+def _check_nifti_length(path: Path, suffix: str, what: str, offset: int, shape: tuple[int, ...], itemsize: int) -> None:
+    """Refuse a NIfTI file whose data end before the header says (``offset`` + voxels x ``itemsize`` bytes)."""
     needed = offset + int(np.prod(shape, dtype=np.int64)) * itemsize
     if suffix == ".nii.gz":
         # SimpleITK silently zero-fills a truncated gzip stream, so decompress it
@@ -218,6 +195,39 @@ def _check_nifti(path: Path, suffix: str, what: str) -> nib.Nifti1Image:
             f"{itemsize}-byte voxels), file holds {have}."
         )
 
+
+def _check_nifti(path: Path, suffix: str, what: str, *, voxels: bool = True) -> nib.Nifti1Image:
+    """Checks SimpleITK does not do for NIfTI: truncated data and qform/sform conflicts.
+
+    With ``voxels=False`` (the header alone is wanted) the data are not
+    checked for truncation, which for ``.nii.gz`` means decompressing them.
+    Returns the (lazily loaded) nibabel image for the checks after reading.
+    """
+    try:
+        with warnings.catch_warnings():
+            # nibabel warns about odd but legal headers; we only need the fields below.
+            warnings.simplefilter("ignore")
+            img = nib.load(str(path))
+            header = img.header
+            offset = int(header.get_data_offset())
+            shape = tuple(int(n) for n in header.get_data_shape())
+            itemsize = np.dtype(header.get_data_dtype()).itemsize
+            qform, qcode = img.get_qform(coded=True)
+            sform, scode = img.get_sform(coded=True)
+    except Exception as exc:  # nibabel raises many types for garbage input
+        raise VolregIOError(f"{what} `{path}` is not a readable NIfTI file: {_first_line(exc)}.") from exc
+
+    _check_size(path, shape, itemsize, what)  # before decompressing: a header may claim terabytes
+    # Spatial axes only (a displacement field's 4th and 5th axes are time and vector components).
+    pixdim = _raw_pixdim(path, suffix)[1 : min(len(shape), 3) + 1]  # nibabel's loader silently makes them positive
+    spatial = np.asarray(shape[: len(pixdim)]) > 1  # a singleton axis may carry pixdim 0
+    if np.any(~np.isfinite(pixdim)) or np.any((pixdim <= 0) & spatial):
+        raise VolregIOError(
+            f"{what} `{path}` has voxel sizes (pixdim) {pixdim.tolist()}; expected positive, finite spacings."
+        )
+    if voxels:
+        _check_nifti_length(path, suffix, what, offset, shape, itemsize)
+
     if qform is None and sform is None:
         warnings.warn(
             f"{what} `{path}` has no orientation in its header (qform_code = sform_code = 0): read as ITK does "
@@ -236,35 +246,43 @@ def _check_nifti(path: Path, suffix: str, what: str) -> nib.Nifti1Image:
     return img
 
 
-def _nifti_after_sitk(
+def _nifti_float_voxels(nimg: nib.Nifti1Image, array: np.ndarray, path: Path, what: str) -> np.ndarray:
+    """Float voxels of a NIfTI file as nibabel reads them, in ``array``'s shape and dtype (a new array).
+
+    SimpleITK (niftilib) silently replaces NaN and Inf voxels by 0 in float
+    NIfTI files, so float data are taken from nibabel instead (same
+    ``[i, j, k]`` order, same shape once trailing size-1 axes are dropped).
+    Other data are returned unchanged.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        if np.dtype(nimg.header.get_data_dtype()).kind != "f":
+            return array
+        try:
+            data = np.asarray(nimg.dataobj)
+        except Exception as exc:  # already checked for truncation; be safe anyway
+            raise VolregIOError(f"{what} `{path}` could not be read: {_first_line(exc)}.") from exc
+        # A copy in C order: nibabel may hand out a memory map of the file.
+        return np.array(data.reshape(array.shape), dtype=array.dtype, order="C")
+
+
+def _check_nifti_geometry(
     nimg: nib.Nifti1Image,
-    array: np.ndarray,
     origin: np.ndarray,
     spacing: np.ndarray,
     direction: np.ndarray,
     path: Path,
     what: str,
-) -> np.ndarray:
-    """Cross-check SimpleITK's reading of a NIfTI file against nibabel's.
+) -> None:
+    """Cross-check SimpleITK's geometry of a NIfTI file against the header's coded affine.
 
-    * SimpleITK (niftilib) silently replaces NaN and Inf voxels by 0 in float
-      NIfTI files, so float data are taken from nibabel instead (same
-      ``[i, j, k]`` order, same shape once trailing size-1 axes are dropped).
-    * ITK takes voxel sizes from ``pixdim`` even when the sform says
-      otherwise, and cannot represent a sheared affine; so SimpleITK's
-      geometry, converted to RAS, must equal the header's coded affine.
-
-    Returns the array to use.
+    ITK takes voxel sizes from ``pixdim`` even when the sform says otherwise,
+    and cannot represent a sheared affine; so SimpleITK's geometry, converted
+    to RAS, must equal the header's coded affine.
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         header = nimg.header
-        if np.dtype(header.get_data_dtype()).kind == "f":
-            try:
-                data = np.asarray(nimg.dataobj)
-            except Exception as exc:  # already checked for truncation; be safe anyway
-                raise VolregIOError(f"{what} `{path}` could not be read: {_first_line(exc)}.") from exc
-            array = np.ascontiguousarray(data.reshape(array.shape).astype(array.dtype, copy=False))
         coded = int(header["sform_code"]) > 0 or int(header["qform_code"]) > 0
         header_affine = np.asarray(nimg.affine, dtype=float)
     if coded:
@@ -280,19 +298,71 @@ def _nifti_after_sitk(
                 f"{what} `{path}` has a header affine that SimpleITK cannot reproduce (off by up to {diff:.4g} mm): "
                 "pixdim disagrees with the sform/qform, or the affine is sheared; expected a consistent header."
             )
-    return array
 
 
-def _read_sitk(path: str | os.PathLike[str], what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _pixel_dtype(reader: sitk.ImageFileReader) -> np.dtype:
+    """The numpy dtype of one component of the pixels of the file ``reader`` has read the header of."""
+    probe = sitk.Image([1] * reader.GetDimension(), reader.GetPixelID())
+    return sitk.GetArrayFromImage(probe).dtype
+
+
+def _spatial_geometry(
+    source: sitk.Image | sitk.ImageFileReader, ncomp: int, pixel_type: str, dtype: np.dtype, path: Path, what: str
+) -> tuple[tuple[int, ...], np.ndarray, np.ndarray, np.ndarray]:
+    """Check that an image (or a header) is scalar, real and 2-D/3-D; return its spatial geometry.
+
+    Returns
+    -------
+    shape : tuple of D ints
+        Grid size in ITK index order (trailing axes of size 1 dropped).
+    origin : (D,) float ndarray, mm
+    spacing : (D,) float ndarray, mm
+    direction : (D, D) float ndarray
+    """
+    if ncomp != 1:
+        raise VolregIOError(
+            f"{what} `{path}` has {ncomp} components per voxel ({pixel_type}); expected a scalar image."
+        )
+    dim = source.GetDimension()
+    size = tuple(source.GetSize())
+    if dim < 2 or (dim > 3 and any(n != 1 for n in size[3:])):
+        raise VolregIOError(
+            f"{what} `{path}` is {dim}-D with size {size}; expected a 2-D or 3-D image "
+            "(extra axes of size 1 are allowed)."
+        )
+    if np.dtype(dtype).kind == "c":
+        raise VolregIOError(f"{what} `{path}` has complex voxels ({dtype}); expected a real scalar image.")
+    origin = np.asarray(source.GetOrigin(), dtype=float)
+    spacing = np.asarray(source.GetSpacing(), dtype=float)
+    direction = np.asarray(source.GetDirection(), dtype=float).reshape(dim, dim)
+    if dim > 3:
+        off_block = np.concatenate([direction[:3, 3:].ravel(), direction[3:, :3].ravel()])
+        if np.any(np.abs(off_block) > _DIR_TOL):
+            raise VolregIOError(
+                f"{what} `{path}` is {dim}-D with a direction matrix that mixes its extra axes with space; "
+                "expected a spatial 3-D block."
+            )
+        origin, spacing, direction = origin[:3], spacing[:3], direction[:3, :3]
+    return size[:3], origin, spacing, direction
+
+
+def _read_sitk(
+    path: str | os.PathLike[str], what: str, *, voxels: bool = True
+) -> tuple[np.ndarray | tuple[int, ...], np.ndarray, np.ndarray, np.ndarray]:
     """Read and validate a scalar 2-D/3-D image; return ``(array[i,j,k], origin, spacing, direction)``.
 
-    ``.vti`` files go to :func:`volreg.io.vti.read_vti`; everything else to SimpleITK.
+    ``.vti`` files go to :func:`volreg.io.vti.read_vti`; everything else to
+    SimpleITK.  The array owns its memory (it is never a view into a
+    SimpleITK image or a memory-mapped file).  With ``voxels=False`` only the
+    header is read and validated, and the first item is the grid's shape
+    ``(n_i, n_j[, n_k])`` instead of an array (a ``.vti`` file is read whole).
     """
     p = Path(path)
     suffix = _check_input(p, what)
     if suffix == ".vti":
-        return read_vti(p, what)
-    nimg = _check_nifti(p, suffix, what) if suffix in (".nii", ".nii.gz") else None
+        array, origin, spacing, direction = read_vti(p, what)
+        return (array if voxels else array.shape), origin, spacing, direction
+    nimg = _check_nifti(p, suffix, what, voxels=voxels) if suffix in (".nii", ".nii.gz") else None
     if suffix in (".mha", ".mhd", ".nrrd", ".nhdr"):
         _check_text_header_spacing(p, suffix, what)
 
@@ -300,45 +370,31 @@ def _read_sitk(path: str | os.PathLike[str], what: str) -> tuple[np.ndarray, np.
     reader.SetFileName(str(p))
     try:
         reader.ReadImageInformation()
-        itemsize = np.dtype(sitk.GetArrayViewFromImage(sitk.Image([1] * reader.GetDimension(), reader.GetPixelID())).dtype).itemsize
-        _check_size(p, reader.GetSize(), itemsize * reader.GetNumberOfComponents(), what)
-        img = reader.Execute()
+        pixel = _pixel_dtype(reader)
+        _check_size(p, reader.GetSize(), pixel.itemsize * reader.GetNumberOfComponents(), what)
+        img = reader.Execute() if voxels else None
     except RuntimeError as exc:
         raise VolregIOError(f"{what} `{p}` could not be read as an image: {_sitk_reason(exc)}.") from exc
 
-    ncomp = img.GetNumberOfComponentsPerPixel()
-    if ncomp != 1:
-        raise VolregIOError(
-            f"{what} `{p}` has {ncomp} components per voxel ({img.GetPixelIDTypeAsString()}); "
-            "expected a scalar image."
+    if not voxels:
+        shape, origin, spacing, direction = _spatial_geometry(
+            reader, reader.GetNumberOfComponents(), sitk.GetPixelIDValueAsString(reader.GetPixelID()), pixel, p, what
         )
-    dim = img.GetDimension()
-    size = tuple(img.GetSize())
-    if dim < 2 or (dim > 3 and any(n != 1 for n in size[3:])):
-        raise VolregIOError(
-            f"{what} `{p}` is {dim}-D with size {size}; expected a 2-D or 3-D image "
-            "(extra axes of size 1 are allowed)."
-        )
+        if nimg is not None:
+            _check_nifti_geometry(nimg, origin, spacing, direction, p, what)
+        return shape, origin, spacing, direction
 
-    array = sitk.GetArrayViewFromImage(img)  # (..., k, j, i); a view, copied once below
-    if np.iscomplexobj(array):
-        raise VolregIOError(f"{what} `{p}` has complex voxels ({array.dtype}); expected a real scalar image.")
-    origin = np.asarray(img.GetOrigin(), dtype=float)
-    spacing = np.asarray(img.GetSpacing(), dtype=float)
-    direction = np.asarray(img.GetDirection(), dtype=float).reshape(dim, dim)
-    if dim > 3:
-        off_block = np.concatenate([direction[:3, 3:].ravel(), direction[3:, :3].ravel()])
-        if np.any(np.abs(off_block) > _DIR_TOL):
-            raise VolregIOError(
-                f"{what} `{p}` is {dim}-D with a direction matrix that mixes its extra axes with space; "
-                "expected a spatial 3-D block."
-            )
-        array = array.reshape(size[2::-1])
-        origin, spacing, direction = origin[:3], spacing[:3], direction[:3, :3]
-    array = np.ascontiguousarray(array.T)
-    del img
+    view = sitk.GetArrayViewFromImage(img)  # (..., k, j, i): valid only while `img` lives
+    shape, origin, spacing, direction = _spatial_geometry(
+        img, img.GetNumberOfComponentsPerPixel(), img.GetPixelIDTypeAsString(), view.dtype, p, what
+    )
+    # One copy, in C order, that owns its memory: ``np.ascontiguousarray`` would return the
+    # view itself when at most one axis is longer than 1, and the view dies with `img`.
+    array = np.array(view.reshape(shape[::-1]).T, order="C")
+    del view, img
     if nimg is not None:
-        array = _nifti_after_sitk(nimg, array, origin, spacing, direction, p, what)
+        array = _nifti_float_voxels(nimg, array, p, what)
+        _check_nifti_geometry(nimg, origin, spacing, direction, p, what)
     return array, origin, spacing, direction
 
 
@@ -446,6 +502,38 @@ def read_image(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np
     return array, origin, spacing, direction
 
 
+def read_grid(path: str | os.PathLike[str]) -> Grid:
+    """Read the grid of an image (shape, origin, spacing, direction), not its voxels.
+
+    Parameters
+    ----------
+    path : path-like
+        As for :func:`read_image`.  Only the header is read where SimpleITK
+        allows (NIfTI, NRRD, MetaImage); a ``.vti`` file is read whole.
+
+    Returns
+    -------
+    Grid
+        Shape ``(n_i, n_j[, n_k])`` in ITK index order; origin and spacing in
+        mm, direction in ITK physical space (LPS); the same geometry as
+        :func:`read_image` gives.
+
+    Raises
+    ------
+    VolregIOError
+        As for :func:`read_image`, for everything the header shows (missing
+        or unrecognised file, vector or complex voxels, more than 3-D, an
+        inconsistent NIfTI header, invalid geometry).  The voxel data are not
+        read, so truncated or corrupt data are not detected.
+    """
+    p = Path(path)
+    shape, origin, spacing, direction = _read_sitk(p, "Image", voxels=False)
+    try:
+        return Grid(shape, origin, spacing, direction)
+    except GeometryError as exc:
+        raise VolregIOError(f"Image `{p}` has invalid geometry: {exc}") from exc
+
+
 def _check_output_suffix(path: Path, what: str) -> str:
     suffix = _suffix(path)
     if suffix not in WRITE_SUFFIXES:
@@ -456,7 +544,7 @@ def _check_output_suffix(path: Path, what: str) -> str:
     return suffix
 
 
-def _write_sitk(array: np.ndarray, like: LabelVolume, path: Path, suffix: str, force: bool, what: str) -> None:
+def _write_sitk(array: np.ndarray, like: Grid | LabelVolume, path: Path, suffix: str, force: bool, what: str) -> None:
     img = sitk.GetImageFromArray(np.ascontiguousarray(array.T), isVector=False)
     img.SetOrigin(tuple(float(v) for v in like.origin))
     img.SetSpacing(tuple(float(v) for v in like.spacing))
@@ -502,16 +590,18 @@ def write_labels(volume: LabelVolume, path: str | os.PathLike[str], *, force: bo
     _write_sitk(array, volume, p, suffix, force, "Label image")
 
 
-def write_scalar(array: np.ndarray, like: LabelVolume, path: str | os.PathLike[str], *, force: bool = False) -> None:
-    """Write a float32 scalar image on the grid of a label volume, atomically.
+def write_scalar(
+    array: np.ndarray, like: Grid | LabelVolume, path: str | os.PathLike[str], *, force: bool = False
+) -> None:
+    """Write a float32 scalar image on a grid (or the grid of a label volume), atomically.
 
     Parameters
     ----------
     array : (n_i, n_j[, n_k]) real ndarray
         Values in ITK index order; cast to ``float32``.  Shape must equal
         ``like.shape``.
-    like : LabelVolume
-        Supplies origin, spacing and direction (LPS, mm).
+    like : Grid or LabelVolume
+        Supplies origin, spacing and direction (LPS, mm); a volume's array is not used.
     path : path-like
         ``.nii``, ``.nii.gz``, ``.nrrd`` or ``.mha``.
     force : bool, default False
@@ -523,8 +613,9 @@ def write_scalar(array: np.ndarray, like: LabelVolume, path: str | os.PathLike[s
         On a shape mismatch, an unsupported suffix, an existing ``path``
         without ``force``, or a failed write.
     """
-    if not isinstance(like, LabelVolume):
-        raise VolregIOError(f"Expected `like` to be a LabelVolume, got {type(like).__name__}.")
+    if not isinstance(like, (Grid, LabelVolume)):
+        raise VolregIOError(f"Expected `like` to be a Grid or a LabelVolume, got {type(like).__name__}.")
+    like = as_grid(like)
     array = np.asarray(array)
     if array.shape != like.shape:
         raise VolregIOError(f"Expected `array` of shape {like.shape} (the grid of `like`), got {array.shape}.")

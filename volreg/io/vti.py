@@ -108,7 +108,8 @@ def read_vti(path: Path, what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     Returns
     -------
     array : (n_i, n_j[, n_k]) ndarray
-        Point values in ITK index order, dtype as stored.  A grid with a
+        Point values in ITK index order, dtype as stored, in a new C-order
+        array that owns its memory.  A grid with a
         single slice along ``z`` whose direction keeps ``z`` separate is
         returned as a 2-D image.
     origin : (D,) float ndarray, mm
@@ -133,13 +134,14 @@ def read_vti(path: Path, what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray,
         raise VolregIOError(
             f"{what} `{path}` has {values.size} values for dimensions {dims}; expected {int(np.prod(dims))}."
         )
-    array = np.ascontiguousarray(values.reshape(dims[::-1]).T)  # (nz, ny, nx) -> [i, j, k]
+    view = values.reshape(dims[::-1]).T  # (nz, ny, nx) -> [i, j, k], still VTK's memory
     spacing = np.asarray(image.spacing, dtype=float)
     direction = np.asarray(image.direction_matrix, dtype=float)
     extent_lo = np.asarray(image.extent, dtype=float)[0::2]
     origin = np.asarray(image.origin, dtype=float) + direction @ (spacing * extent_lo)
     separable = np.all(np.abs(direction[:2, 2]) < _DIR_TOL) and np.all(np.abs(direction[2, :2]) < _DIR_TOL)
     if dims[2] == 1 and separable:
-        array = array[:, :, 0]
+        view = view[:, :, 0]
         origin, spacing, direction = origin[:2], spacing[:2], direction[:2, :2]
-    return array, origin, spacing, direction
+    # One copy, in C order, that owns its memory (never a view into the VTK array).
+    return np.array(view, order="C"), origin, spacing, direction

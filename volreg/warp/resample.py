@@ -2,7 +2,7 @@
 
 All functions take the *positions* at which to sample -- world points (LPS mm),
 typically ``tau(x) = x + u(x)`` at the voxel centres ``x`` of the fixed grid
-(:func:`volreg.field.displacement_on_grid`) -- and the image to sample, with its
+(:func:`volreg.warp.field.displacement_on_grid`) -- and the image to sample, with its
 geometry.  Points outside the image get the background (0).
 
 Label interpolation
@@ -27,7 +27,7 @@ from typing import Callable, Literal
 import numpy as np
 from scipy import ndimage
 
-from volreg.grid import LabelVolume
+from volreg.grid import Grid, GridLike, LabelVolume, as_grid
 
 __all__ = ["resample_labels", "resample_image", "signed_distance_map"]
 
@@ -63,7 +63,7 @@ def signed_distance_map(mask: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     return np.clip(outside - inside, -FAR_MM, FAR_MM).astype(np.float32)
 
 
-def _indices(image: LabelVolume, points: np.ndarray) -> np.ndarray:
+def _indices(image: LabelVolume | Grid, points: np.ndarray) -> np.ndarray:
     """Continuous indices of world ``points`` (..., D) in ``image``, flattened to (N, D)."""
     points = np.asarray(points, dtype=float)
     if points.shape[-1] != image.ndim:
@@ -141,7 +141,7 @@ def resample_labels(
 
 def resample_image(
     array: np.ndarray,
-    geometry: LabelVolume,
+    geometry: GridLike,
     points: np.ndarray,
     *,
     order: Literal[0, 1, 3] = 1,
@@ -153,8 +153,8 @@ def resample_image(
     ----------
     array : (n_i, n_j[, n_k]) real ndarray
         The image values, ITK index order.
-    geometry : LabelVolume
-        Supplies the image's origin, spacing and direction (its array is not used).
+    geometry : Grid, LabelVolume or (shape, affine)
+        The image's grid: origin, spacing and direction (a volume's array is not used).
     points : (..., D) float ndarray, LPS mm
     order : {0, 1, 3}
         Interpolation order (``scipy.ndimage.map_coordinates``).
@@ -167,6 +167,7 @@ def resample_image(
     """
     if order not in (0, 1, 3):
         raise ValueError(f"Expected `order` 0, 1 or 3, got {order!r}.")
+    geometry = as_grid(geometry, "geometry")
     array = np.asarray(array)
     if array.shape != geometry.shape:
         raise ValueError(f"Expected `array` of shape {geometry.shape} (the grid of `geometry`), got {array.shape}.")
