@@ -153,4 +153,22 @@ def test_robust_loss_is_pseudo_huber_of_the_residual():
     assert distance(1e4) == pytest.approx(distance(0.0), rel=1e-6)
     with pytest.raises(ValueError, match="robust"):
         LevelObjective(kernel=k, kernel_centres=k, base=moved, samples=samples,
-                       features=[FeaturePair(f1, f2)], robust=-1.0)
+                       features=[FeaturePair(f1, f2)], lambda_loc=3.0, robust=-1.0)
+
+
+def test_fold_barrier_needs_its_margin():
+    """``fold_margin`` has no default of its own (``WarpSettings.fold_margin`` is the one):
+    a barrier without it is refused by name."""
+    rng = np.random.default_rng(6)
+    samples = rng.uniform(-6, 6, (40, 3))
+    check = rng.uniform(-6, 6, (30, 3))
+    f = SphereSDF(np.zeros(3), 4.0)
+    k = kernel_matrix(samples, samples, 5.0)
+    fold = dict(fold_gradients=kernel_gradient_matrices(check, samples, 5.0),
+                fold_base=np.repeat(np.eye(3)[None], len(check), axis=0), lambda_fold=50.0)
+    with pytest.raises(ValueError, match="`fold_margin`"):
+        LevelObjective(kernel=k, kernel_centres=k, base=samples.copy(), samples=samples,
+                       features=[FeaturePair(f, f)], lambda_loc=1.0, **fold)
+    obj = LevelObjective(kernel=k, kernel_centres=k, base=samples.copy(), samples=samples,
+                         features=[FeaturePair(f, f)], lambda_loc=1.0, fold_margin=0.3, **fold)
+    assert obj(np.zeros(40 * 3))[0] == 0.0  # identity: det J = 1 above the margin

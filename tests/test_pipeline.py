@@ -1,4 +1,4 @@
-"""Coarse-to-fine kernel warps between surfaces (issue 3 acceptance, 2-D part).
+"""Coarse-to-fine kernel warps between surfaces (2-D).
 
 Paper Figure 2: a square with a triangular protrusion; in the target the
 protrusion is shifted 8 mm along the outline.  The distance-only cost (3)
@@ -156,13 +156,13 @@ def test_bad_inputs():
 def test_fold_barrier_on_its_active_set_fits_as_the_barrier_on_every_point(shapes, monkeypatch):
     """The fold barrier is carried only by check points near fold_margin (plus those that
     cross it, in further rounds); the fit must be that of the barrier on every point."""
-    import volreg.warp.fit as pipeline
+    from volreg.warp import fit
 
     (_, f1), _ = shapes
     src = np.array([[20.0, -3.0], [20.0, 3.0]])  # two outline points that swap places: the warp must fold
     settings = WarpSettings(lambda_p=10.0, min_width=7.0, max_iter=100)
     subset = register_surfaces(f1, f1, landmarks=(src, src[::-1].copy()), settings=settings).log
-    monkeypatch.setattr(pipeline, "FOLD_SLACK", np.inf)  # every check point carries the barrier
+    monkeypatch.setattr(fit, "FOLD_SLACK", np.inf)  # every check point carries the barrier
     full = register_surfaces(f1, f1, landmarks=(src, src[::-1].copy()), settings=settings).log
     checks = 5 * full[0]["samples"]  # the samples and their 4 octree children in 2-D
     assert all(e["fold_points"] == checks for e in full)
@@ -171,6 +171,50 @@ def test_fold_barrier_on_its_active_set_fits_as_the_barrier_on_every_point(shape
     for a, b in zip(subset, full):
         # Measured: 381.405 / 381.405, 315.373 / 315.374, 309.208 / 309.266.
         assert a["objective"] == pytest.approx(b["objective"], rel=0.01)
+
+
+@pytest.mark.parametrize(
+    "settings, widths, steps",
+    [
+        (WarpSettings(min_width=4.0), [32, 16, 8, 4], [4, 4, 4, 4]),
+        (WarpSettings(min_width=5.0), [32, 16, 8], [5, 5, 5]),  # stops above min_width, never below
+        (WarpSettings(min_width=4.0, sample_scale=0.5), [32, 16, 8, 4], [4, 4, 2, 2]),
+        (WarpSettings(min_width=4.0, sample_scale=2.0), [32, 16, 8, 4], [8, 8, 8, 8]),
+        (WarpSettings(min_width=4.0, sample_spacing=1.0), [32, 16, 8, 4], [4, 4, 2, 1]),
+        (WarpSettings(), [32, 16, 8, 4], [4, 4, 4, 4]),  # min_width: 1/16 of the diameter
+    ],
+)
+def test_level_schedule(settings, widths, steps):
+    """Widths 1/2, 1/4, ... of the diameter down to min_width (paper Section 3.5); samples at
+    max(spacing, min(width / 4, min_width)) with spacing = sample_spacing or sample_scale * min_width."""
+    from volreg.warp.fit import _level_schedule
+
+    got_widths, got_steps = _level_schedule(64.0, settings.resolved(64.0))
+    assert got_widths == widths and got_steps == steps
+
+
+def test_fold_guard_shrinks_a_folding_level_by_powers_of_0_7():
+    from volreg.warp.fit import _fold_guard
+    from volreg.warp.model import jacobian_det
+
+    base = np.repeat(np.eye(2)[None], 3, axis=0)
+    level = np.zeros((3, 2, 2))
+    level[:, 0, 0] = [-0.95, -0.5, 0.0]  # det(I + s level) = 1 - 0.95 s at the first point
+    assert _fold_guard(base, level, jacobian_det(base + level), min_det=0.1) == 0.7
+    assert _fold_guard(base, 0.1 * level, jacobian_det(base + 0.1 * level), min_det=0.1) == 1.0
+    hopeless = np.zeros((1, 2, 2))
+    hopeless[0, 0, 0] = -1e6
+    assert _fold_guard(base[:1], hopeless, jacobian_det(base[:1] + hopeless), min_det=0.1) == 0.0
+    # Where the coarser levels already fold, the level only must not make it worse.
+    folded = np.array([[[0.05, 0.0], [0.0, 1.0]]])
+    assert _fold_guard(folded, np.zeros((1, 2, 2)), jacobian_det(folded), min_det=0.1) == 1.0
+
+
+def test_fit_warp_refuses_source_points_without_extent():
+    from volreg.warp.fit import fit_warp
+
+    with pytest.raises(ValueError, match="`source_points` of positive extent"):
+        fit_warp([], np.ones((5, 2)))
 
 
 def test_despeckle_removes_pieces_under_the_speck_fraction_and_judges_at_another():

@@ -2,10 +2,9 @@
 
 import pytest
 
-from volreg.settings import WarpSettings
-from volreg.io.protocol import PROTOCOL_DIR, load_protocol
-from volreg.settings import Protocol, SurfaceSettings
 from volreg.errors import ProtocolError
+from volreg.io.protocol import PROTOCOL_DIR, load_protocol
+from volreg.settings import Protocol, SurfaceSettings, WarpSettings
 
 
 def test_default_preset_names_every_default():

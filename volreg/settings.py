@@ -34,8 +34,9 @@ class WarpSettings:
         on a blob with eight bumps under a known warp, 15 mm (24 % of the diameter,
         with ``sample_scale = 2``) took the worst of four endpoint errors from 1.02 to
         0.90 % of the diameter; on an ellipsoid it did not help (BENCHMARKS.md).
+        Resolved by :meth:`resolved`.
     min_width : float, mm, optional
-        Finest kernel width; default 1/16 of the source diameter.
+        Finest kernel width; default 1/16 of the source diameter (:meth:`resolved`).
     lambda_loc : float
         Weight of the locational cost (11), per unit of mean cost.
     alpha : float, mm^2
@@ -85,16 +86,16 @@ class WarpSettings:
         ``prior`` is given.
     robust : float, mm
         If > 0, the distance term uses a pseudo-Huber loss of this scale (not in the
-        paper; see :class:`~volreg.objective.LevelObjective`); 0 = squared residuals,
+        paper; see :class:`~volreg.warp.objective.LevelObjective`); 0 = squared residuals,
         as in (3).  Implicit surfaces of resampled labels disagree by tens of mm at a
         few samples (seen on thin, fragmented labels), which the squared loss
         lets dominate: on the frog demo (``fast``) the true warp's squared distance
         cost was 14x the fitted warp's, 90 % of it from one label.  Measured there
         (endpoint error, mean mm): 0 -> 2.15, 1 -> 1.37, 0.5 -> 1.28, 0.25 -> 1.24.
     max_folded_fraction : float
-        Health check on the output grid (:func:`check_folding`): if the warp folds space
+        Health check on the output grid (:func:`~volreg.warp.fit.check_folding`): if the warp folds space
         (``det d tau / dx <= 0``) at more than this fraction of the fixed grid's voxels,
-        the registration stops with :class:`RegistrationDiverged` naming the first level
+        the registration stops with :class:`~volreg.errors.RegistrationDiverged` naming the first level
         that crossed it, instead of writing a folded warp.
     min_det : float
         Last-resort fold guard: after each level, its coefficients are shrunk (by 0.7 at a
@@ -143,6 +144,25 @@ class WarpSettings:
         if self.max_iter < 0:
             raise ValueError(f"Expected `max_iter` >= 0, got {self.max_iter}.")
 
+    def resolved(self, diameter: float) -> WarpSettings:
+        """These settings with the defaults that depend on the source filled in.
+
+        Parameters
+        ----------
+        diameter : float, mm
+            Diagonal of the bounding box of the source surface points, positive.
+
+        Returns
+        -------
+        WarpSettings
+            ``pad`` defaults to 10 % of ``diameter`` and ``min_width`` to 1/16 of it
+            (kernel widths 1/2, 1/4, 1/8, 1/16 of the diameter, paper Section 3.5);
+            values already set are kept.
+        """
+        pad = 0.1 * diameter if self.pad is None else self.pad
+        min_width = diameter / 16 if self.min_width is None else self.min_width
+        return dataclasses.replace(self, pad=pad, min_width=min_width)
+
 
 @dataclass(frozen=True)
 class SurfaceSettings:
@@ -156,7 +176,7 @@ class SurfaceSettings:
         Finest kernel width of the implicit surfaces.
     distance_weight : float
         Weight, relative to a label's implicit surface, of its voxel signed-distance
-        feature (:class:`~volreg.distance_maps.VoxelDistance`, not in the paper) in the
+        feature (:class:`~volreg.features.distance_maps.VoxelDistance`, not in the paper) in the
         locational cost; it also covers labels too small or fragmented for a surface.
         0 = off (implicit surfaces only, as in the paper).
     distance_clip : float, voxels

@@ -11,13 +11,18 @@ For each level, from a kernel width of half the source diameter down to
    around its source surface (``WarpSettings.band``);
 2. with landmarks, start from the convex problem (12): kernel ridge regression
    of the landmark residuals, solved exactly;
-3. minimise the objective (11) (:class:`~volreg.objective.LevelObjective`) over
-   the level's coefficients with L-BFGS, on top of the coarser levels, plus a
-   fold barrier on ``det d tau / dx`` (not in the paper);
+3. minimise the objective (11) (:class:`~volreg.warp.objective.LevelObjective`)
+   over the level's coefficients with L-BFGS, on top of the coarser levels, plus
+   a fold barrier on ``det d tau / dx`` (not in the paper);
 4. guard against folding: if ``det d tau / dx`` falls below ``min_det`` at a
    sample or at the centre of one of its octree children, shrink the level's
    coefficients until it does not (not in the paper, which has no such
    safeguard; logged as ``fold_scale``).
+
+The driver, :func:`fit_warp`, only walks the levels (:func:`_level_schedule`):
+it keeps the locational-cost samples of consecutive levels that share a sample
+spacing (:class:`_SampleSet`) and hands each level to the per-level solver,
+:func:`_fit_level` (steps 2-4).
 """
 
 from __future__ import annotations
@@ -165,6 +170,370 @@ def _feature_samples(features, samples: np.ndarray, band: float | None, reach: f
     return None if all(o is None for o in out) else out
 
 
+@dataclass(frozen=True)
+class _Inputs:
+    """The checked inputs of one fit, shared by every level.
+
+    Attributes
+    ----------
+    features : sequence of FeaturePair
+    points : (N, D) float ndarray, mm
+        The source surface points.
+    diameter : float, mm
+        Diagonal of the bounding box of ``points``.
+    landmarks : pair of (L, D) float ndarrays, mm, or None
+    settings : WarpSettings
+        With ``pad`` and ``min_width`` resolved against ``diameter``.
+    neighbourhood : (D + 1, D) float ndarray, mm, or None
+        Offsets of the neighbourhood cost (5).
+    prior : callable or None
+    """
+
+    features: Sequence[FeaturePair]
+    points: np.ndarray
+    diameter: float
+    landmarks: tuple[np.ndarray, np.ndarray] | None
+    settings: WarpSettings
+    neighbourhood: np.ndarray | None
+    prior: Callable[[np.ndarray], np.ndarray] | None
+
+
+def _check_inputs(features, source_points, landmarks, settings: WarpSettings, prior) -> _Inputs:
+    """Check the arguments of :func:`fit_warp` and resolve its data-derived settings."""
+    pts = _check_points("source_points", source_points)
+    if len(pts) < 2:
+        raise ValueError(f"Expected at least 2 `source_points`, got {len(pts)}.")
+    dim = pts.shape[1]
+    diameter = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    if not diameter > 0:
+        raise ValueError(f"Expected `source_points` of positive extent, got {len(pts)} copies of one point.")
+    if landmarks is not None:
+        if settings.lambda_p <= 0:
+            raise ValueError("Expected `lambda_p` > 0 in `settings` when `landmarks` are given (it weighs them).")
+        src_l, dst_l = (np.asarray(a, float) for a in landmarks)
+        if src_l.shape != dst_l.shape or src_l.ndim != 2 or src_l.shape[1] != dim:
+            raise ValueError(
+                f"Expected `landmarks` as two arrays of shape (L, {dim}), got {src_l.shape} and {dst_l.shape}."
+            )
+        landmarks = (src_l, dst_l)
+    neighbourhood = simplex_vertices(dim, settings.neighbourhood) if settings.neighbourhood > 0 else None
+    return _Inputs(features, pts, diameter, landmarks, settings.resolved(diameter), neighbourhood, prior)
+
+
+def _level_schedule(diameter: float, settings: WarpSettings) -> tuple[list[float], list[float]]:
+    """Kernel width and locational-cost sample spacing of every level (Section 3.5).
+
+    Parameters
+    ----------
+    diameter : float, mm
+        Diagonal of the source's bounding box.
+    settings : WarpSettings
+        With ``min_width`` resolved (:meth:`WarpSettings.resolved`).
+
+    Returns
+    -------
+    widths : list of float, mm
+        ``diameter / 2, diameter / 4, ...`` down to ``min_width`` (the paper's cascade
+        of 1/2, 1/4, ... of the diameter).
+    steps : list of float, mm
+        Per level, the octree size of the locational-cost samples (see
+        ``WarpSettings.sample_spacing``).
+    """
+    min_width = settings.min_width
+    widths = [diameter / 2]
+    while widths[-1] / 2 >= min_width * (1 - 1e-9):
+        widths.append(widths[-1] / 2)
+    spacing = settings.sample_scale * min_width if settings.sample_spacing is None else settings.sample_spacing
+    # Samples of the locational cost: the finest level's boxes at every level (the paper
+    # samples each level at its own boxes, which leaves a coarse level a few dozen points
+    # to estimate an integral over X), or `spacing` where that is finer, but no finer than
+    # a quarter of the level's kernel width: on the frog demo the coarser levels gained
+    # nothing from denser samples (BENCHMARKS.md).
+    return widths, [max(spacing, min(width / 4, min_width)) for width in widths]
+
+
+@dataclass
+class _SampleSet:
+    """The locational-cost samples of consecutive levels that share a sample spacing.
+
+    The coarser levels' warp at the samples and their Jacobian at the fold-check points
+    are carried from level to level (:meth:`add_level`), not re-evaluated through every
+    coarser level.
+
+    Attributes
+    ----------
+    step : float, mm
+        The octree size the samples were drawn at.
+    points : (N, D) float ndarray, mm
+        The samples ``x`` of the locational cost (octree box centres).
+    check : (P, D) float ndarray, mm
+        The fold-check points: the samples and, where they are sparser than half
+        ``min_width``, the centres of their octree children.
+    subsets : list of (N_l,) int ndarrays or None
+        Per feature, the samples where it counts (:func:`_feature_samples`).
+    consistency : dict
+        ``sample_targets`` and ``lambda_target`` of the consistency term, or empty.
+    base : (N, D) float ndarray, mm
+        ``tau_prev(x)`` at ``points``.
+    jacobian : (P, D, D) float ndarray
+        ``d tau_prev / dx`` at ``check``.
+    """
+
+    step: float
+    points: np.ndarray
+    check: np.ndarray
+    subsets: list | None
+    consistency: dict
+    base: np.ndarray
+    jacobian: np.ndarray
+
+    @classmethod
+    def build(cls, inputs: _Inputs, step: float, warp: KernelWarp) -> _SampleSet:
+        """Samples at octree size ``step`` (mm) under the coarser levels ``warp``."""
+        s = inputs.settings
+        dim = inputs.points.shape[1]
+        samples = octree_sample(inputs.points, s.pad, step, fraction=s.fraction)
+        # Fold-check points: the samples and their octree children, a lattice of at most half
+        # min_width; samples that dense (sample_scale <= 0.5) are checked as they are.
+        check = samples if step <= 0.5 * s.min_width * (1 + 1e-9) else _with_children(samples)
+        if warp.levels:
+            jacobian, base = warp.jacobian(check), warp(samples)
+        else:
+            jacobian, base = np.broadcast_to(np.eye(dim), (len(check), dim, dim)).copy(), samples.copy()
+        subsets = _feature_samples(inputs.features, samples, s.band, reach=s.neighbourhood)
+        consistency = {}
+        if inputs.prior is not None and s.lambda_consistency > 0:
+            consistency = dict(sample_targets=np.asarray(inputs.prior(samples), float),
+                               lambda_target=s.lambda_consistency)
+        return cls(step, samples, check, subsets, consistency, base, jacobian)
+
+    def add_level(self, jacobian: np.ndarray, base: np.ndarray) -> None:
+        """Carry a fitted level: its Jacobian (P, D, D) at ``check`` is added, and the
+        warp at ``points`` becomes ``base`` (N, D), mm."""
+        self.jacobian = self.jacobian + jacobian
+        self.base = base
+
+
+class _FoldSet:
+    """The fold-check points that carry the fold barrier during a level's fit (its active set).
+
+    The barrier acts only where ``det J < fold_margin``: it is set on the check points near
+    that, the fit is checked at every point, and points that crossed the margin join the
+    set for another round.  At the end the barrier is 0 at every point outside the set, so
+    the minimiser is that of the barrier over all points, without multiplying all of them
+    (samples and children: 9x the samples) at each step (on the frog demo that was 70 % of
+    the fit's time, with no point active).
+
+    Parameters
+    ----------
+    check : (P, D) float ndarray, mm
+        The fold-check points.
+    base : (P, D, D) float ndarray
+        The coarser levels' Jacobian at ``check``.
+    centres : (M, D) float ndarray, mm
+        The level's kernel centres.
+    width : float, mm
+        The level's kernel width.
+    margin : float
+        ``fold_margin``.
+    """
+
+    def __init__(self, check: np.ndarray, base: np.ndarray, centres: np.ndarray, width: float, margin: float):
+        self.check, self.base, self.centres, self.width, self.margin = check, base, centres, width, margin
+        self.active = np.zeros(len(check), dtype=bool)
+
+    def rows(self, det: np.ndarray) -> tuple[SharedPatternCSR, np.ndarray]:
+        """Add the points with ``det < margin + FOLD_SLACK`` to the active set.
+
+        Parameters
+        ----------
+        det : (P,) float ndarray
+            ``det d tau / dx`` at every check point.
+
+        Returns
+        -------
+        gradients : SharedPatternCSR
+            ``d k(y_p, c_j) / d y`` at the active points (``LevelObjective.fold_gradients``).
+        base : (P_active, D, D) float ndarray
+            The coarser levels' Jacobian there (``LevelObjective.fold_base``).
+        """
+        self.active |= det < self.margin + FOLD_SLACK
+        idx = np.flatnonzero(self.active)
+        return SharedPatternCSR(kernel_gradient_matrices(self.check[idx], self.centres, self.width)), self.base[idx]
+
+
+def _level_objective(width: float, centres: np.ndarray, grid: CellGrid, samples: _SampleSet, fold: _FoldSet,
+                     warp: KernelWarp, inputs: _Inputs) -> tuple[LevelObjective, np.ndarray]:
+    """The objective (11) of one level and its starting coefficients.
+
+    Returns
+    -------
+    objective : LevelObjective
+        On the level's centres, with the fold barrier on the first active set.
+    start : (M, D) float ndarray
+        Zero, or with landmarks the solution of the convex problem (12).
+    """
+    s = inputs.settings
+    k_cc = kernel_matrix(centres, grid, width)
+    k_xc = kernel_matrix(samples.points, grid, width)
+    kw = {}
+    c0 = np.zeros((len(centres), inputs.points.shape[1]))
+    if inputs.landmarks is not None:
+        src_l, dst_l = inputs.landmarks
+        kw = dict(landmark_kernel=kernel_matrix(src_l, grid, width), landmark_base=warp(src_l),
+                  landmark_targets=dst_l, lambda_p=s.lambda_p)
+        c0 = _landmark_init(sp.csr_matrix(k_cc), kw["landmark_kernel"], kw["landmark_base"], dst_l, s.lambda_p)
+    if s.lambda_fold > 0:
+        if inputs.landmarks is not None:
+            j_level = kernel_sum(samples.check, grid, c0, width, order=1)[1]
+        else:
+            j_level = np.zeros_like(samples.jacobian)
+        gradients, fold_base = fold.rows(jacobian_det(samples.jacobian + j_level))
+        kw.update(lambda_fold=s.lambda_fold, fold_margin=s.fold_margin, fold_gradients=gradients,
+                  fold_base=fold_base, fold_count=len(samples.check))
+    objective = LevelObjective(kernel=k_xc, kernel_centres=k_cc, base=samples.base, samples=samples.points,
+                               features=inputs.features, lambda_loc=s.lambda_loc, alpha=s.alpha,
+                               neighbourhood=inputs.neighbourhood, feature_samples=samples.subsets, robust=s.robust,
+                               **samples.consistency, **kw)
+    return objective, c0
+
+
+def _minimise(objective: LevelObjective, start: np.ndarray, start_value: float, fold: _FoldSet, grid: CellGrid,
+              level: int, width: float, settings: WarpSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Minimise a level's objective with L-BFGS, in rounds that grow the fold barrier's active set.
+
+    After each round every check point is tested; the points that crossed ``fold_margin``
+    outside the active set join it for another round, up to ``FOLD_ROUNDS`` rounds.
+
+    Parameters
+    ----------
+    objective : LevelObjective
+    start : (M, D) float ndarray
+        Starting coefficients; ``start_value`` is the objective there (for messages).
+    fold : _FoldSet
+    grid : CellGrid
+        Neighbour grid of the level's centres.
+    level : int
+    width : float, mm
+        The level's index and kernel width.
+    settings : WarpSettings
+
+    Raises
+    ------
+    RegistrationDiverged
+        If the objective or the coefficients stop being finite.
+
+    Returns
+    -------
+    coeffs : (M, D) float ndarray
+        The level's coefficients.
+    jacobian : (P, D, D) float ndarray
+        The level's own Jacobian at the check points.
+    det : (P,) float ndarray
+        ``det d tau / dx`` of the warp with the level, at the check points.
+    info : dict
+        ``iterations`` (total over rounds), ``converged`` (last round), ``fold_rounds``.
+    """
+    coeffs, iterations, converged, rounds = start, 0, True, 0
+    while True:
+        # A later round (points crossed the margin) gets at least half the budget again.
+        budget = settings.max_iter - iterations if rounds == 0 else max(settings.max_iter - iterations,
+                                                                        settings.max_iter // 2, 1)
+        res = scipy.optimize.minimize(objective, coeffs.ravel(), jac=True, method="L-BFGS-B",
+                                      options=dict(maxiter=budget, ftol=settings.tolerance))
+        if not (np.isfinite(res.fun) and np.all(np.isfinite(res.x))):
+            raise RegistrationDiverged(
+                f"Warp level {level} (kernel width {width:.3g} mm) diverged: its objective became {float(res.fun)!r} "
+                f"(started at {float(start_value)!r}); expected finite values. Check the inputs, or change the protocol: "
+                "lower lambda_loc or alpha, or raise min_width."
+            )
+        coeffs = res.x.reshape(start.shape)
+        iterations += int(res.nit)
+        converged = bool(res.success)
+        rounds += 1
+        jacobian = kernel_sum(fold.check, grid, coeffs, width, order=1)[1]
+        det = jacobian_det(fold.base + jacobian)  # at every check point
+        if settings.lambda_fold <= 0 or rounds >= FOLD_ROUNDS:
+            break
+        if not np.any(~fold.active & (det < settings.fold_margin)):
+            break
+        objective.set_fold(*fold.rows(det), count=len(fold.check))
+    return coeffs, jacobian, det, dict(iterations=iterations, converged=converged, fold_rounds=rounds)
+
+
+def _fold_guard(base: np.ndarray, jacobian: np.ndarray, det: np.ndarray, min_det: float) -> float:
+    """The factor that keeps a level from folding space at the check points (not in the paper).
+
+    ``tau`` must stay orientation-preserving.  If the level folds space (``det J < min_det``),
+    its coefficients are shrunk by 0.7 at a time, at most 20 times (then dropped: 0); where the
+    coarser levels are already below ``min_det``, the level must not make it worse.
+
+    Parameters
+    ----------
+    base : (P, D, D) float ndarray
+        The coarser levels' Jacobian at the check points.
+    jacobian : (P, D, D) float ndarray
+        The level's own Jacobian there.
+    det : (P,) float ndarray
+        ``det(base + jacobian)``.
+    min_det : float
+
+    Returns
+    -------
+    float
+        The factor, in [0, 1], for the level's coefficients (logged as ``fold_scale``).
+    """
+    floor = min(min_det, float(jacobian_det(base).min()))
+    scale = 1.0
+    for _ in range(20):
+        if det.min() >= floor:
+            break
+        scale *= 0.7
+        det = jacobian_det(base + scale * jacobian)
+    else:
+        scale = 0.0
+    return scale
+
+
+def _fit_level(level: int, width: float, samples: _SampleSet, warp: KernelWarp,
+               inputs: _Inputs) -> tuple[WarpLevel, dict]:
+    """Fit one level of kernel width ``width`` (mm) on top of the coarser levels ``warp``.
+
+    Steps 2-4 of the module docstring: the landmark start (12), L-BFGS on (11) with the
+    fold barrier, the fold guard.  ``samples`` then carries the level too.
+
+    Returns
+    -------
+    WarpLevel
+        The level's centres, coefficients and width.
+    dict
+        Its log entry (without ``level``, ``width`` and ``seconds``).
+    """
+    s = inputs.settings
+    # Centres: octree boxes of half the width (Section 3.5), plus the source landmarks
+    # (the representer theorem puts kernels at every training point, so landmarks
+    # away from X can be fitted too).
+    centres = octree_sample(inputs.points, s.pad, width, fraction=s.fraction)
+    if inputs.landmarks is not None:
+        centres = np.concatenate([centres, inputs.landmarks[0]])
+    grid = CellGrid.build(centres, width)
+    fold = _FoldSet(samples.check, samples.jacobian, centres, width, s.fold_margin)
+    objective, c0 = _level_objective(width, centres, grid, samples, fold, warp, inputs)
+    e0, _ = objective(c0.ravel())
+    terms0 = dict(objective.last_terms)
+    coeffs, jacobian, det, info = _minimise(objective, c0, e0, fold, grid, level, width, s)
+    # The fold guard, at the fold-check points (the samples and, where they are sparser than
+    # half min_width, their octree children).
+    scale = _fold_guard(samples.jacobian, jacobian, det, s.min_det)
+    coeffs = scale * coeffs
+    samples.add_level(scale * jacobian, objective.warp_samples(coeffs))
+    entry = dict(samples=int(len(samples.points)), centres=int(len(centres)), iterations=info["iterations"],
+                 converged=info["converged"], fold_points=int(np.count_nonzero(fold.active)),
+                 fold_rounds=info["fold_rounds"], fold_scale=scale, objective_start=float(e0),
+                 objective=float(objective(coeffs.ravel())[0]), terms_start=terms0, terms=dict(objective.last_terms))
+    return WarpLevel(centres, coeffs, width), entry
+
+
 @single_blas
 def fit_warp(
     features: Sequence[FeaturePair],
@@ -189,7 +558,7 @@ def fit_warp(
     settings : WarpSettings
     prior : callable, optional
         ``prior(points) -> (N, D)`` positions the warp should map the points to, e.g.
-        :class:`~volreg.inverse.InverseWarp` of the opposite registration; with
+        :class:`~volreg.warp.inverse.InverseWarp` of the opposite registration; with
         ``settings.lambda_consistency > 0`` the objective gains
         ``lambda_consistency mean_x |tau(x) - prior(x)|^2`` over the samples.
     progress : callable, optional
@@ -198,143 +567,23 @@ def fit_warp(
     Returns
     -------
     RegistrationResult
+        The warp (its ``settings`` with ``pad`` and ``min_width`` resolved) and one log
+        entry per level: ``level``, ``width`` (mm), ``samples``, ``centres``,
+        ``iterations``, ``converged``, ``fold_points``, ``fold_rounds``, ``fold_scale``,
+        ``objective_start``, ``objective``, ``terms_start``, ``terms``, ``seconds``.
     """
-    pts = _check_points("source_points", source_points)
-    if len(pts) < 2:
-        raise ValueError(f"Expected at least 2 `source_points`, got {len(pts)}.")
-    dim = pts.shape[1]
-    diameter = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
-    pad = 0.1 * diameter if settings.pad is None else settings.pad
-    min_width = diameter / 16 if settings.min_width is None else settings.min_width
-    widths = [diameter / 2]
-    while widths[-1] / 2 >= min_width * (1 - 1e-9):
-        widths.append(widths[-1] / 2)
-    if landmarks is not None:
-        if settings.lambda_p <= 0:
-            raise ValueError("Expected `lambda_p` > 0 in `settings` when `landmarks` are given (it weighs them).")
-        src_l, dst_l = (np.asarray(a, float) for a in landmarks)
-        if src_l.shape != dst_l.shape or src_l.ndim != 2 or src_l.shape[1] != dim:
-            raise ValueError(
-                f"Expected `landmarks` as two arrays of shape (L, {dim}), got {src_l.shape} and {dst_l.shape}."
-            )
-    neighbourhood = simplex_vertices(dim, settings.neighbourhood) if settings.neighbourhood > 0 else None
-    spacing = settings.sample_scale * min_width if settings.sample_spacing is None else settings.sample_spacing
-    warp = KernelWarp(dim=dim, settings=dict(asdict(settings), pad=pad, min_width=min_width))
+    inputs = _check_inputs(features, source_points, landmarks, settings, prior)
+    widths, steps = _level_schedule(inputs.diameter, inputs.settings)
+    warp = KernelWarp(dim=inputs.points.shape[1], settings=asdict(inputs.settings))
     log = []
-    level_spacing = None
-    for li, width in enumerate(widths):
+    samples = None
+    for level, (width, step) in enumerate(zip(widths, steps)):
         t0 = time.perf_counter()
-        # Samples of the locational cost: the finest level's boxes at every level (the
-        # paper samples each level at its own boxes, which leaves a coarse level a few
-        # dozen points to estimate an integral over X), or `spacing` where that is
-        # finer, but no finer than a quarter of the level's kernel width: on the frog
-        # demo the coarser levels gained nothing from denser samples (BENCHMARKS.md).
-        step = max(spacing, min(width / 4, min_width))
-        if step != level_spacing:
-            level_spacing = step
-            samples = octree_sample(pts, pad, step, fraction=settings.fraction)
-            # Fold-check points: the samples and their octree children, a lattice of at most half
-            # min_width; samples that dense (sample_scale <= 0.5) are checked as they are.
-            check = samples if step <= 0.5 * min_width * (1 + 1e-9) else _with_children(samples)
-            # The coarser levels' Jacobian at the fold-check points and their warp at the samples,
-            # carried from level to level (not re-evaluated through every coarser level).
-            if warp.levels:
-                j_prev, base = warp.jacobian(check), warp(samples)
-            else:
-                j_prev, base = np.broadcast_to(np.eye(dim), (len(check), dim, dim)).copy(), samples.copy()
-            subsets = _feature_samples(features, samples, settings.band, reach=settings.neighbourhood)
-            consistency = {}
-            if prior is not None and settings.lambda_consistency > 0:
-                consistency = dict(sample_targets=np.asarray(prior(samples), float),
-                                   lambda_target=settings.lambda_consistency)
-        # Centres: octree boxes of half the width (Section 3.5), plus the source landmarks
-        # (the representer theorem puts kernels at every training point, so landmarks
-        # away from X can be fitted too).
-        boxes = octree_sample(pts, pad, width, fraction=settings.fraction)
-        use_landmarks = landmarks is not None
-        centres = np.concatenate([boxes, src_l]) if use_landmarks else boxes
-        grid = CellGrid.build(centres, width)
-        k_cc = kernel_matrix(centres, grid, width)
-        k_xc = kernel_matrix(samples, grid, width)
-        kw = {}
-        if use_landmarks:
-            kw = dict(landmark_kernel=kernel_matrix(src_l, grid, width), landmark_base=warp(src_l),
-                      landmark_targets=dst_l, lambda_p=settings.lambda_p)
-        c0 = np.zeros((len(centres), dim))
-        if use_landmarks:
-            c0 = _landmark_init(sp.csr_matrix(k_cc), kw["landmark_kernel"], kw["landmark_base"], dst_l,
-                                settings.lambda_p)
-        # The fold barrier acts only where det J < fold_margin: it is set on the check points
-        # near that (the active set), the fit is checked at every point, and points that
-        # crossed the margin join the set for another round.  At the end the barrier is 0 at
-        # every point outside the set, so the minimiser is that of the barrier over all
-        # points, without multiplying all of them (samples and children: 9x the samples) at
-        # each step (on the frog demo that was 70 % of the fit's time, with no point active).
-        j_level = kernel_sum(check, grid, c0, width, order=1)[1] if use_landmarks else np.zeros_like(j_prev)
-        active = np.zeros(len(check), dtype=bool)
-
-        def fold_rows(det):
-            """Add the points with det < fold_margin + FOLD_SLACK to the active set; its rows."""
-            active[:] |= det < settings.fold_margin + FOLD_SLACK
-            idx = np.flatnonzero(active)
-            return SharedPatternCSR(kernel_gradient_matrices(check[idx], centres, width)), j_prev[idx]
-
-        if settings.lambda_fold > 0:
-            gradients, fold_base = fold_rows(jacobian_det(j_prev + j_level))
-            kw.update(lambda_fold=settings.lambda_fold, fold_margin=settings.fold_margin, fold_gradients=gradients,
-                      fold_base=fold_base, fold_count=len(check))
-        objective = LevelObjective(kernel=k_xc, kernel_centres=k_cc, base=base, samples=samples,
-                                   features=features, lambda_loc=settings.lambda_loc, alpha=settings.alpha,
-                                   neighbourhood=neighbourhood, feature_samples=subsets, robust=settings.robust, **consistency, **kw)
-        e0, _ = objective(c0.ravel())
-        terms0 = dict(objective.last_terms)
-        coeffs, iterations, converged, rounds = c0, 0, True, 0
-        while True:
-            # A later round (points crossed the margin) gets at least half the budget again.
-            budget = settings.max_iter - iterations if rounds == 0 else max(settings.max_iter - iterations,
-                                                                            settings.max_iter // 2, 1)
-            res = scipy.optimize.minimize(objective, coeffs.ravel(), jac=True, method="L-BFGS-B",
-                                          options=dict(maxiter=budget, ftol=settings.tolerance))
-            if not (np.isfinite(res.fun) and np.all(np.isfinite(res.x))):
-                raise RegistrationDiverged(
-                    f"Warp level {li} (kernel width {width:.3g} mm) diverged: its objective became {float(res.fun)!r} "
-                    f"(started at {float(e0)!r}); expected finite values. Check the inputs, or change the protocol: "
-                    "lower lambda_loc or alpha, or raise min_width."
-                )
-            coeffs = res.x.reshape(-1, dim)
-            iterations += int(res.nit)
-            converged = bool(res.success)
-            rounds += 1
-            j_level = kernel_sum(check, grid, coeffs, width, order=1)[1]
-            det = jacobian_det(j_prev + j_level)  # at every check point
-            if settings.lambda_fold <= 0 or rounds >= FOLD_ROUNDS:
-                break
-            if not np.any(~active & (det < settings.fold_margin)):
-                break
-            objective.set_fold(*fold_rows(det), count=len(check))
-        # Fold guard: tau must stay orientation-preserving, checked at the fold-check points
-        # (the samples and, where they are sparser than half min_width, their octree children).
-        # If the level folds space there (det J < min_det), shrink its coefficients;
-        # where coarser levels are already below min_det, it must not make it worse.
-        floor = min(settings.min_det, float(jacobian_det(j_prev).min()))
-        scale = 1.0
-        for _ in range(20):
-            if det.min() >= floor:
-                break
-            scale *= 0.7
-            det = jacobian_det(j_prev + scale * j_level)
-        else:
-            scale = 0.0
-        coeffs = scale * coeffs
-        warp = warp.with_level(WarpLevel(centres, coeffs, width))
-        j_prev = j_prev + scale * j_level
-        base = objective.warp_samples(coeffs)
-        log.append(dict(level=li, width=width, samples=int(len(samples)), centres=int(len(centres)),
-                        iterations=iterations, converged=converged, fold_points=int(np.count_nonzero(active)),
-                        fold_rounds=rounds, fold_scale=scale, objective_start=float(e0),
-                        objective=float(objective(coeffs.ravel())[0]),
-                        terms_start=terms0, terms=dict(objective.last_terms),
-                        seconds=time.perf_counter() - t0))
+        if samples is None or step != samples.step:
+            samples = _SampleSet.build(inputs, step, warp)
+        fitted, entry = _fit_level(level, width, samples, warp, inputs)
+        warp = warp.with_level(fitted)
+        log.append(dict(level=level, width=width, **entry, seconds=time.perf_counter() - t0))
         if progress is not None:
-            progress("fit warp", li + 1, len(widths))
+            progress("fit warp", level + 1, len(widths))
     return RegistrationResult(warp, log)

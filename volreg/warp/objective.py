@@ -46,7 +46,7 @@ class FeaturePair:
     """One feature function of each object (paper (6)): ``f1`` on O1, ``f2`` on O2.
 
     ``f1`` and ``f2`` are objects with ``evaluate(points, order=...)`` returning
-    ``(f, grad f[, hess f])`` (e.g. :class:`~volreg.implicit.ImplicitSurface`).
+    ``(f, grad f[, hess f])`` (e.g. :class:`~volreg.features.implicit.ImplicitSurface`).
     """
 
     f1: object
@@ -84,8 +84,10 @@ class LevelObjective:
     samples : (N, D) float ndarray, mm
         The sample points ``x`` themselves.
     features : sequence of FeaturePair
-    lambda_loc, alpha : float
-        Weight of the locational cost, and of its gradient term (mm^2).
+    lambda_loc : float
+        Weight of the locational cost (``WarpSettings.lambda_loc``).
+    alpha : float, mm^2
+        Weight of its gradient term (4); 0 (default) gives the distance-only cost (3).
     landmark_kernel : (L, M) sparse matrix, optional
         ``k(p_i, c_j)`` for source landmarks ``p_i``.
     landmark_base : (L, D) float ndarray, mm, optional
@@ -102,9 +104,13 @@ class LevelObjective:
         (:func:`~volreg.kernels.kernel_gradient_matrices`).
     fold_base : (P, D, D) float ndarray, optional
         Jacobian of ``tau_prev`` at the fold-check points.
-    lambda_fold, fold_margin : float
-        Fold barrier (not in the paper): ``lambda_fold mean_p max(0, fold_margin
-        - det J(y_p))^2`` keeps the warp orientation-preserving.
+    lambda_fold : float
+        Weight of the fold barrier (not in the paper): ``lambda_fold mean_p
+        max(0, fold_margin - det J(y_p))^2`` keeps the warp orientation-preserving.
+        0 (default) = off.
+    fold_margin : float, optional
+        Determinant below which the barrier acts (``WarpSettings.fold_margin``);
+        required when ``lambda_fold > 0``.
     fold_count : int, optional
         The number of fold-check points the barrier's mean runs over; default the
         rows of ``fold_gradients``.  Larger when those rows are only the points where
@@ -134,7 +140,7 @@ class LevelObjective:
     base: np.ndarray
     samples: np.ndarray
     features: Sequence[FeaturePair]
-    lambda_loc: float = 1.0
+    lambda_loc: float
     alpha: float = 0.0
     landmark_kernel: sp.spmatrix | None = None
     landmark_base: np.ndarray | None = None
@@ -144,7 +150,7 @@ class LevelObjective:
     fold_gradients: list | SharedPatternCSR | None = None
     fold_base: np.ndarray | None = None
     lambda_fold: float = 0.0
-    fold_margin: float = 0.2
+    fold_margin: float | None = None
     fold_count: int | None = None
     feature_samples: Sequence[np.ndarray | None] | None = None
     sample_targets: np.ndarray | None = None
@@ -190,6 +196,9 @@ class LevelObjective:
         if self.lambda_fold > 0:
             if self.fold_gradients is None or self.fold_base is None:
                 raise ValueError("Expected `fold_gradients` and `fold_base` when `lambda_fold` > 0.")
+            if self.fold_margin is None:
+                raise ValueError("Expected `fold_margin` (the determinant below which the barrier acts) "
+                                 "when `lambda_fold` > 0.")
             self.set_fold(self.fold_gradients, self.fold_base, self.fold_count)
 
     def set_fold(self, gradients, base: np.ndarray, count: int | None = None) -> None:

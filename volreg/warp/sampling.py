@@ -26,6 +26,8 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from volreg.settings import WarpSettings
+
 __all__ = ["octree_sample", "morton_order"]
 
 # Morton codes are held in 63 bits of an int64/uint64: 63 // D bits per axis.
@@ -126,7 +128,7 @@ def octree_sample(
     pad: float,
     width: float,
     *,
-    fraction: float = 0.5,
+    fraction: float = WarpSettings.fraction,
     bounds: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Training points of one kernel level: centres of octree boxes in X.
@@ -165,7 +167,7 @@ def octree_sample(
         the level being sampled, positive.
     fraction : float, optional
         Boxes are subdivided until their edge is below ``fraction * width``;
-        the paper uses 1/2 (default).  Positive.
+        default ``WarpSettings.fraction``, the paper's 1/2.  Positive.
     bounds : (lo, hi) pair of (D,) float ndarrays, mm, optional
         Axis-aligned box to sample instead of the padded bounding box of the
         surface points (e.g. the image's field of view).  The root cube
