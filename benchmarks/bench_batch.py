@@ -9,7 +9,7 @@ and worker count a fresh ``volreg batch`` process runs on a fresh output folder,
   * the whole command (start of the process to exit: cluster start-up, all tasks, summary files);
   * the sum of the per-task seconds it records in ``batch.csv`` (the registrations themselves);
 and also, for reference, the same registrations run one after another in one process without
-Dask (``volreg.pipeline.register_labels`` + the same outputs via the CLI's ``run_registration``).
+Dask (``volreg.register_labels`` and every output through ``volreg.write_registration``).
 Throughput is registrations per minute of wall time.  The scheduler overhead per task is measured
 separately on a running 1-worker LocalCluster: the round trip of 200 trivial tasks submitted one at
 a time, per task.  Medians over the repeats; printed as a Markdown table.
@@ -69,7 +69,7 @@ def run_batch(manifest: Path, out: Path, workers: int, protocol: str) -> tuple[f
 def run_serial(manifest: Path, out: Path, protocol: str) -> float:
     """The same registrations, one after another in a fresh process, without Dask."""
     code = (
-        "import sys, csv; from pathlib import Path; from volreg._batch_cli import read_manifest, run_pair\n"
+        "import sys, csv; from pathlib import Path; from volreg.cli.batch import read_manifest, run_pair\n"
         f"m = Path({str(manifest)!r}); t = m.parent / 'template.nii.gz'\n"
         "for sid, p in read_manifest(m):\n"
         f"    r = run_pair('template', str(t), sid, str(p), str(Path({str(out)!r}) / sid), {protocol!r})\n"

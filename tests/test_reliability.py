@@ -1,4 +1,4 @@
-"""Reliability (issue 7): hostile inputs refused in one line with exit status 2 and nothing written;
+"""Reliability: hostile inputs refused in one line with exit status 2 and nothing written;
 interrupted runs leave no partial output; runs are reproducible; no unsafe loaders."""
 
 from __future__ import annotations
@@ -342,8 +342,8 @@ def test_interrupted_registration_leaves_nothing(tmp_path, sig):
     deadline = time.time() + 120
     while not out.exists() and time.time() < deadline and proc.poll() is None:
         time.sleep(0.05)
-    # The directory appears about 1 s into a 2.2 s run (measured after BLAS was held to one
-    # thread); 1 s here let the run finish, restoring the default SIGTERM action, first.
+    # The directory appears about 1 s into a run of about 2 s; waiting 1 s here can let the run
+    # finish (restoring the default SIGTERM action) before the signal is sent.
     time.sleep(0.3)
     assert proc.poll() is None, "the registration finished before it could be interrupted"
     proc.send_signal(sig)
@@ -356,12 +356,11 @@ def test_interrupted_registration_leaves_nothing(tmp_path, sig):
 
 def test_interrupt_lost_in_a_ctypes_callback_still_stops_the_run(tmp_path, monkeypatch, capsys):
     """Ctrl-C during numba's first compilation of a kernel lands in an llvmlite ctypes callback,
-    where Python only reports it ("Exception ignored") and the run went on to finish with exit 0
-    (seen on a fresh clone). The next progress report must raise it again: exit 130, one line,
-    OUTDIR gone."""
+    where Python only reports it ("Exception ignored"), and the run would go on to finish with
+    exit 0. The next progress report must raise it again: exit 130, one line, OUTDIR gone."""
     import ctypes
 
-    import volreg.cli.register as register_cli
+    import volreg.register as registration
     from test_register import blob_volume
 
     def raise_sigint() -> None:
@@ -372,7 +371,7 @@ def test_interrupt_lost_in_a_ctypes_callback_still_stops_the_run(tmp_path, monke
         progress("fit warp", 1, 4)
         raise AssertionError("the interrupt was not raised again")
 
-    monkeypatch.setattr(register_cli, "register_labels", register_labels)
+    monkeypatch.setattr(registration, "register_labels", register_labels)
     vol = blob_volume()
     write_labels(vol, tmp_path / "a.nii.gz")
     write_labels(vol, tmp_path / "b.nii.gz")
@@ -459,16 +458,16 @@ def test_a_warp_folding_the_grid_stops_with_the_level_named():
 
 
 def test_register_writes_nothing_when_the_warp_folds(files, tmp_path, capsys, monkeypatch):
-    import volreg.cli.register as rc
+    import volreg.register as registration
 
-    real = rc.register_labels
+    real = registration.register_labels
 
     def folding(fixed, moving, **kwargs):
         result = real(fixed, moving, **kwargs)
         result.warp = _folding_warp(fixed)
         return result
 
-    monkeypatch.setattr(rc, "register_labels", folding)
+    monkeypatch.setattr(registration, "register_labels", folding)
     (tmp_path / "p.toml").write_text(TEST_PROTOCOL)
     out = tmp_path / "out"
     assert main(["register", str(files["good"]), str(files["good2"]), "-o", str(out), "--protocol",

@@ -7,7 +7,7 @@ import csv
 import numpy as np
 import pytest
 
-from volreg.errors import UsageError  # before volreg._tune_cli, which it imports
+from volreg.errors import UsageError
 from volreg.cli.tune import parse_grid
 from volreg.io import write_labels
 from volreg.errors import ProtocolError

@@ -25,10 +25,16 @@ _API = {
     # the main jobs
     "register_labels": "volreg.register",
     "register_surfaces": "volreg.register",
+    "register_both_ways": "volreg.register",
+    "TwoWayRegistration": "volreg.register",
+    "write_registration": "volreg.register",
+    "check_pair": "volreg.register",
     "LabelRegistration": "volreg.register",
     "RegistrationResult": "volreg.warp.fit",
     # data and files
     "LabelVolume": "volreg.grid",
+    "Grid": "volreg.grid",
+    "read_grid": "volreg.io",
     "read_labels": "volreg.io",
     "read_image": "volreg.io",
     "write_labels": "volreg.io",
@@ -49,6 +55,9 @@ _API = {
     "displacement_on_grid": "volreg.warp.field",
     # evaluation
     "label_scores": "volreg.evaluation.metrics",
+    "consistency_test": "volreg.evaluation.consistency",
+    "write_consistency_test": "volreg.evaluation.consistency",
+    "tune_settings": "volreg.evaluation.tune",
     # errors
     "VolregError": "volreg.errors",
     "VolregIOError": "volreg.errors",

@@ -5,23 +5,48 @@ one kernel implicit surface per driving label and side (paper Section 4, eq. 6),
 voxel signed-distance maps (not in the paper) -- and fits the warp with
 :func:`volreg.warp.fit.fit_warp`.  :func:`register_surfaces` does the same for meshes
 or point clouds with normals.
+
+:func:`write_registration` registers two label volumes and writes every output
+(displacement fields, warped labels, the model, the Jacobian map, a report) into a
+folder, all or nothing; :func:`register_both_ways` registers A to B and B to A, as the
+consistency test (paper Section 5) needs; :func:`check_pair` refuses, before any work,
+a pair that cannot be registered (different dimensions, grids apart, too large).
 """
 
 from __future__ import annotations
 
+import os
+import resource
 import time
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from pathlib import Path
+from typing import Callable, NamedTuple, Sequence
 import numpy as np
+from volreg import __version__
 from volreg._threads import single_blas, thread_map
 from volreg.features.implicit import ImplicitSurface
 from volreg.warp.objective import FeaturePair
 from volreg.errors import RegistrationInputError
-from volreg.settings import WarpSettings
-from volreg.warp.fit import RegistrationResult, fit_warp
+from volreg.settings import Protocol, SurfaceSettings, WarpSettings
+from volreg.warp.fit import RegistrationResult, check_folding, fit_warp
 
-__all__ = ["LabelRegistration", "despeckle", "register_labels", "register_surfaces"]
+__all__ = [
+    "LabelRegistration",
+    "REGISTRATION_OUTPUTS",
+    "TwoWayRegistration",
+    "check_pair",
+    "despeckle",
+    "estimated_peak_gb",
+    "register_both_ways",
+    "register_labels",
+    "register_surfaces",
+    "world_box",
+    "write_registration",
+]
+
+ProgressCallback = Callable[[str, int, int], None]
 
 
 def _as_implicit(surface, **kwargs) -> tuple[ImplicitSurface, np.ndarray]:
@@ -100,7 +125,7 @@ COMPACT_FRACTION = 0.8
 
 
 #: Pieces of a driving label smaller than this fraction of its voxels are removed before its
-#: surface is made.  Measured on the frog at 3 mm (2026-12-02): 0.05 -> endpoint error
+#: surface is made.  On the frog at 3 mm: 0.05 -> endpoint error
 #: 0.611 / 1.468 mm (mean / p95), Dice 0.887; 0.01 -> 0.521 / 1.175, Dice 0.888 (the small bones
 #: of the skeleton, label 13, then drive the warp); at full resolution no change (0.296 -> 0.295 mm).
 SPECK_FRACTION = 0.01
@@ -221,63 +246,15 @@ def register_labels(
         volumes (with distance maps every common label drives, surface or not).
     """
     from volreg.io.protocol import load_protocol
-    from volreg.features.label_surfaces import label_surfaces, voxel_size
 
     protocol = load_protocol("default") if protocol is None else protocol
-    if fixed.ndim != moving.ndim:
-        raise RegistrationInputError(f"Expected `fixed` and `moving` of the same dimension, got {fixed.ndim}-D and {moving.ndim}-D.")
-    common = sorted(set(fixed.labels().tolist()) & set(moving.labels().tolist()))
-    if not common:
-        raise RegistrationInputError(
-            f"The fixed and moving volumes have no label in common (fixed: {fixed.labels().tolist()[:20]}, "
-            f"moving: {moving.labels().tolist()[:20]}); expected the same label values for the same structures."
-        )
-    if drive_labels is None:
-        labels = common
-    else:
-        labels = [int(v) for v in drive_labels]
-        if not labels:
-            raise RegistrationInputError("Expected at least one label in `drive_labels`, got none.")
-        absent = [v for v in labels if v not in common]
-        if absent:
-            raise RegistrationInputError(
-                f"Drive label {absent[0]} is not present in both volumes (labels in both: {common[:30]})."
-            )
+    common, labels = _candidate_labels(fixed, moving, drive_labels)
     stages = []
     t0 = time.perf_counter()
-    skipped = []
-    # Specks (pieces under SPECK_FRACTION of a label) are removed before the surfaces are
-    # made; whether a label is speckled is judged on pieces of at least 5 %.
-    clean_fixed, speckled_f = despeckle(fixed, labels, piece=SPECK_FRACTION, judge=0.05)
-    clean_moving, speckled_m = despeckle(moving, labels, piece=SPECK_FRACTION, judge=0.05)
-    if drive_labels is None:
-        # Speckled labels (a sheet broken into many pieces by the voxel grid) give pieces in
-        # one volume that have no partner in the other; their implicit surfaces then differ by
-        # tens of mm near the surfaces and mislead the warp.  They are warped, not driving.
-        for v in labels:
-            frac = min(speckled_f[v], speckled_m[v])
-            if frac < COMPACT_FRACTION:
-                how = ("only its voxel distance map does" if protocol.surface.distance_weight > 0
-                       else "name it in drive_labels to use it anyway")
-                skipped.append(f"Label {v}'s surface does not drive the warp: only {100 * frac:.0f} % of its voxels lie in "
-                               f"pieces of at least 5 % of the label (speckled); {how}.")
-        labels = [v for v in labels if min(speckled_f[v], speckled_m[v]) >= COMPACT_FRACTION]
-        if not labels and protocol.surface.distance_weight <= 0:
-            raise RegistrationInputError(
-                "Every common label is speckled (many small pieces) and the protocol's distance_weight is 0; "
-                "choose drive_labels explicitly, or set distance_weight > 0 so that the labels' distance maps drive."
-            )
-    surfaces = {}
-    for name, volume in (("fixed", clean_fixed), ("moving", clean_moving)):
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            surfaces[name] = label_surfaces(volume, labels, on_small="warn", smoothing=protocol.surface.smoothing,
-                                            progress=progress)
-        if protocol.surface.distance_weight > 0:
-            skipped += [f"{name} volume: {str(w.message).rstrip('.')}; its voxel distance map drives instead." for w in caught]
-        else:
-            skipped += [f"{name} volume: {w.message}" for w in caught]
-    s_fixed, s_moving = surfaces["fixed"], surfaces["moving"]
+    clean_fixed, clean_moving, labels, skipped = _despeckled(fixed, moving, labels, drive_labels is None,
+                                                             protocol.surface)
+    s_fixed, s_moving, notes = _surface_pairs(clean_fixed, clean_moving, labels, protocol.surface, progress)
+    skipped += notes
     used = [v for v in labels if v in s_fixed and v in s_moving]
     if not used and protocol.surface.distance_weight <= 0:
         # With distance maps (distance_weight > 0) every label drives, with a surface or not.
@@ -288,9 +265,128 @@ def register_labels(
     stages.append(dict(stage="surfaces", seconds=time.perf_counter() - t0))
 
     t0 = time.perf_counter()
+    pairs = _implicit_pairs(fixed, moving, s_fixed, s_moving, used, protocol.surface, progress)
+    stages.append(dict(stage="implicit surfaces", seconds=time.perf_counter() - t0))
+
+    distance_labels = []
+    boxes_f = {}
+    if protocol.surface.distance_weight > 0:
+        # Voxel signed-distance features: every label in both volumes (or the chosen
+        # drive labels), also those too small or too fragmented for a surface.
+        t0 = time.perf_counter()
+        distance_labels = common if drive_labels is None else labels
+        boxes_f, boxes_m = fixed.label_boxes(), moving.label_boxes()
+        pairs += _distance_pairs(fixed, moving, distance_labels, boxes_f, boxes_m, protocol.surface, progress)
+        stages.append(dict(stage="voxel distance maps", seconds=time.perf_counter() - t0))
+
+    t0 = time.perf_counter()
+    points = _warp_volume_points(fixed, s_fixed, used, distance_labels, boxes_f)
+    result = fit_warp(pairs, points, landmarks=landmarks, settings=protocol.warp, prior=prior, progress=progress)
+    stages.append(dict(stage="fit warp", seconds=time.perf_counter() - t0))
+    return LabelRegistration(result.warp, result.log, labels=used, skipped=skipped, stages=stages,
+                             distance_labels=[int(v) for v in distance_labels])
+
+
+def _candidate_labels(fixed, moving, drive_labels: Sequence[int] | None) -> tuple[list[int], list[int]]:
+    """The labels of both volumes and the candidate driving labels (``drive_labels``, checked, or all common).
+
+    Raises
+    ------
+    RegistrationInputError
+        Volumes of different dimensions, no label in common, an empty ``drive_labels``
+        or one naming a label absent from either volume.
+    """
+    if fixed.ndim != moving.ndim:
+        raise RegistrationInputError(f"Expected `fixed` and `moving` of the same dimension, got {fixed.ndim}-D and {moving.ndim}-D.")
+    common = sorted(set(fixed.labels().tolist()) & set(moving.labels().tolist()))
+    if not common:
+        raise RegistrationInputError(
+            f"The fixed and moving volumes have no label in common (fixed: {fixed.labels().tolist()[:20]}, "
+            f"moving: {moving.labels().tolist()[:20]}); expected the same label values for the same structures."
+        )
+    if drive_labels is None:
+        return common, common
+    labels = [int(v) for v in drive_labels]
+    if not labels:
+        raise RegistrationInputError("Expected at least one label in `drive_labels`, got none.")
+    absent = [v for v in labels if v not in common]
+    if absent:
+        raise RegistrationInputError(
+            f"Drive label {absent[0]} is not present in both volumes (labels in both: {common[:30]})."
+        )
+    return common, labels
+
+
+def _despeckled(fixed, moving, labels: list[int], choose: bool, settings: SurfaceSettings):
+    """Both volumes without the specks of ``labels``, and (``choose``: labels chosen by default) the compact ones.
+
+    Specks (pieces under :data:`SPECK_FRACTION` of a label) are removed before the surfaces
+    are made; whether a label is speckled is judged on pieces of at least 5 %.
+
+    Returns
+    -------
+    clean_fixed, clean_moving : LabelVolume
+    labels : list of int
+        ``labels``, without the speckled ones when ``choose``.
+    skipped : list of str
+        Why each speckled label does not drive by its surface.
+    """
+    clean_fixed, speckled_f = despeckle(fixed, labels, piece=SPECK_FRACTION, judge=0.05)
+    clean_moving, speckled_m = despeckle(moving, labels, piece=SPECK_FRACTION, judge=0.05)
+    skipped = []
+    if choose:
+        # Speckled labels (a sheet broken into many pieces by the voxel grid) give pieces in
+        # one volume that have no partner in the other; their implicit surfaces then differ by
+        # tens of mm near the surfaces and mislead the warp.  They are warped, not driving.
+        for v in labels:
+            frac = min(speckled_f[v], speckled_m[v])
+            if frac < COMPACT_FRACTION:
+                how = ("only its voxel distance map does" if settings.distance_weight > 0
+                       else "name it in drive_labels to use it anyway")
+                skipped.append(f"Label {v}'s surface does not drive the warp: only {100 * frac:.0f} % of its voxels lie in "
+                               f"pieces of at least 5 % of the label (speckled); {how}.")
+        labels = [v for v in labels if min(speckled_f[v], speckled_m[v]) >= COMPACT_FRACTION]
+        if not labels and settings.distance_weight <= 0:
+            raise RegistrationInputError(
+                "Every common label is speckled (many small pieces) and the protocol's distance_weight is 0; "
+                "choose drive_labels explicitly, or set distance_weight > 0 so that the labels' distance maps drive."
+            )
+    return clean_fixed, clean_moving, labels, skipped
+
+
+def _surface_pairs(clean_fixed, clean_moving, labels: list[int], settings: SurfaceSettings, progress):
+    """The boundary meshes of ``labels`` in both volumes; labels too small for one are noted, not fatal.
+
+    Returns
+    -------
+    s_fixed, s_moving : dict of int to Surface
+    skipped : list of str
+        One note per label and volume without a surface.
+    """
+    from volreg.features.label_surfaces import label_surfaces
+
+    surfaces = {}
+    skipped = []
+    for name, volume in (("fixed", clean_fixed), ("moving", clean_moving)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            surfaces[name] = label_surfaces(volume, labels, on_small="warn", smoothing=settings.smoothing,
+                                            progress=progress)
+        if settings.distance_weight > 0:
+            skipped += [f"{name} volume: {str(w.message).rstrip('.')}; its voxel distance map drives instead." for w in caught]
+        else:
+            skipped += [f"{name} volume: {w.message}" for w in caught]
+    return surfaces["fixed"], surfaces["moving"], skipped
+
+
+def _implicit_pairs(fixed, moving, s_fixed, s_moving, used: list[int], settings: SurfaceSettings,
+                    progress) -> list[FeaturePair]:
+    """One pair of kernel implicit surfaces (paper Section 4) per label in ``used``: fixed (f1), moving (f2)."""
+    from volreg.features.label_surfaces import voxel_size
+
     pairs = []
-    w_fixed = protocol.surface.min_width_voxels * voxel_size(fixed)
-    w_moving = protocol.surface.min_width_voxels * voxel_size(moving)
+    w_fixed = settings.min_width_voxels * voxel_size(fixed)
+    w_moving = settings.min_width_voxels * voxel_size(moving)
     jobs = []
     for v in used:
         # One coarsest width and one offset for both objects of a label: far from the
@@ -314,33 +410,33 @@ def register_labels(
                 progress("fit implicit surfaces", i + 1, len(used))
     finally:
         fits.close()  # joins the threads, also when progress raises (an interrupt)
-    stages.append(dict(stage="implicit surfaces", seconds=time.perf_counter() - t0))
+    return pairs
 
-    weight = protocol.surface.distance_weight
-    distance_labels = []
-    if weight > 0:
-        # Voxel signed-distance features: every label in both volumes (or the chosen
-        # drive labels), also those too small or too fragmented for a surface.
-        t0 = time.perf_counter()
-        distance_labels = common if drive_labels is None else labels
-        boxes_f, boxes_m = fixed.label_boxes(), moving.label_boxes()
-        for i, v in enumerate(distance_labels):
-            pairs.append(FeaturePair(_voxel_distance(fixed, v, boxes_f, protocol.surface),
-                                     _voxel_distance(moving, v, boxes_m, protocol.surface), weight))
-            if progress is not None:
-                progress("voxel distance maps", i + 1, len(distance_labels))
-        stages.append(dict(stage="voxel distance maps", seconds=time.perf_counter() - t0))
 
-    t0 = time.perf_counter()
+def _distance_pairs(fixed, moving, labels: list[int], boxes_f: dict, boxes_m: dict, settings: SurfaceSettings,
+                    progress) -> list[FeaturePair]:
+    """One pair of voxel signed-distance maps per label (fixed, moving), weighted by ``settings.distance_weight``.
+
+    ``boxes_f``, ``boxes_m`` are the volumes' label boxes (:meth:`LabelVolume.label_boxes`).
+    """
+    pairs = []
+    for i, v in enumerate(labels):
+        pairs.append(FeaturePair(_voxel_distance(fixed, v, boxes_f, settings),
+                                 _voxel_distance(moving, v, boxes_m, settings), settings.distance_weight))
+        if progress is not None:
+            progress("voxel distance maps", i + 1, len(labels))
+    return pairs
+
+
+def _warp_volume_points(fixed, s_fixed, used: list[int], distance_labels: list[int], boxes_f: dict) -> np.ndarray:
+    """The fixed points whose padded neighbourhood is the warp volume X, (N, D) mm.
+
+    The vertices of the driving surfaces, and the boundary voxels of the labels that
+    drive only through their distance maps.
+    """
     points = [s_fixed[v].vertices for v in used]
-    # Labels that drive only through their distance maps: their boundary voxels join the
-    # points whose padded neighbourhood is the warp volume X.
     points += [_boundary_points(fixed, v, boxes_f[v]) for v in distance_labels if v not in used]
-    points = np.concatenate(points)
-    result = fit_warp(pairs, points, landmarks=landmarks, settings=protocol.warp, prior=prior, progress=progress)
-    stages.append(dict(stage="fit warp", seconds=time.perf_counter() - t0))
-    return LabelRegistration(result.warp, result.log, labels=used, skipped=skipped, stages=stages,
-                             distance_labels=[int(v) for v in distance_labels])
+    return np.concatenate(points)
 
 
 def _boundary_points(volume, value: int, box) -> np.ndarray:
@@ -369,3 +465,433 @@ def _voxel_distance(volume, value: int, boxes: dict, settings):
     origin = volume.origin + volume.direction @ (volume.spacing * lo)
     return VoxelDistance(volume.array[window] == value, volume.spacing, origin, volume.direction,
                          clip=clip, smoothing=smoothing)
+
+
+# ----------------------------------------------------------------------------- a pair of volumes
+
+
+def world_box(volume) -> tuple[np.ndarray, np.ndarray]:
+    """The LPS bounding box of the voxel domain of ``volume`` (voxel corners, not centres).
+
+    Returns
+    -------
+    lo, hi : (D,) float ndarrays, mm
+    """
+    corners = np.array(list(np.ndindex(*([2] * volume.ndim))), dtype=float)
+    pts = volume.index_to_world(corners * (np.array(volume.shape) - 1)[None] + (corners - 0.5))
+    return pts.min(axis=0), pts.max(axis=0)
+
+
+#: Peak memory of a registration, estimated before it starts: a base plus bytes per voxel of the
+#: two grids (the frog demo peaks at 1.71 GB for two grids of 1.76 M voxels).
+_BASE_GB = 0.4
+
+
+_BYTES_PER_VOXEL = 400
+
+
+def _available_bytes() -> int | None:
+    """MemAvailable from /proc/meminfo (Linux), else None."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:  # pragma: no cover - not Linux
+        return None
+    return None
+
+
+def estimated_peak_gb(fixed, moving) -> float:
+    """Rough peak memory of registering ``moving`` to ``fixed`` (:func:`write_registration`), GB."""
+    voxels = int(np.prod(fixed.shape)) + int(np.prod(moving.shape))
+    return _BASE_GB + _BYTES_PER_VOXEL * voxels / 1024**3
+
+
+def _check_memory(fixed, moving, fixed_name, moving_name) -> None:
+    """Refuse a job that would not fit in the memory available now, before it starts."""
+    need = estimated_peak_gb(fixed, moving)
+    available = _available_bytes()
+    if available is not None and need * 1024**3 > available:
+        raise RegistrationInputError(
+            f"Registering `{moving_name}` ({moving.shape}) to `{fixed_name}` ({fixed.shape}) would need about "
+            f"{need:.1f} GB of memory and {available / 1024**3:.1f} GB is available; expected smaller grids "
+            "(downsample the label volumes) or more free memory."
+        )
+
+
+def check_pair(fixed, moving, fixed_name: object = "fixed", moving_name: object = "moving") -> None:
+    """Refuse, before any work, a pair of label volumes that cannot be registered.
+
+    Parameters
+    ----------
+    fixed, moving : LabelVolume
+    fixed_name, moving_name : str or path-like
+        How the messages name the volumes (e.g. their files).
+
+    Raises
+    ------
+    RegistrationInputError
+        Volumes of different dimensions, grids that do not overlap in world (LPS)
+        space, or a registration whose estimated peak memory (:func:`estimated_peak_gb`)
+        exceeds the memory available now.
+    """
+    if fixed.ndim != moving.ndim:
+        raise RegistrationInputError(
+            f"`{fixed_name}` is {fixed.ndim}-D and `{moving_name}` {moving.ndim}-D; expected two volumes of one dimension."
+        )
+    lo1, hi1 = world_box(fixed)
+    lo2, hi2 = world_box(moving)
+    if np.any(hi1 < lo2) or np.any(hi2 < lo1):
+        raise RegistrationInputError(
+            f"The grids of `{fixed_name}` and `{moving_name}` do not overlap in world (LPS) space "
+            f"(fixed {np.round(lo1, 1).tolist()}..{np.round(hi1, 1).tolist()} mm, moving "
+            f"{np.round(lo2, 1).tolist()}..{np.round(hi2, 1).tolist()} mm); check their origins and orientations."
+        )
+    _check_memory(fixed, moving, fixed_name, moving_name)
+
+
+# ----------------------------------------------------------------------------- every output of a registration
+
+
+#: The files :func:`write_registration` writes into its output folder.
+REGISTRATION_OUTPUTS = (
+    "warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz", "model.npz", "jacobian.nii.gz", "report.json", "report.png",
+)
+
+
+def _peak_rss_gb() -> float:
+    """Peak resident memory of this process so far, GB (Linux reports kB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+
+
+def _stage(name: str, t0: float) -> dict:
+    """A stage record: its name, seconds since ``t0`` and the peak memory so far (GB)."""
+    return dict(stage=name, seconds=time.perf_counter() - t0, peak_rss_gb=round(_peak_rss_gb(), 3))
+
+
+class _FixedGridFields(NamedTuple):
+    """The warp sampled at the voxel centres of the fixed grid, (X, Y, Z[, 3]) arrays."""
+
+    grid: np.ndarray  # voxel centres x, mm
+    displacement: np.ndarray  # u(x) = tau(x) - x, mm
+    jacobian: np.ndarray  # det d tau / dx
+    points: np.ndarray  # tau(x), mm
+    warped: np.ndarray  # the moving labels at tau(x)
+
+
+def _sample_on_fixed_grid(warp, fixed, moving, max_folded_fraction: float, progress) -> _FixedGridFields:
+    """The warp's displacement and Jacobian determinant on the fixed grid, checked for folding
+    (:func:`~volreg.warp.fit.check_folding`), and the moving labels resampled through it
+    (label-preserving)."""
+    from volreg.warp.field import fields_on_grid
+    from volreg.warp.resample import resample_labels
+
+    grid = fixed.grid_points()  # (X, Y, Z, 3) mm, used below for every comparison
+    u, jac = fields_on_grid(warp, fixed, progress=progress)
+    points = grid + u
+    check_folding(warp, fixed, jac, max_folded_fraction)  # before more work
+    warped = resample_labels(moving, points, method="label", progress=progress)
+    return _FixedGridFields(grid, u, jac, points, warped)
+
+
+def _inverse_on_moving_grid(warp, moving, progress):
+    """The warp's inverse (:class:`~volreg.warp.inverse.InverseWarp`) and its displacement on the moving grid, mm."""
+    from volreg.warp.field import displacement_on_grid
+    from volreg.warp.inverse import InverseWarp
+
+    inverse = InverseWarp(warp)
+    return inverse, displacement_on_grid(inverse, moving, progress=progress, stage="invert warp")
+
+
+def _registration_report(fixed, moving, result: LabelRegistration, fields: _FixedGridFields, inverse,
+                         protocol: Protocol, inputs, truth) -> dict:
+    """The report of a registration: Dice per label before and after, Jacobian and displacement
+    figures, the inverse's residual, the fit's levels, and (given ``truth``, the true warp) the
+    endpoint error; without stages and timings."""
+    from volreg.evaluation.metrics import folded_fraction, label_scores
+    from volreg.io.summary import package_versions
+    from volreg.warp.resample import resample_labels
+
+    grid, u, jac, points, warped_array = fields
+    before = resample_labels(moving, grid, method="nearest")
+    labels = sorted(set(fixed.labels().tolist()) | set(moving.labels().tolist()))
+    scores_before = label_scores(fixed.array, before, labels, fixed.spacing)
+    scores_after = label_scores(fixed.array, warped_array, labels, fixed.spacing)
+    inside = fixed.array != 0
+    report = {
+        "volreg_version": __version__,
+        "command": "register",
+        "inputs": {} if inputs is None else inputs,
+        "direction": "pull-back: fixed point x corresponds to moving point x + u(x) (LPS mm)",
+        "drive_labels": result.labels,
+        "distance_map_labels": result.distance_labels,
+        "skipped_labels": result.skipped,
+        "labels": {
+            str(v): {"before": scores_before[v], "after": scores_after[v]} for v in labels
+        },
+        "mean_dice": {
+            "before": float(np.mean([scores_before[v]["dice"] for v in labels])),
+            "after": float(np.mean([scores_after[v]["dice"] for v in labels])),
+        },
+        "jacobian": {
+            "min": float(jac.min()),
+            "max": float(jac.max()),
+            "folded_fraction": folded_fraction(jac),
+            "folded_fraction_in_labels": folded_fraction(jac, inside),
+        },
+        "displacement_mm": {
+            "max": float(np.linalg.norm(u, axis=-1).max()),
+            "mean_in_labels": float(np.linalg.norm(u[inside], axis=-1).mean()) if inside.any() else 0.0,
+        },
+        "inverse": {
+            "method": "Newton iteration with the analytic Jacobian, on the moving grid",
+            "tolerance_mm": inverse.tol,
+            "max_residual_mm": inverse.max_residual,
+            "unconverged_voxels": inverse.unconverged,
+        },
+        "levels": result.log,
+        "protocol": protocol.to_dict(),
+        "versions": package_versions(),
+    }
+    if truth is not None:
+        gp = grid[inside]
+        err = np.linalg.norm(points[inside] - truth(gp), axis=1)
+        err0 = np.linalg.norm(truth(gp) - gp, axis=1)
+        report["endpoint_error_mm"] = {
+            "mean": float(err.mean()), "p95": float(np.percentile(err, 95)), "max": float(err.max()),
+            "identity_mean": float(err0.mean()), "identity_p95": float(np.percentile(err0, 95)),
+        }
+    return report
+
+
+def _write_fields(folder, fixed, moving, warp, fields: _FixedGridFields, u_inverse: np.ndarray, report: dict,
+                  force: bool) -> None:
+    """Write the model, both displacement fields, the warped labels, the Jacobian map and the
+    report figure into ``folder`` (an :class:`~volreg.io._atomic.OutputFolder`), recording each."""
+    from volreg.io import write_labels, write_scalar
+    from volreg.io.fields import write_displacement
+    from volreg.io.report_figure import write_report_figure
+
+    paths = {name: folder.path / name for name in REGISTRATION_OUTPUTS}
+    warp.save(paths["model.npz"], force=force)
+    folder.record(paths["model.npz"])
+    write_displacement(fields.displacement, fixed, paths["warp.nii.gz"], force=force)
+    folder.record(paths["warp.nii.gz"])
+    write_displacement(u_inverse, moving, paths["inverse_warp.nii.gz"], force=force)
+    folder.record(paths["inverse_warp.nii.gz"])
+    warped = fields.warped.astype(moving.array.dtype, copy=False)
+    write_labels(fixed.with_array(warped), paths["warped.nii.gz"], force=force)
+    folder.record(paths["warped.nii.gz"])
+    write_scalar(fields.jacobian, fixed, paths["jacobian.nii.gz"], force=force)
+    folder.record(paths["jacobian.nii.gz"])
+    u_index = (fields.displacement @ fixed.direction) / fixed.spacing  # LPS mm -> index units of the fixed grid
+    write_report_figure(paths["report.png"], fixed.array, moving.array, fields.warped, u_index,
+                        fixed_spacing=fixed.spacing, moving_spacing=moving.spacing, force=force,
+                        title=f"volreg register: mean Dice {report['mean_dice']['before']:.3f} -> "
+                        f"{report['mean_dice']['after']:.3f}")
+    folder.record(paths["report.png"])
+
+
+def _register_and_write(fixed, moving, outdir, *, protocol, drive_labels, landmarks, force, inputs, truth, prior,
+                        progress, on_fit) -> tuple[LabelRegistration, dict]:
+    """:func:`write_registration`, also returning the registration itself."""
+    from volreg.io import check_writable, write_json
+    from volreg.io._atomic import output_folder
+    from volreg.io.protocol import load_protocol
+    from volreg.io.summary import json_safe
+
+    protocol = load_protocol("default") if protocol is None else protocol
+    with output_folder(outdir, force) as folder:
+        check_writable([folder.path / name for name in REGISTRATION_OUTPUTS], force=force)
+        t_all = time.perf_counter()
+        result = register_labels(fixed, moving, drive_labels=drive_labels, landmarks=landmarks,
+                                 protocol=protocol, prior=prior, progress=progress)
+        stages = [dict(st, peak_rss_gb=round(_peak_rss_gb(), 3)) for st in result.stages]
+        if on_fit is not None:
+            on_fit(result)
+
+        t0 = time.perf_counter()
+        fields = _sample_on_fixed_grid(result.warp, fixed, moving, protocol.warp.max_folded_fraction, progress)
+        stages.append(_stage("resample", t0))
+
+        t0 = time.perf_counter()
+        inverse, u_inverse = _inverse_on_moving_grid(result.warp, moving, progress)
+        stages.append(_stage("inverse", t0))
+
+        t0 = time.perf_counter()
+        report = _registration_report(fixed, moving, result, fields, inverse, protocol, inputs, truth)
+        stages.append(_stage("metrics", t0))
+
+        t0 = time.perf_counter()
+        _write_fields(folder, fixed, moving, result.warp, fields, u_inverse, report, force)
+        stages.append(_stage("write", t0))
+        report["stages"] = stages
+        report["seconds"] = time.perf_counter() - t_all
+        report["peak_rss_gb"] = round(_peak_rss_gb(), 3)
+        report = json_safe(report)
+        write_json(report, folder.path / "report.json", force=force)
+        folder.record(folder.path / "report.json")
+    return result, report
+
+
+def write_registration(
+    fixed,
+    moving,
+    outdir: str | os.PathLike[str],
+    *,
+    protocol: Protocol | None = None,
+    drive_labels: Sequence[int] | None = None,
+    landmarks: tuple[np.ndarray, np.ndarray] | None = None,
+    force: bool = False,
+    inputs: Mapping | None = None,
+    truth: Callable[[np.ndarray], np.ndarray] | None = None,
+    prior: Callable[[np.ndarray], np.ndarray] | None = None,
+    progress: ProgressCallback | None = None,
+    on_fit: Callable[[LabelRegistration], None] | None = None,
+) -> dict:
+    """Register ``moving`` to ``fixed`` (:func:`register_labels`) and write every output into ``outdir``.
+
+    The outputs (:data:`REGISTRATION_OUTPUTS`): ``warp.nii.gz`` (the displacement
+    u(x) = tau(x) - x on the fixed grid, LPS mm, as ANTs/ITK read it),
+    ``inverse_warp.nii.gz`` (the inverse's displacement on the moving grid),
+    ``warped.nii.gz`` (the moving labels on the fixed grid), ``model.npz`` (the
+    kernel warp, paper eq. 9), ``jacobian.nii.gz`` (det d tau / dx on the fixed
+    grid), ``report.png`` and ``report.json`` (the report returned).
+
+    Parameters
+    ----------
+    fixed, moving : LabelVolume
+    outdir : path-like
+        The output folder; created with missing parents.  A warp folding more than
+        ``protocol.warp.max_folded_fraction`` of the fixed grid is refused before
+        anything is written.
+    protocol : Protocol, optional
+        Default :func:`volreg.io.protocol.load_protocol` ``("default")``.
+    drive_labels, landmarks, prior
+        As :func:`register_labels`.
+    force : bool, default False
+        Write into a non-empty ``outdir``, replacing outputs.
+    inputs : dict, optional
+        What the report records as the inputs (e.g. paths and checksums).
+    truth : callable, optional
+        The true warp, ``truth(points (N, D) mm) -> (N, D) mm``: the report then gives the
+        endpoint error ``|tau(x) - truth(x)|`` over the fixed labels' voxels, mm.
+    progress : callable, optional
+        ``progress(stage, done, total)``.
+    on_fit : callable, optional
+        Called with the :class:`LabelRegistration` once the warp is fitted, before the
+        outputs are computed (e.g. to log its stages and levels).
+
+    Returns
+    -------
+    dict
+        The report, as written to ``report.json`` (NaN as ``None``): Dice per label before
+        and after, the Jacobian determinant's range and folded fractions, displacement
+        figures in mm, the inverse's residual, the fit's ``levels`` and ``stages`` (seconds
+        and peak memory, GB), ``seconds`` and ``peak_rss_gb``.
+
+    Raises
+    ------
+    VolregError
+        Inputs that cannot be registered, a non-empty ``outdir`` without ``force``, an output
+        that cannot be written, a warp that diverges or folds.  On any error (and on an
+        interrupt) the files written so far and the folders created are removed.
+    """
+    return _register_and_write(fixed, moving, outdir, protocol=protocol, drive_labels=drive_labels,
+                               landmarks=landmarks, force=force, inputs=inputs, truth=truth, prior=prior,
+                               progress=progress, on_fit=on_fit)[1]
+
+
+# ----------------------------------------------------------------------------- both ways
+
+
+@dataclass
+class TwoWayRegistration:
+    """Registrations of A to B and of B to A.
+
+    Attributes
+    ----------
+    forward : LabelRegistration
+        ``forward.warp`` maps A points to their B partners (the pull-back of registering B to A's grid).
+    backward : LabelRegistration
+        ``backward.warp`` maps B points to their A partners.
+    reports : dict of str to dict
+        ``{"forward": report, "backward": report}`` of :func:`write_registration` when the
+        registrations were written; empty otherwise.
+    """
+
+    forward: LabelRegistration
+    backward: LabelRegistration
+    reports: dict = field(default_factory=dict)
+
+
+def register_both_ways(
+    a,
+    b,
+    *,
+    protocol: Protocol | None = None,
+    drive_labels: Sequence[int] | None = None,
+    landmarks: tuple[np.ndarray, np.ndarray] | None = None,
+    outdir: str | os.PathLike[str] | None = None,
+    force: bool = False,
+    inputs: Mapping | None = None,
+    progress: ProgressCallback | None = None,
+    on_fit: Callable[[LabelRegistration], None] | None = None,
+) -> TwoWayRegistration:
+    """Register A to B, then B to A, as the consistency test (paper Section 5) needs.
+
+    With the protocol's ``warp.lambda_consistency`` > 0 (the symmetric option) the
+    backward fit is pulled towards the inverse of the forward warp
+    (:class:`~volreg.warp.inverse.InverseWarp`, the ``prior`` of :func:`register_labels`);
+    otherwise the two registrations are independent.
+
+    Parameters
+    ----------
+    a, b : LabelVolume
+    protocol : Protocol, optional
+        For both registrations; default :func:`volreg.io.protocol.load_protocol` ``("default")``.
+    drive_labels : sequence of int, optional
+        As :func:`register_labels`, for both.
+    landmarks : pair of (L, D) float ndarrays, optional
+        A's points and their B partners, LPS mm (swapped for the backward registration).
+    outdir : path-like, optional
+        Write each registration's outputs (:func:`write_registration`) into
+        ``outdir/forward`` and ``outdir/backward``; default: write nothing.
+    force : bool, default False
+        With ``outdir``: write into non-empty folders, replacing outputs.
+    inputs : dict, optional
+        With ``outdir``: ``{"A": ..., "B": ...}``, what the reports record as A and B.
+    progress, on_fit : callable, optional
+        As :func:`write_registration` (``on_fit`` is called for each direction).
+
+    Returns
+    -------
+    TwoWayRegistration
+    """
+    from volreg.io.protocol import load_protocol
+    from volreg.warp.inverse import InverseWarp
+
+    protocol = load_protocol("default") if protocol is None else protocol
+    reverse = None if landmarks is None else (landmarks[1], landmarks[0])
+    reports = {}
+
+    def register(name, fixed, moving, fixed_key, moving_key, points, prior) -> LabelRegistration:
+        if outdir is None:
+            result = register_labels(fixed, moving, protocol=protocol, drive_labels=drive_labels, landmarks=points,
+                                     prior=prior, progress=progress)
+            if on_fit is not None:
+                on_fit(result)
+            return result
+        records = None if inputs is None else {"fixed": inputs[fixed_key], "moving": inputs[moving_key]}
+        result, reports[name] = _register_and_write(
+            fixed, moving, Path(outdir) / name, protocol=protocol, drive_labels=drive_labels, landmarks=points,
+            force=force, inputs=records, truth=None, prior=prior, progress=progress, on_fit=on_fit,
+        )
+        return result
+
+    forward = register("forward", a, b, "A", "B", landmarks, None)
+    # the symmetric option: the backward fit is pulled towards the forward warp's inverse
+    prior = InverseWarp(forward.warp) if protocol.warp.lambda_consistency > 0 else None
+    backward = register("backward", b, a, "B", "A", reverse, prior)
+    return TwoWayRegistration(forward, backward, reports)

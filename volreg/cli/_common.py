@@ -1,22 +1,21 @@
-"""What every ``volreg`` command shares: argument types, output folders, input checks, reports."""
+"""What every ``volreg`` command shares: argument types, messages, landmarks, checksums, log lines."""
 
 from __future__ import annotations
 
 import argparse
 import hashlib
-import importlib.metadata
 import math
-import resource
+import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
-from volreg import __version__
-from volreg.errors import UsageError, VolregError, VolregIOError
+from volreg.errors import UsageError, VolregError
 from volreg.grid import LabelVolume
 from volreg.io.landmarks import read_landmarks
+from volreg.register import REGISTRATION_OUTPUTS, LabelRegistration, world_box
 
 PROG = "volreg"
 
@@ -71,43 +70,8 @@ def _warn(command: str, message: str) -> None:
     print(f"{PROG} {command}: warning: {message}", file=sys.stderr)
 
 
-def _make_directory(path: Path) -> list[Path]:
-    """Create ``path`` and any missing parents; return the directories created, outermost first."""
-    if path.exists() and not path.is_dir():
-        raise UsageError(f"Output directory `{path}` exists and is not a directory; expected a directory for -o.")
-    missing = []
-    p = path
-    while not p.exists():
-        missing.append(p)
-        if p.parent == p:
-            break
-        p = p.parent
-    created: list[Path] = []
-    for d in reversed(missing):
-        try:
-            d.mkdir()
-        except OSError as exc:
-            _remove_directories(created)
-            raise VolregIOError(f"Output directory `{d}` could not be created: {exc.strerror}.") from exc
-        created.append(d)
-    return created
-
-
-def _remove_directories(created: list[Path]) -> None:
-    """Remove directories this run created, innermost first, if they are empty."""
-    for d in reversed(created):
-        try:
-            d.rmdir()
-        except OSError:
-            return
-
-
-def _peak_rss_gb() -> float:
-    """Peak resident memory of this process so far, GB (Linux reports kB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
-
-
 def _sha256(path: Path) -> str:
+    """The SHA-256 checksum of a file, as the reports record inputs."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
@@ -115,95 +79,38 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _versions() -> dict[str, str]:
-    out = {"volreg": __version__, "python": sys.version.split()[0]}
-    for name in ("numpy", "scipy", "SimpleITK", "nibabel", "scikit-image", "pyvista", "numba"):
-        try:
-            out[name] = importlib.metadata.version(name)
-        except importlib.metadata.PackageNotFoundError:  # pragma: no cover
-            out[name] = "unknown"
-    return out
+def _fit_logger(command: str) -> Callable[[LabelRegistration], None]:
+    """An ``on_fit`` callback for :func:`volreg.register.write_registration` that logs, one line each
+    on stderr, the driving labels, the labels left out, the fit's stages and its warp levels."""
+
+    def log(text: str) -> None:
+        print(f"{PROG} {command}: {text}", file=sys.stderr)
+
+    def log_fit(result: LabelRegistration) -> None:
+        log(f"driving labels {result.labels} (surfaces), {result.distance_labels} (voxel distance maps)")
+        for note in result.skipped:
+            log(note)
+        for st in result.stages:
+            log(f"{st['stage']}: {st['seconds']:.1f} s")
+        for lev in result.log:
+            log(f"level {lev['level']}: width {lev['width']:.1f} mm, {lev['centres']} centres, "
+                f"{lev['samples']} samples, {lev['iterations']} iterations, objective "
+                f"{lev['objective_start']:.4g} -> {lev['objective']:.4g}, fold scale {lev['fold_scale']:.2f}, "
+                f"{lev['seconds']:.1f} s")
+
+    return log_fit
 
 
-def _world_box(volume: LabelVolume) -> tuple[np.ndarray, np.ndarray]:
-    """LPS bounding box (mm) of the voxel domain of ``volume``."""
-    corners = np.array(list(np.ndindex(*([2] * volume.ndim))), dtype=float)
-    pts = volume.index_to_world(corners * (np.array(volume.shape) - 1)[None] + (corners - 0.5))
-    return pts.min(axis=0), pts.max(axis=0)
-
-
-#: Peak memory of a registration, estimated before it starts: a base plus bytes per voxel of the
-#: two grids (measured on the frog demo: 1.71 GB peak for two grids of 1.76 M voxels).
-_BASE_GB = 0.4
-
-
-_BYTES_PER_VOXEL = 400
-
-
-def _available_bytes() -> int | None:
-    """MemAvailable from /proc/meminfo (Linux), else None."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:  # pragma: no cover - not Linux
-        return None
-    return None
-
-
-def estimated_peak_gb(fixed: LabelVolume, moving: LabelVolume) -> float:
-    """Rough peak memory (GB) of registering ``moving`` to ``fixed``."""
-    voxels = int(np.prod(fixed.shape)) + int(np.prod(moving.shape))
-    return _BASE_GB + _BYTES_PER_VOXEL * voxels / 1024**3
-
-
-def _check_memory(fixed: LabelVolume, moving: LabelVolume, fixed_path, moving_path) -> None:
-    """Refuse a job that would not fit in the memory available now, before it starts."""
-    need = estimated_peak_gb(fixed, moving)
-    available = _available_bytes()
-    if available is not None and need * 1024**3 > available:
-        raise UsageError(
-            f"Registering `{moving_path}` ({moving.shape}) to `{fixed_path}` ({fixed.shape}) would need about "
-            f"{need:.1f} GB of memory and {available / 1024**3:.1f} GB is available; expected smaller grids "
-            "(downsample the label volumes) or more free memory."
-        )
-
-
-def _check_pair(fixed: LabelVolume, moving: LabelVolume, fixed_path, moving_path) -> None:
-    if fixed.ndim != moving.ndim:
-        raise UsageError(f"`{fixed_path}` is {fixed.ndim}-D and `{moving_path}` {moving.ndim}-D; expected two volumes of one dimension.")
-    lo1, hi1 = _world_box(fixed)
-    lo2, hi2 = _world_box(moving)
-    if np.any(hi1 < lo2) or np.any(hi2 < lo1):
-        raise UsageError(
-            f"The grids of `{fixed_path}` and `{moving_path}` do not overlap in world (LPS) space "
-            f"(fixed {np.round(lo1, 1).tolist()}..{np.round(hi1, 1).tolist()} mm, moving "
-            f"{np.round(lo2, 1).tolist()}..{np.round(hi2, 1).tolist()} mm); check their origins and orientations."
-        )
-    _check_memory(fixed, moving, fixed_path, moving_path)
-
-
-def _json_safe(value):
-    """NaN and Inf -> None (JSON null), recursively; numpy scalars -> Python numbers."""
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, (float, np.floating)):
-        return float(value) if np.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    return value
-
-
-def _prepare_outdir(outdir: Path, force: bool) -> list[Path]:
-    """Create OUTDIR; refuse a non-empty one without ``force``."""
-    if outdir.is_dir() and any(outdir.iterdir()) and not force:
-        raise UsageError(f"Output directory `{outdir}` exists and is not empty; pass --force to write into it.")
-    return _make_directory(outdir)
+def _summary_line(command: str, report: dict, outdir: Path) -> str:
+    """The one line ``volreg register`` and ``volreg demo`` print on stdout."""
+    d = report["mean_dice"]
+    line = (f"{PROG} {command}: mean Dice {d['before']:.3f} -> {d['after']:.3f} over {len(report['labels'])} labels, "
+            f"folded {100 * report['jacobian']['folded_fraction']:.3f} %")
+    if "endpoint_error_mm" in report:
+        e = report["endpoint_error_mm"]
+        line += (f", endpoint error mean {e['mean']:.2f} mm / p95 {e['p95']:.2f} mm "
+                 f"(identity {e['identity_mean']:.2f} / {e['identity_p95']:.2f})")
+    return line + f"; {len(REGISTRATION_OUTPUTS)} files in {outdir}{os.sep} ({report['seconds']:.0f} s)"
 
 
 def _load_landmarks(args, fixed: LabelVolume | None = None, moving: LabelVolume | None = None):
@@ -222,7 +129,7 @@ def _load_landmarks(args, fixed: LabelVolume | None = None, moving: LabelVolume 
             continue
         if points.shape[1] != volume.ndim:
             raise UsageError(f"--landmarks: `{path}` holds {points.shape[1]}-D points for a {volume.ndim}-D image.")
-        lo, hi = _world_box(volume)
+        lo, hi = world_box(volume)
         outside = np.flatnonzero(np.any((points < lo) | (points > hi), axis=1))
         if outside.size:
             i = int(outside[0])

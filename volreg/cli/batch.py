@@ -17,14 +17,40 @@ import sys
 import time
 from pathlib import Path
 
-from volreg.cli._common import EXPECTED_ERRORS, PROG, _make_directory
+from volreg.cli._common import EXPECTED_ERRORS, PROG
 from volreg.errors import UsageError
 from volreg.io import write_text
+from volreg.io._atomic import make_directory
 
-__all__ = ["read_manifest", "plan_pairs", "run_pair", "run_batch"]
+__all__ = ["add_parser", "read_manifest", "plan_pairs", "run_pair", "run"]
 
 COLUMNS = ["fixed_id", "moving_id", "status", "error", "mean_dice_before", "mean_dice_after", "consistency_mean_mm",
            "consistency_p95_mm", "folded_fraction", "seconds", "outdir"]
+
+
+def add_parser(commands) -> None:
+    """Add ``batch`` to the ``volreg`` subcommands (Dask is imported only when it runs)."""
+    batch = commands.add_parser(
+        "batch",
+        help="register a cohort, one Dask task per pair, on this machine or a cluster",
+        description="Register the label volumes listed in MANIFEST (CSV with columns id,path) to --template, or in "
+        "pairs (all ordered pairs, or consecutive ones), one Dask task per registration: on a LocalCluster of "
+        "--workers processes, or on the cluster at --scheduler. Every pair gets a full `volreg register` (or, with "
+        "--consistency, `volreg consistency`) OUTDIR under OUTDIR/pairs/FIXED__MOVING; a rerun skips pairs that are "
+        "complete with unchanged inputs. Writes OUTDIR/batch.csv (one row per pair, failures with their error) and "
+        "OUTDIR/batch.png. Exit status 1 if any pair failed.",
+    )
+    batch.add_argument("manifest", metavar="MANIFEST", type=Path, help="CSV with columns id,path")
+    batch.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
+    batch.add_argument("--template", metavar="T", type=Path, default=None, help="register every subject to this volume")
+    batch.add_argument("--pairs", choices=("all", "consecutive"), default="all",
+                       help="without --template: every ordered pair (default) or consecutive subjects")
+    batch.add_argument("--consistency", action="store_true", help="register both ways and report consistency")
+    batch.add_argument("--scheduler", metavar="ADDRESS", default=None, help="connect to this Dask scheduler")
+    batch.add_argument("--workers", type=int, default=None, help="LocalCluster worker processes (default 2)")
+    batch.add_argument("--protocol", metavar="NAME|FILE", default="default", help="protocol for every registration")
+    batch.add_argument("--quiet", action="store_true", help="no progress bar")
+    batch.set_defaults(run=run)
 
 
 def read_manifest(path: Path) -> list[tuple[str, Path]]:
@@ -84,10 +110,12 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
     ``failed`` row with the one-line message (not an exception, which Dask would
     retry); anything else propagates (a bug).
     """
-    from volreg.cli._common import _check_pair, _sha256
-    from volreg.cli.register import run_registration
+    from volreg.cli._common import _sha256
+    from volreg.evaluation.consistency import write_consistency_test
     from volreg.io import read_labels, write_json
     from volreg.io.protocol import load_protocol
+    from volreg.progress import ProgressBars
+    from volreg.register import check_pair, write_registration
 
     start = time.perf_counter()
     out, fpath, mpath = Path(outdir), Path(fixed), Path(moving)
@@ -99,22 +127,19 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
         if saved is not None:
             return dict(saved, skipped=True)
         proto = load_protocol(protocol)
-        _check_pair(a, b, fpath, mpath)
-        if consistency:
-            from volreg.cli.consistency import run_consistency
-
-            args = argparse.Namespace(a=fpath, b=mpath, output=out, forward=None, backward=None, protocol=protocol,
-                                      drive_labels=None, force=True, quiet=True, verbose=False)
-            run_consistency(args)
-            rep = json.loads((out / "consistency.json").read_text())
-            fwd = rep["directions"]["forward"]["mean_dice"]
-            row.update(mean_dice_before=fwd["before"], mean_dice_after=fwd["after"],
-                       consistency_mean_mm=rep["region"]["mean_mm"], consistency_p95_mm=rep["region"]["p95_mm"])
-        else:
-            inputs = {"fixed": {"path": str(fpath), "sha256": sha[0]}, "moving": {"path": str(mpath), "sha256": sha[1]}}
-            rep = run_registration(a, b, out, protocol=proto, force=True, quiet=True, inputs=inputs, command="batch")
-            row.update(mean_dice_before=rep["mean_dice"]["before"], mean_dice_after=rep["mean_dice"]["after"],
-                       folded_fraction=rep["jacobian"]["folded_fraction"])
+        check_pair(a, b, fpath, mpath)
+        with ProgressBars(quiet=True) as progress:
+            if consistency:
+                inputs = {"A": {"path": str(fpath), "sha256": sha[0]}, "B": {"path": str(mpath), "sha256": sha[1]}}
+                rep = write_consistency_test(a, b, out, protocol=proto, force=True, inputs=inputs, progress=progress)
+                fwd = rep["directions"]["forward"]["mean_dice"]
+                row.update(mean_dice_before=fwd["before"], mean_dice_after=fwd["after"],
+                           consistency_mean_mm=rep["region"]["mean_mm"], consistency_p95_mm=rep["region"]["p95_mm"])
+            else:
+                inputs = {"fixed": {"path": str(fpath), "sha256": sha[0]}, "moving": {"path": str(mpath), "sha256": sha[1]}}
+                rep = write_registration(a, b, out, protocol=proto, force=True, inputs=inputs, progress=progress)
+                row.update(mean_dice_before=rep["mean_dice"]["before"], mean_dice_after=rep["mean_dice"]["after"],
+                           folded_fraction=rep["jacobian"]["folded_fraction"])
         row.update(status="done", error="", seconds=time.perf_counter() - start, fixed_sha256=sha[0], moving_sha256=sha[1])
         write_json(row, out / "batch_row.json", force=True)
     except EXPECTED_ERRORS as exc:
@@ -155,7 +180,8 @@ def _write_plot(rows: list[dict], path: Path) -> None:
         canvas.print_png(str(tmp))
 
 
-def run_batch(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
+    """``volreg batch MANIFEST -o OUTDIR``: every pair as a Dask task; exit status 1 if any failed."""
     try:
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError:
@@ -178,7 +204,7 @@ def run_batch(args: argparse.Namespace) -> int:
         raise UsageError(f"MANIFEST `{args.manifest}` gives no pair to register; expected at least two subjects "
                          "(or --template).")
     outdir: Path = args.output
-    _make_directory(outdir)
+    make_directory(outdir)
     if args.scheduler:
         client = Client(args.scheduler)
         cluster = None

@@ -9,11 +9,51 @@ import warnings
 from pathlib import Path
 from volreg import __version__
 from volreg.io import check_writable, read_labels, write_json, write_mesh, write_scalar
+from volreg.io._atomic import output_folder
 from volreg.progress import ProgressBars
 from volreg.features.label_surfaces import implicit_on_grid, implicit_surfaces, label_surfaces
 from volreg.grid import LabelVolume
-from volreg.cli._common import PROG, _listing, _make_directory, _remove_directories, _warn
+from volreg.cli._common import PROG, _float_at_least, _label_list, _listing, _warn
 from volreg.errors import UsageError
+from volreg.settings import SurfaceSettings
+
+__all__ = ["add_parser", "run"]
+
+
+_DEFAULTS = SurfaceSettings()
+
+
+def add_parser(commands) -> None:
+    """Add ``surface`` to the ``volreg`` subcommands."""
+    surface = commands.add_parser(
+        "surface",
+        help="meshes and implicit surfaces of the labels of a label volume",
+        description="For each label: a boundary mesh with outward normals (OUTDIR/label_<id>.vtk; "
+        "line segments for a 2-D image) and the fitted kernel implicit surface sampled on the input "
+        "grid as a float32 signed distance in mm, negative inside (OUTDIR/sdf_<id>.nii.gz), plus "
+        "OUTDIR/surface.json summarising the run.",
+    )
+    surface.add_argument(
+        "image", metavar="LABELS", type=Path,
+        help="label volume: .nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd or .vti",
+    )
+    surface.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True,
+                         help="output directory (created if missing)")
+    surface.add_argument("--labels", metavar="IDS", type=_label_list, default=None,
+                         help="comma-separated labels to process, e.g. 1,3 (default: every non-zero label)")
+    surface.add_argument("--skip-small", action="store_true",
+                         help="warn about and skip labels that are absent or too small, instead of failing")
+    surface.add_argument("--smoothing", metavar="VOXELS", type=_float_at_least(0.0, strict=False, upper=10.0),
+                         default=_DEFAULTS.smoothing,
+                         help="Gaussian blur (s.d.) of each mask before contouring, in units of the largest voxel spacing "
+                         f"(default {_DEFAULTS.smoothing}; 0: none)")
+    surface.add_argument("--min-width", metavar="VOXELS", type=_float_at_least(0.0, strict=True),
+                         default=_DEFAULTS.min_width_voxels,
+                         help="finest kernel width of the implicit surface, in units of the largest voxel spacing "
+                         f"(default {_DEFAULTS.min_width_voxels:g})")
+    surface.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    surface.add_argument("--quiet", action="store_true", help="no progress bars")
+    surface.set_defaults(run=run)
 
 
 def _select_labels(volume: LabelVolume, image: Path, requested: list[int] | None, skip: bool) -> list[int]:
@@ -36,7 +76,7 @@ def _select_labels(volume: LabelVolume, image: Path, requested: list[int] | None
     return labels
 
 
-def _surface(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     """``volreg surface``: meshes, implicit surfaces and their signed distances for each label."""
     start = time.perf_counter()
     volume = read_labels(args.image)
@@ -46,9 +86,8 @@ def _surface(args: argparse.Namespace) -> int:
     meshes = {v: outdir / f"label_{v}.vtk" for v in labels}
     sdfs = {v: outdir / f"sdf_{v}.nii.gz" for v in labels}
     summary_path = outdir / "surface.json"
-    created = _make_directory(outdir)
-    written: list[Path] = []
-    try:
+    # Existing outputs are refused one by one (check_writable), not the folder as a whole.
+    with output_folder(outdir, require_empty=False) as folder:
         check_writable([*meshes.values(), *sdfs.values(), summary_path], force=args.force)
         with ProgressBars(quiet=args.quiet) as progress:
             with warnings.catch_warnings(record=True) as caught:
@@ -90,10 +129,10 @@ def _surface(args: argparse.Namespace) -> int:
 
             for i, (label, surf) in enumerate(surfaces.items()):
                 write_mesh(surf.vertices, surf.cells, meshes[label], normals=surf.normals, force=args.force)
-                written.append(meshes[label])
+                folder.record(meshes[label])
                 sdf = implicit_on_grid(implicit[label], volume)
                 write_scalar(sdf, volume, sdfs[label], force=args.force)
-                written.append(sdfs[label])
+                folder.record(sdfs[label])
                 progress("sample and write", i + 1, len(surfaces))
 
             summary = {
@@ -117,17 +156,11 @@ def _surface(args: argparse.Namespace) -> int:
                 "seconds": round(time.perf_counter() - start, 3),
             }
             write_json(summary, summary_path, force=args.force)
-            written.append(summary_path)
-    except BaseException:
-        # Leave nothing behind: remove what this run wrote and the directories it created.
-        for path in written:
-            path.unlink(missing_ok=True)
-        _remove_directories(created)
-        raise
+            folder.record(summary_path)
 
     done = sorted(surfaces)
     print(
         f"{PROG} surface: {len(done)} label{'s' if len(done) != 1 else ''} ({_listing(done)}) -> "
-        f"{outdir}{os.sep} ({len(written)} files) in {time.perf_counter() - start:.1f} s"
+        f"{outdir}{os.sep} ({len(folder.written)} files) in {time.perf_counter() - start:.1f} s"
     )
     return 0

@@ -10,19 +10,44 @@ import sys
 import time
 from pathlib import Path
 
-from volreg.cli._common import PROG, _remove_directories
-from volreg.errors import UsageError
+from volreg.cli._common import PROG, _label_list, _load_landmarks
+from volreg.errors import ProtocolError, UsageError
+from volreg.evaluation.tune import grid_settings, tune_settings
 from volreg.io import check_writable, read_labels, write_text
-from volreg.errors import ProtocolError
+from volreg.io._atomic import output_folder
 from volreg.io.protocol import load_protocol, protocol_to_toml
+from volreg.register import check_pair
 from volreg.settings import replace_settings
-from volreg.features.label_surfaces import label_surfaces
-from volreg.evaluation.tune import grid_settings, score_setting
-from volreg.cli._common import _check_pair, _load_landmarks, _prepare_outdir
 
-__all__ = ["run_tune", "parse_grid"]
+__all__ = ["add_parser", "parse_grid", "run"]
 
 OUTPUTS = ("tune.csv", "tuned.toml")
+
+
+def add_parser(commands) -> None:
+    """Add ``tune`` to the ``volreg`` subcommands."""
+    tune = commands.add_parser(
+        "tune",
+        help="choose warp settings by consistency and hold-out",
+        description="Register A to B and B to A for every combination of the --grid values (replacing the "
+        "protocol's [warp] settings), score each by the inverse-consistency error plus the hold-out surface "
+        "distance (plus the landmark error with --landmarks), all in mm, and write OUTDIR/tune.csv (one row per "
+        "setting) and OUTDIR/tuned.toml (the protocol with the best setting).",
+    )
+    tune.add_argument("a", metavar="A", type=Path, help="label volume A")
+    tune.add_argument("b", metavar="B", type=Path, help="label volume B")
+    tune.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
+    tune.add_argument("--grid", metavar="KEY=V1,V2,...", action="append", required=True,
+                      help="[warp] settings and their candidate values, e.g. lambda_loc=10,100,alpha=0,10 (repeatable)")
+    tune.add_argument("--protocol", metavar="NAME|FILE", default="default",
+                      help="protocol giving every other setting (default: default)")
+    tune.add_argument("--drive-labels", metavar="IDS", type=_label_list, default=None,
+                      help="labels whose surfaces drive the warps (default: as `volreg register`)")
+    tune.add_argument("--landmarks", metavar=("A_PTS", "B_PTS"), nargs=2, type=Path, default=None,
+                      help="corresponding points of A and B (.csv x,y,z LPS mm, .fcsv, .mrk.json)")
+    tune.add_argument("--force", action="store_true", help="write into an existing OUTDIR, replacing outputs")
+    tune.add_argument("--quiet", action="store_true", help="no per-setting lines on stderr")
+    tune.set_defaults(run=run)
 
 
 def parse_grid(specs: list[str]) -> dict[str, list[float]]:
@@ -59,7 +84,16 @@ def parse_grid(specs: list[str]) -> dict[str, list[float]]:
     return grid
 
 
-def run_tune(args: argparse.Namespace) -> int:
+def _print_score(i: int, n: int, values: dict, row: dict) -> None:
+    """The line on stderr for the ``i``-th of ``n`` settings scored."""
+    settings = ", ".join(f"{k}={v:g}" for k, v in values.items())
+    print(f"{PROG} tune: [{i + 1}/{n}] {settings}: consistency {row['consistency_mm']:.3f} mm, "
+          f"hold-out {row['holdout_mm']:.3f} mm, score {row['score_mm']:.3f} mm ({row['seconds']:.0f} s)",
+          file=sys.stderr)
+
+
+def run(args: argparse.Namespace) -> int:
+    """``volreg tune A B -o OUTDIR --grid KEY=V1,V2,...``."""
     start = time.perf_counter()
     protocol = load_protocol(args.protocol)
     grid = parse_grid(args.grid)
@@ -71,27 +105,14 @@ def run_tune(args: argparse.Namespace) -> int:
             raise UsageError(f"--grid: {exc}") from None
     a = read_labels(args.a)
     b = read_labels(args.b)
-    _check_pair(a, b, args.a, args.b)
+    check_pair(a, b, args.a, args.b)
     landmarks = _load_landmarks(args, a, b)
     outdir: Path = args.output
-    created = _prepare_outdir(outdir, args.force)
     paths = {name: outdir / name for name in OUTPUTS}
-    written: list[Path] = []
-    try:
+    with output_folder(outdir, args.force) as folder:
         check_writable(paths.values(), force=args.force)
-        a_surfaces = label_surfaces(a, on_small="warn", smoothing=protocol.surface.smoothing)
-        b_surfaces = label_surfaces(b, on_small="warn", smoothing=protocol.surface.smoothing)
-        rows = []
-        for i, values in enumerate(combos):
-            row = score_setting(a, b, protocol, values, a_surfaces=a_surfaces, b_surfaces=b_surfaces,
-                                drive_labels=args.drive_labels, landmarks=landmarks)
-            rows.append(row)
-            if not args.quiet:
-                settings = ", ".join(f"{k}={v:g}" for k, v in values.items())
-                print(f"{PROG} tune: [{i + 1}/{len(combos)}] {settings}: consistency {row['consistency_mm']:.3f} mm, "
-                      f"hold-out {row['holdout_mm']:.3f} mm, score {row['score_mm']:.3f} mm ({row['seconds']:.0f} s)",
-                      file=sys.stderr)
-        best = min(range(len(rows)), key=lambda i: rows[i]["score_mm"])
+        rows, best = tune_settings(a, b, protocol, grid, drive_labels=args.drive_labels, landmarks=landmarks,
+                                   on_score=None if args.quiet else _print_score)
         table = io.StringIO()
         writer = csv.DictWriter(table, fieldnames=[*grid, "consistency_mm", "consistency_p95_mm", "holdout_mm",
                                                    "landmark_mm", "score_mm", "seconds", "chosen"], lineterminator="\n")
@@ -99,19 +120,14 @@ def run_tune(args: argparse.Namespace) -> int:
         for i, row in enumerate(rows):
             writer.writerow({**{k: ("" if v is None else v) for k, v in row.items()}, "chosen": int(i == best)})
         write_text(table.getvalue(), paths["tune.csv"], force=args.force)
-        written.append(paths["tune.csv"])
+        folder.record(paths["tune.csv"])
         chosen = replace_settings(protocol, combos[best], name=f"{protocol.name}-tuned")
         settings = ", ".join(f"{k}={v:g}" for k, v in combos[best].items())
         comment = (f"written by `volreg tune` from protocol `{protocol.name}`: {settings} scored best of {len(combos)} "
                    f"(score {rows[best]['score_mm']:.4f} mm = consistency + hold-out surface distance"
                    f"{' + landmark error' if landmarks is not None else ''}; see tune.csv)")
         write_text(protocol_to_toml(chosen, comment=comment), paths["tuned.toml"], force=args.force)
-        written.append(paths["tuned.toml"])
-    except BaseException:
-        for path in written:
-            path.unlink(missing_ok=True)
-        _remove_directories(created)
-        raise
+        folder.record(paths["tuned.toml"])
     print(f"{PROG} tune: best of {len(combos)} settings: {settings} (score {rows[best]['score_mm']:.3f} mm); "
           f"{paths['tuned.toml']} ({time.perf_counter() - start:.0f} s)")
     return 0

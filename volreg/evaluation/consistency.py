@@ -9,28 +9,39 @@ error is reported beside the registration's accuracy, never alone.
 
 Also here: the padded neighbourhood of a label volume's objects (where the
 error is summarised) and the round trip of A's labels through B's grid.
-Pure functions on arrays; the command is :mod:`volreg._consistency_cli`.
+:func:`consistency_test` gives the test's figures for a pair of warps;
+:func:`write_consistency_test` registers both ways (or takes both warps), runs
+the test and writes its outputs, all or nothing, as ``volreg consistency`` does.
 """
 
 from __future__ import annotations
 
+import os
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 from scipy import ndimage
 
+from volreg import __version__
 from volreg.warp.field import displacement_on_grid
 from volreg.evaluation.metrics import dice
 from volreg.warp.resample import resample_labels
-from volreg.grid import LabelVolume
+from volreg.grid import LabelVolume, as_grid
 
 __all__ = [
+    "CONSISTENCY_OUTPUTS",
+    "consistency_test",
     "padded_region",
     "round_trip_error",
     "error_summary",
     "error_on_grid",
     "round_trip_labels",
     "round_trip_dice",
+    "warp_pad",
+    "write_consistency_test",
 ]
 
 ProgressCallback = Callable[[str, int, int], None]
@@ -120,20 +131,16 @@ def error_on_grid(
     -------
     (*grid.shape) float ndarray, mm
     """
+    grid = as_grid(grid, "grid")
     out = np.zeros(int(np.prod(grid.shape)))
     box = _union_box((forward, backward))
     window = None if box is None else grid.index_window(*box)
     if window is None:
         return out.reshape(grid.shape)
-    sub_shape = tuple(s.stop - s.start for s in window)
-    start = np.array([s.start for s in window])
-    total = int(np.prod(sub_shape))
-    for s in range(0, total, chunk):
-        index = np.stack(np.unravel_index(np.arange(s, min(s + chunk, total)), sub_shape), axis=1) + start
-        points = grid.index_to_world(index)
-        out[np.ravel_multi_index(tuple(index.T), grid.shape)] = round_trip_error(forward, backward, points)
+    for part in grid.chunks(chunk, window):
+        out[part.flat] = round_trip_error(forward, backward, part.points)
         if progress is not None:
-            progress("round trip", min(s + chunk, total), total)
+            progress("round trip", part.done, part.total)
     return out.reshape(grid.shape)
 
 
@@ -167,3 +174,200 @@ def round_trip_labels(
 def round_trip_dice(a: np.ndarray, back: np.ndarray, labels) -> dict[int, float]:
     """Dice per label between A and its round trip (same grid)."""
     return {int(v): dice(a == v, back == v) for v in labels}
+
+
+def warp_pad(warp, volume: LabelVolume) -> float:
+    """The padding of the warp volume X that ``warp`` was fitted in, mm: where the consistency error counts.
+
+    :func:`~volreg.warp.fit.fit_warp` records the pad it used (``warp.settings["pad"]``:
+    the protocol's ``pad``, or 10 % of the source diameter when that is unset), so every
+    fitted warp, saved or not, gives it.  A warp that records none (made by hand, or a
+    model file written without it) gets 10 % of ``volume``'s largest extent.
+
+    Parameters
+    ----------
+    warp : KernelWarp
+    volume : LabelVolume
+        The volume whose points the warp maps (A for the forward warp).
+
+    Returns
+    -------
+    float, mm
+    """
+    pad = warp.settings.get("pad")
+    if isinstance(pad, (int, float)) and pad >= 0:
+        return float(pad)
+    return 0.1 * float(np.max(np.array(volume.shape) * volume.spacing))
+
+
+def consistency_test(
+    a: LabelVolume,
+    b: LabelVolume,
+    forward,
+    backward,
+    *,
+    progress: ProgressCallback | None = None,
+) -> tuple[dict, np.ndarray]:
+    """The consistency test (paper Section 5): how far ``backward(forward(x))`` lands from ``x``.
+
+    Parameters
+    ----------
+    a, b : LabelVolume
+        The two label volumes; the error is measured in A's world frame (LPS mm).
+    forward : KernelWarp
+        Maps A points to their B partners (``volreg register A B``).
+    backward : KernelWarp
+        Maps B points to their A partners (``volreg register B A``).
+    progress : callable, optional
+        ``progress(stage, done, total)``.
+
+    Returns
+    -------
+    report : dict
+        ``definition``; ``voxel_mm`` (A's mean spacing, the unit of the ``*_voxels``
+        figures); ``pad_mm`` (:func:`warp_pad` of ``forward``); ``region`` (the error over
+        A's objects padded by ``pad_mm``: :func:`error_summary`); ``surface_vertices`` (at
+        the vertices of A's label surfaces, all labels together); ``mean_round_trip_dice``;
+        ``labels`` (per label of A: the error over its voxels and at its surface vertices,
+        and the Dice of A's labels against their round trip through B's grid).
+    error : (*a.shape) float ndarray, mm
+        ``|backward(forward(x)) - x|`` at every voxel centre of A.
+    """
+    from volreg.features.label_surfaces import label_surfaces
+
+    voxel = float(np.mean(a.spacing))
+    pad = warp_pad(forward, a)
+    error = error_on_grid(forward, backward, a, progress=progress)
+    region = padded_region(a, pad)
+    labels = [int(v) for v in a.labels()]
+    meshes = label_surfaces(a, labels, on_small="warn")
+    _, back = round_trip_labels(a, b, forward, backward, progress=progress)
+    dice = round_trip_dice(a.array, back, labels)
+    per_label = {}
+    all_vertex_errors = []
+    for v in labels:
+        entry = {"voxels": error_summary(error[a.array == v], voxel), "round_trip_dice": dice[v]}
+        if v in meshes:
+            vertex_error = np.linalg.norm(backward(forward(meshes[v].vertices)) - meshes[v].vertices, axis=1)
+            entry["surface_vertices"] = error_summary(vertex_error, voxel)
+            all_vertex_errors.append(vertex_error)
+        per_label[str(v)] = entry
+    report = {
+        "definition": "|tau_BA(tau_AB(x)) - x| for x in A's world frame (LPS mm); voxels = mm / mean spacing of A",
+        "voxel_mm": voxel,
+        "pad_mm": pad,
+        "region": error_summary(error[region], voxel),
+        "surface_vertices": error_summary(np.concatenate(all_vertex_errors) if all_vertex_errors else [], voxel),
+        "mean_round_trip_dice": float(np.mean(list(dice.values()))) if dice else None,
+        "labels": per_label,
+    }
+    return report, error
+
+
+#: The files :func:`write_consistency_test` writes into its output folder (besides
+#: ``forward/`` and ``backward/`` when it registers).
+CONSISTENCY_OUTPUTS = ("consistency.json", "consistency_error.nii.gz", "consistency.png")
+
+
+def write_consistency_test(
+    a: LabelVolume,
+    b: LabelVolume,
+    outdir: str | os.PathLike[str],
+    *,
+    forward=None,
+    backward=None,
+    directions: Mapping | None = None,
+    protocol=None,
+    drive_labels: Sequence[int] | None = None,
+    force: bool = False,
+    inputs: Mapping | None = None,
+    progress: ProgressCallback | None = None,
+    on_fit: Callable | None = None,
+) -> dict:
+    """Register A to B and B to A (or take both warps), run :func:`consistency_test`, write its outputs.
+
+    Without ``forward`` and ``backward``, both directions are registered with
+    :func:`volreg.register.register_both_ways` and written into ``outdir/forward`` and
+    ``outdir/backward`` (every output of :func:`volreg.register.write_registration`).
+    Then ``outdir`` gets :data:`CONSISTENCY_OUTPUTS`: ``consistency.json`` (the report
+    returned), ``consistency_error.nii.gz`` (the error on A's grid, mm) and
+    ``consistency.png``.
+
+    Parameters
+    ----------
+    a, b : LabelVolume
+    outdir : path-like
+        The output folder; created with missing parents.
+    forward, backward : KernelWarp, optional
+        Both warps, when they are not to be registered (A -> B and B -> A).
+    directions : dict, optional
+        With ``forward`` and ``backward``: what the report records of where they came
+        from (``{"forward": {...}, "backward": {...}}``).
+    protocol : Protocol, optional
+        When registering; default :func:`volreg.io.protocol.load_protocol` ``("default")``.
+    drive_labels : sequence of int, optional
+        When registering, as :func:`volreg.register.register_labels`.
+    force : bool, default False
+        Write into a non-empty ``outdir``, replacing outputs.
+    inputs : dict, optional
+        ``{"A": ..., "B": ...}``: what the reports record as the inputs.
+    progress, on_fit : callable, optional
+        As :func:`volreg.register.write_registration`.
+
+    Returns
+    -------
+    dict
+        The report, as written to ``consistency.json`` (NaN as ``None``): the figures of
+        :func:`consistency_test` plus ``inputs``, ``directions`` (per direction its output
+        folder and, when registered here, its mean Dice and seconds), ``lambda_consistency``
+        (the symmetric option's weight, as the backward warp records it), ``seconds`` and
+        ``versions``.
+
+    Raises
+    ------
+    VolregError
+        As :func:`volreg.register.write_registration`.  On any error (and on an interrupt)
+        every file written so far, the registrations' too, and the folders created are removed.
+    """
+    from volreg.io import check_writable, write_json, write_scalar
+    from volreg.io._atomic import output_folder
+    from volreg.io.report_figure import write_error_figure
+    from volreg.io.summary import json_safe, package_versions
+    from volreg.register import register_both_ways
+
+    if (forward is None) != (backward is None):
+        raise ValueError("Expected both `forward` and `backward` warps, or neither (to register both ways).")
+    start = time.perf_counter()
+    outdir = Path(outdir)
+    with output_folder(outdir, force) as folder:
+        paths = {name: outdir / name for name in CONSISTENCY_OUTPUTS}
+        check_writable(paths.values(), force=force)
+        if forward is None:
+            both = register_both_ways(a, b, protocol=protocol, drive_labels=drive_labels, outdir=outdir, force=force,
+                                      inputs=inputs, progress=progress, on_fit=on_fit)
+            forward, backward = both.forward.warp, both.backward.warp
+            directions = {name: {"outdir": str(outdir / name), "mean_dice": rep["mean_dice"], "seconds": rep["seconds"]}
+                          for name, rep in both.reports.items()}
+        figures, error = consistency_test(a, b, forward, backward, progress=progress)
+        report = {
+            "volreg_version": __version__,
+            "command": "consistency",
+            "inputs": {} if inputs is None else inputs,
+            "directions": {} if directions is None else directions,
+            # the symmetric option's weight, as recorded in the backward warp's settings
+            "lambda_consistency": backward.settings.get("lambda_consistency", 0.0),
+            **figures,
+            "seconds": time.perf_counter() - start,
+            "versions": package_versions(),
+        }
+        write_scalar(error, a, paths["consistency_error.nii.gz"], force=force)
+        folder.record(paths["consistency_error.nii.gz"])
+        r = figures["region"]
+        write_error_figure(paths["consistency.png"], a.array, error, spacing=a.spacing, force=force,
+                           title=f"volreg consistency: |tau_BA(tau_AB(x)) - x|, mean {r['mean_mm'] or 0:.3g} mm, "
+                           f"p95 {r['p95_mm'] or 0:.3g} mm over A's padded labels")
+        folder.record(paths["consistency.png"])
+        report = json_safe(report)
+        write_json(report, paths["consistency.json"], force=force)
+        folder.record(paths["consistency.json"])
+    return report

@@ -3,7 +3,8 @@
 Every candidate setting registers A to B and B to A and is scored, in mm, by
 
 * the inverse-consistency error ``mean |tau_BA(tau_AB(x)) - x|`` over A's labels padded
-  by the warp's ``pad`` (:mod:`volreg.consistency`);
+  by the warp's ``pad`` (:mod:`volreg.evaluation.consistency`), the two directions registered
+  by :func:`volreg.register.register_both_ways`;
 * a hold-out locational cost: the mean distance from each label's surface vertices,
   carried by the warp, to the same label's surface in the other volume, both ways.  The
   warp is fitted to implicit-surface values at octree samples, never at these vertices;
@@ -19,19 +20,18 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from volreg.evaluation.consistency import error_on_grid, padded_region
-from volreg.warp.inverse import InverseWarp
-from volreg.register import register_labels
+from volreg.evaluation.consistency import error_on_grid, padded_region, warp_pad
+from volreg.register import register_both_ways
 from volreg.settings import Protocol, replace_settings
-from volreg.features.label_surfaces import Surface
+from volreg.features.label_surfaces import Surface, label_surfaces
 from volreg.grid import LabelVolume
 
-__all__ = ["grid_settings", "holdout_surface_distance", "score_setting"]
+__all__ = ["grid_settings", "holdout_surface_distance", "score_setting", "tune_settings"]
 
 
 def grid_settings(grid: Mapping[str, Sequence[float]]) -> list[dict[str, float]]:
@@ -75,13 +75,9 @@ def score_setting(
     """
     t0 = time.perf_counter()
     p = replace_settings(protocol, values)
-    rev = None if landmarks is None else (landmarks[1], landmarks[0])
-    forward = register_labels(a, b, protocol=p, drive_labels=drive_labels, landmarks=landmarks).warp
-    # with the symmetric option on, the backward fit is pulled towards the forward warp's inverse
-    prior = InverseWarp(forward) if p.warp.lambda_consistency > 0 else None
-    backward = register_labels(b, a, protocol=p, drive_labels=drive_labels, landmarks=rev, prior=prior).warp
-    pad = forward.settings.get("pad", 0.0)
-    error = error_on_grid(forward, backward, a)[padded_region(a, pad)]
+    both = register_both_ways(a, b, protocol=p, drive_labels=drive_labels, landmarks=landmarks)
+    forward, backward = both.forward.warp, both.backward.warp
+    error = error_on_grid(forward, backward, a)[padded_region(a, warp_pad(forward, a))]
     holdout = 0.5 * (holdout_surface_distance(forward, a_surfaces, b_surfaces)
                      + holdout_surface_distance(backward, b_surfaces, a_surfaces))
     landmark = None
@@ -98,3 +94,48 @@ def score_setting(
         "score_mm": consistency + holdout + (landmark or 0.0),
         "seconds": time.perf_counter() - t0,
     }
+
+
+def tune_settings(
+    a: LabelVolume,
+    b: LabelVolume,
+    protocol: Protocol,
+    grid: Mapping[str, Sequence[float]],
+    *,
+    drive_labels=None,
+    landmarks: tuple[np.ndarray, np.ndarray] | None = None,
+    on_score: Callable[[int, int, dict, dict], None] | None = None,
+) -> tuple[list[dict], int]:
+    """Score every combination of the ``grid`` values (:func:`score_setting`) and pick the best.
+
+    Parameters
+    ----------
+    a, b : LabelVolume
+    protocol : Protocol
+        Gives every setting the grid does not replace.
+    grid : mapping of str to sequence of float
+        ``[warp]`` settings and their candidate values (:func:`grid_settings`).
+    drive_labels, landmarks
+        As :func:`score_setting`.
+    on_score : callable, optional
+        ``on_score(i, n, values, row)`` after each of the ``n`` settings is scored.
+
+    Returns
+    -------
+    rows : list of dict
+        One :func:`score_setting` row per combination, in :func:`grid_settings` order.
+    best : int
+        The index of the row with the lowest ``score_mm`` (the first of equals).
+    """
+    combos = grid_settings(grid)
+    a_surfaces = label_surfaces(a, on_small="warn", smoothing=protocol.surface.smoothing)
+    b_surfaces = label_surfaces(b, on_small="warn", smoothing=protocol.surface.smoothing)
+    rows = []
+    for i, values in enumerate(combos):
+        row = score_setting(a, b, protocol, values, a_surfaces=a_surfaces, b_surfaces=b_surfaces,
+                            drive_labels=drive_labels, landmarks=landmarks)
+        rows.append(row)
+        if on_score is not None:
+            on_score(i, len(combos), values, row)
+    best = min(range(len(rows)), key=lambda i: rows[i]["score_mm"])
+    return rows, best

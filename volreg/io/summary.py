@@ -2,15 +2,52 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from volreg import __version__
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
 
-__all__ = ["write_json", "write_text"]
+__all__ = ["json_safe", "package_versions", "write_json", "write_text"]
+
+#: The packages whose versions a run summary records, besides volreg and Python.
+_RECORDED_PACKAGES = ("numpy", "scipy", "SimpleITK", "nibabel", "scikit-image", "pyvista", "numba")
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with NaN and Inf as ``None`` (JSON null) and numpy scalars as Python numbers, recursively.
+
+    Dict keys become strings and tuples lists, as JSON has them.
+    """
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of volreg, Python and the numerical and I/O packages, for a run summary."""
+    out = {"volreg": __version__, "python": sys.version.split()[0]}
+    for name in _RECORDED_PACKAGES:
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:  # pragma: no cover
+            out[name] = "unknown"
+    return out
 
 
 def write_json(record: Any, path: str | os.PathLike[str], *, force: bool = False) -> None:

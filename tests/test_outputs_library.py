@@ -1,0 +1,184 @@
+"""Writing a registration's outputs from the library: the output transaction, the pair checks,
+:func:`volreg.register.write_registration`, :func:`volreg.register.register_both_ways` and the
+consistency test's entry points, without the command line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from volreg.errors import RegistrationInputError, UsageError, VolregError
+from volreg.evaluation.consistency import CONSISTENCY_OUTPUTS, consistency_test, warp_pad, write_consistency_test
+from volreg.grid import LabelVolume
+from volreg.io._atomic import output_folder
+from volreg.io.protocol import load_protocol
+from volreg.register import (
+    REGISTRATION_OUTPUTS,
+    LabelRegistration,
+    check_pair,
+    register_both_ways,
+    write_registration,
+)
+from volreg.synthetic import GaussianBumps, deform_labels
+from volreg.warp.model import KernelWarp
+
+from test_register import blob_volume
+
+#: Two warp levels (32 and 16 mm) on 24^3 volumes of 2.5 mm voxels: a few seconds per registration.
+SMALL_PROTOCOL = "[protocol]\nname = \"small\"\n[warp]\nmin_width = 12.0\npad = 6.0\nmax_iter = 40\n"
+
+
+@pytest.fixture(scope="module")
+def small_pair(tmp_path_factory):
+    """A blob and a copy shifted by a smooth bump (up to about 2 mm), and a protocol for them."""
+    d = tmp_path_factory.mktemp("small")
+    a = blob_volume(shape=(24, 24, 24), spacing=np.array([2.5, 2.5, 2.5]))
+    bump = GaussianBumps(np.array([[0.0, 0.0, 0.0]]), np.array([[2.0, 1.0, 0.5]]), 30.0)
+    (d / "p.toml").write_text(SMALL_PROTOCOL)
+    return a, deform_labels(a, bump), load_protocol(d / "p.toml")
+
+
+# ----------------------------------------------------------------------------- the output transaction
+
+
+def test_output_folder_creates_parents_and_keeps_what_completes(tmp_path):
+    out = tmp_path / "a" / "b"
+    with output_folder(out) as folder:
+        (out / "x.txt").write_text("x")
+        folder.record(out / "x.txt")
+    assert (out / "x.txt").read_text() == "x"
+    assert folder.created == [tmp_path / "a", out] and folder.written == [out / "x.txt"]
+
+
+@pytest.mark.parametrize("error", [RuntimeError("a bug"), KeyboardInterrupt("SIGINT")], ids=["error", "interrupt"])
+def test_output_folder_removes_what_the_run_wrote_and_created(tmp_path, error):
+    out = tmp_path / "a" / "b"
+    with pytest.raises(type(error)):
+        with output_folder(out) as folder:
+            (out / "x.txt").write_text("x")
+            folder.record(out / "x.txt")
+            raise error
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_output_folder_refuses_a_non_empty_folder_without_force(tmp_path):
+    (tmp_path / "keep.txt").write_text("keep")
+    with pytest.raises(UsageError, match=r"Output directory `.*` exists and is not empty; pass --force to write into it\."):
+        with output_folder(tmp_path):
+            pass
+    with output_folder(tmp_path, require_empty=False):  # each output is checked on its own instead
+        pass
+    # with force: a failure removes what the run wrote, never what was there before
+    with pytest.raises(ValueError):
+        with output_folder(tmp_path, force=True) as folder:
+            (tmp_path / "new.txt").write_text("new")
+            folder.record(tmp_path / "new.txt")
+            raise ValueError("late failure")
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.txt"]
+
+
+def test_output_folder_refuses_a_file(tmp_path):
+    (tmp_path / "file").write_text("")
+    with pytest.raises(UsageError, match="exists and is not a directory"):
+        with output_folder(tmp_path / "file"):
+            pass
+
+
+def test_inner_transaction_hands_its_records_to_the_outer_one(tmp_path):
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError):
+        with output_folder(out) as outer:
+            with output_folder(out / "forward") as inner:
+                (out / "forward" / "model.npz").write_text("m")
+                inner.record(out / "forward" / "model.npz")
+            assert (out / "forward" / "model.npz").is_file()  # the inner one completed
+            assert outer.written == [out / "forward" / "model.npz"] and outer.created == [out, out / "forward"]
+            raise RuntimeError("a later step fails")
+    assert not out.exists()
+    # an inner failure removes the inner run's files only; the outer run decides about its own
+    with output_folder(out) as outer:
+        (out / "a.txt").write_text("a")
+        outer.record(out / "a.txt")
+        with pytest.raises(RuntimeError):
+            with output_folder(out / "backward") as inner:
+                (out / "backward" / "b.txt").write_text("b")
+                inner.record(out / "backward" / "b.txt")
+                raise RuntimeError("inner failure")
+    assert [p.name for p in out.iterdir()] == ["a.txt"] and outer.written == [out / "a.txt"]
+
+
+# ----------------------------------------------------------------------------- pair checks
+
+
+def test_check_pair_refuses_pairs_that_cannot_be_registered():
+    a = blob_volume(shape=(24, 24, 24), spacing=np.array([2.5, 2.5, 2.5]))
+    flat = LabelVolume(np.ones((5, 5), np.uint8), (0.0, 0.0), (1.0, 1.0), np.eye(2))
+    with pytest.raises(RegistrationInputError, match=r"`a.nii` is 3-D and `b.nii` 2-D; expected two volumes of one dimension"):
+        check_pair(a, flat, "a.nii", "b.nii")
+    far = LabelVolume(a.array, (1000.0, 0.0, 0.0), a.spacing, a.direction)
+    with pytest.raises(RegistrationInputError, match=r"The grids of `fixed` and `moving` do not overlap"):
+        check_pair(a, far)
+    assert issubclass(RegistrationInputError, VolregError) and issubclass(RegistrationInputError, ValueError)
+    check_pair(a, a)
+
+
+def test_warp_pad_is_the_recorded_pad_or_a_tenth_of_the_extent():
+    a = blob_volume(shape=(24, 24, 24), spacing=np.array([2.5, 2.5, 2.5]))
+    assert warp_pad(KernelWarp.identity(3, settings={"pad": 6.0}), a) == 6.0
+    assert warp_pad(KernelWarp.identity(3), a) == pytest.approx(0.1 * 24 * 2.5)
+
+
+# ----------------------------------------------------------------------------- library entry points
+
+
+def test_write_registration_writes_every_output_and_prints_nothing(small_pair, tmp_path, capsys):
+    a, b, protocol = small_pair
+    fitted = []
+    report = write_registration(a, b, tmp_path / "out", protocol=protocol, inputs={"fixed": "a", "moving": "b"},
+                                on_fit=fitted.append)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == sorted(REGISTRATION_OUTPUTS)
+    assert json.loads((tmp_path / "out" / "report.json").read_text()) == report
+    assert report["inputs"] == {"fixed": "a", "moving": "b"} and report["mean_dice"]["after"] > report["mean_dice"]["before"]
+    assert [s["stage"] for s in report["stages"]][-4:] == ["resample", "inverse", "metrics", "write"]
+    assert len(fitted) == 1 and isinstance(fitted[0], LabelRegistration)
+    assert report["levels"] == fitted[0].log
+    assert capsys.readouterr() == ("", "")
+
+
+def test_write_registration_leaves_nothing_when_a_write_fails(small_pair, tmp_path, monkeypatch):
+    import volreg.io
+
+    def disk_full(*args, **kwargs):
+        raise volreg.io.VolregIOError("Image `jacobian.nii.gz` could not be written: disk full.")
+
+    monkeypatch.setattr(volreg.io, "write_scalar", disk_full)  # after the model and both fields
+    a, b, protocol = small_pair
+    with pytest.raises(volreg.io.VolregIOError, match="disk full"):
+        write_registration(a, b, tmp_path / "deep" / "out", protocol=protocol)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_both_ways_and_the_consistency_test(small_pair, tmp_path):
+    a, b, protocol = small_pair
+    both = register_both_ways(a, b, protocol=protocol, outdir=tmp_path / "out",
+                              inputs={"A": {"path": "a"}, "B": {"path": "b"}})
+    assert set(both.reports) == {"forward", "backward"}
+    assert both.reports["backward"]["inputs"] == {"fixed": {"path": "b"}, "moving": {"path": "a"}}
+    # the warps in memory are those written
+    x = a.grid_points().reshape(-1, 3)[::11]
+    for name in ("forward", "backward"):
+        saved = KernelWarp.load(tmp_path / "out" / name / "model.npz")
+        assert np.array_equal(saved(x), getattr(both, name).warp(x))
+    report, error = consistency_test(a, b, both.forward.warp, both.backward.warp)
+    assert report["pad_mm"] == 6.0 and error.shape == a.shape
+    assert 0.0 < report["region"]["mean_mm"] < 1.25  # well under half a voxel (2.5 mm)
+    # the same test from the saved warps, written all or nothing
+    written = write_consistency_test(a, b, tmp_path / "test", forward=both.forward.warp, backward=both.backward.warp,
+                                     directions={"forward": {"outdir": "f"}, "backward": {"outdir": "b"}})
+    assert sorted(p.name for p in (tmp_path / "test").iterdir()) == sorted(CONSISTENCY_OUTPUTS)
+    assert written["region"] == report["region"] and written["directions"]["forward"] == {"outdir": "f"}
+    with pytest.raises(ValueError, match="`forward` and `backward`"):
+        write_consistency_test(a, b, tmp_path / "half", forward=both.forward.warp)
+    assert not (tmp_path / "half").exists()

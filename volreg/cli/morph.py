@@ -1,0 +1,128 @@
+"""``volreg morph``: frames of the morph from SOURCE to TARGET along the kernel warp."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from volreg.cli._common import PROG
+from volreg.cli._surfaces import _load_model, _read, _register, _write_surface
+from volreg.errors import UsageError
+from volreg.io import check_writable
+from volreg.io._atomic import output_folder
+from volreg.io.protocol import load_protocol
+from volreg.morph import morph_vertices, transfer_values
+from volreg.progress import ProgressBars
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(commands) -> None:
+    """Add ``morph`` to the ``volreg`` subcommands."""
+    morph = commands.add_parser(
+        "morph",
+        help="frames of the morph from SOURCE to TARGET",
+        description="Meshes along v + t (tau(v) - v) for t from 0 to 1 (frame_000.vtk ...), with per-vertex arrays "
+        "that both surfaces carry interpolated, rendered off-screen to frame_000.png ... and morph.gif.",
+    )
+    morph.add_argument("source", metavar="SOURCE", type=Path)
+    morph.add_argument("target", metavar="TARGET", type=Path)
+    morph.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
+    morph.add_argument("--frames", type=int, default=10, help="number of frames, >= 2 (default 10)")
+    morph.add_argument("--from-result", metavar="OUTDIR", type=Path, default=None,
+                       help="use the model.npz of a `volreg register-surfaces` OUTDIR instead of registering")
+    morph.add_argument("--protocol", metavar="NAME|FILE", default="default", help="protocol when registering")
+    morph.add_argument("--force", action="store_true", help="write into an existing OUTDIR, replacing outputs")
+    morph.add_argument("--quiet", action="store_true", help="no progress bars")
+    morph.set_defaults(run=run)
+
+
+def _render(frames: list[np.ndarray], triangles: np.ndarray, colours: list[np.ndarray] | None, png_paths, force: bool,
+            record) -> list[np.ndarray]:
+    """One PNG per frame (matplotlib, off-screen) with fixed axes, each passed to ``record`` once written,
+    and the frames for the GIF."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from volreg.io import atomic_output
+
+    allpts = np.concatenate(frames)
+    lo, hi = allpts.min(axis=0), allpts.max(axis=0)
+    images = []
+    for k, (verts, path) in enumerate(zip(frames, png_paths)):
+        fig = Figure(figsize=(5, 5), dpi=80, facecolor="white")
+        canvas = FigureCanvasAgg(fig)
+        ax = fig.add_subplot(projection="3d")
+        c = None if colours is None else colours[k]
+        if len(triangles):
+            surf = ax.plot_trisurf(verts[:, 0], verts[:, 1], verts[:, 2], triangles=triangles, cmap="viridis",
+                                   linewidth=0.0, antialiased=False)
+            if c is not None:
+                surf.set_array(np.asarray(c, float)[triangles].mean(axis=1))
+        else:
+            ax.scatter(verts[:, 0], verts[:, 1], verts[:, 2], s=2, c=c if c is not None else verts[:, 2], cmap="viridis")
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_zlim(lo[2], hi[2])
+        ax.set_title(f"t = {k / (len(frames) - 1):.2f}")
+        ax.set_axis_off()
+        canvas.draw()
+        images.append(np.asarray(canvas.buffer_rgba())[..., :3].copy())
+        with atomic_output(path, force=force) as tmp:
+            canvas.print_png(str(tmp))
+        record(path)
+    return images
+
+
+def run(args: argparse.Namespace) -> int:
+    """``volreg morph SOURCE TARGET -o OUTDIR``."""
+    start = time.perf_counter()
+    if args.frames < 2:
+        raise UsageError(f"--frames {args.frames}: expected at least 2 frames (the source and the warped source).")
+    source = _read(args.source, "SOURCE")
+    target = _read(args.target, "TARGET")
+    warp = _load_model(args.from_result) if args.from_result is not None else None
+    protocol = load_protocol(args.protocol) if warp is None else None
+    outdir: Path = args.output
+    names = [f"frame_{k:03d}" for k in range(args.frames)]
+    paths = [outdir / f"{n}.vtk" for n in names] + [outdir / f"{n}.png" for n in names] + [outdir / "morph.gif"]
+    with output_folder(outdir, args.force) as folder:
+        check_writable(paths, force=args.force)
+        if warp is None:
+            with ProgressBars(quiet=args.quiet) as progress:
+                warp = _register(source, target, protocol, None, progress)
+        warped = warp(source.vertices)
+        frames = morph_vertices(source.vertices, warped, args.frames)
+        shared = sorted(set(source.arrays) & set(target.arrays))
+        ts = np.linspace(0.0, 1.0, args.frames)
+        colours = None
+        per_frame_arrays = [dict() for _ in frames]
+        for name in shared:
+            a = np.asarray(source.arrays[name], float)
+            b = np.asarray(transfer_values(warped, target.vertices, target.triangles, target.arrays[name]), float)
+            if a.shape != b.shape:
+                continue
+            for k, t in enumerate(ts):
+                per_frame_arrays[k][name] = (1 - t) * a + t * b
+        if shared and per_frame_arrays[0]:
+            first = next(iter(per_frame_arrays[0]))
+            colours = [arr[first] if arr[first].ndim == 1 else np.linalg.norm(arr[first], axis=1) for arr in per_frame_arrays]
+        for k, verts in enumerate(frames):
+            _write_surface(outdir / f"{names[k]}.vtk", source, verts, per_frame_arrays[k], args.force)
+            folder.record(outdir / f"{names[k]}.vtk")
+        images = _render(frames, source.triangles, colours, [outdir / f"{n}.png" for n in names], args.force,
+                         folder.record)
+        from PIL import Image
+
+        from volreg.io import atomic_output
+
+        pil = [Image.fromarray(im) for im in images]
+        with atomic_output(outdir / "morph.gif", force=args.force) as tmp:
+            pil[0].save(tmp, format="GIF", save_all=True, append_images=pil[1:], duration=120, loop=0)
+        folder.record(outdir / "morph.gif")
+    print(f"{PROG} morph: {args.frames} frames (.vtk, .png) and morph.gif in {outdir} "
+          f"({time.perf_counter() - start:.0f} s)")
+    return 0
