@@ -8,7 +8,7 @@ by a known smooth warp of up to 8 mm = B).  For every method, A is registered to
 tau_AB: an A point to its B partner) and B to A, and at every voxel x of A's labels we measure
   * the consistency error of the two registrations, |tau_BA(tau_AB(x)) - x|;
   * for ANTs also the forward warp composed with ANTs' own inverse (SyN's InverseWarp);
-  * for volreg also the forward warp composed with its Newton inverse (volreg.inverse);
+  * for volreg also the forward warp composed with its Newton inverse (volreg.InverseWarp);
   * volreg-<protocol>-symmetric[=W]: the symmetric option (lambda_consistency = W, default 1000: the B->A fit is
     pulled towards the A->B warp's inverse);
   * the endpoint error of tau_AB against the known warp (an identity warp is perfectly

@@ -3,7 +3,7 @@
 Runs ``volreg surface`` (through its command-line entry point) on the frog
 tissue label volume that ships inside pyvista (``examples/frog_tissues.vti``:
 500 x 470 x 136 voxels of 1 x 1 x 1.5 mm, 25 tissue labels), so no download
-is needed.  Run it from the repository root (``make demo`` does)::
+is needed.  Run it from the repository root::
 
     python examples/frog_demo.py [OUTDIR]
 

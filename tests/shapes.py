@@ -88,7 +88,7 @@ def bumpy_ellipsoid(bumps: int = 8):
     """Signed distance bound of an ellipsoid (semi-axes 20 / 14 / 10 mm) with the first
     ``bumps`` (0-8) of eight small ellipsoids attached: the union (min) of their distances.
 
-    The known-deformation shapes of issue 3 (`tests/test_known_deformation.py`,
+    The known-deformation shapes (`tests/test_known_deformation.py`,
     `benchmarks/bench_register.py`); the bumps are the features that pin sliding.
     """
     body = Ellipsoid((20, 14, 10), (0.37, -0.21, 0.13))

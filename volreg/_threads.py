@@ -8,7 +8,7 @@ machine they took the cores from numba's threads, and a parallel loop then
 waited for a scheduler time slice: on the 3 mm frog registration 332 of 3914
 calls of one kernel sum took about 7 ms each instead of tens of microseconds,
 and the whole registration took 8.3 s instead of 4.1 s with BLAS held to one
-thread (BENCHMARKS.md, "BLAS threads").  volreg's own BLAS work is small
+thread.  volreg's own BLAS work is small
 vector operations, which gain nothing from threads.
 """
 

@@ -28,7 +28,7 @@ def surface_normals(vertices: np.ndarray, triangles: np.ndarray, normals: np.nda
     Triangle normals are made consistent and outward (VTK's
     ``auto_orient_normals``); a point cloud gets normals by local PCA with
     orientation propagated along a spanning tree (paper Section 4,
-    :func:`volreg.implicit.estimate_normals`).
+    :func:`volreg.features.implicit.estimate_normals`).
     """
     if normals is not None:
         n = np.asarray(normals, float)

@@ -7,7 +7,7 @@ a few voxels) then only ride along with the warp.  A :class:`VoxelDistance` is
 a second kind of feature function for the locational cost (3)-(4), one per
 label and volume: the signed Euclidean distance of the voxel centres to the
 label's boundary (mm, negative inside, exactly the map that the label
-interpolation of :mod:`volreg.resample` samples), clipped to ``+-clip`` mm so
+interpolation of :mod:`volreg.warp.resample` samples), clipped to ``+-clip`` mm so
 that only the neighbourhood of the label counts, smoothed by a Gaussian, and
 interpolated by a cubic B-spline -- so that its gradient and Hessian, which
 the objective's gradient needs, are exact derivatives of the interpolant.
@@ -164,7 +164,7 @@ def _clipped_sdf_band(mask, band, offsets, lengths, clip, out):  # pragma: no co
 
 
 def clipped_signed_distance(mask: np.ndarray, spacing: np.ndarray, clip: float) -> np.ndarray:
-    """:func:`volreg.resample.signed_distance_map` clipped to ``[-clip, clip]``, computed only
+    """:func:`volreg.warp.resample.signed_distance_map` clipped to ``[-clip, clip]``, computed only
     near the boundary.
 
     Equal to ``np.clip(signed_distance_map(mask, spacing), -clip, clip)`` (the same Euclidean
@@ -217,10 +217,10 @@ class VoxelDistance:
 
     ``f(x)`` (mm) is the cubic B-spline interpolant of the signed distance of
     the voxel centres to the boundary of ``mask`` (negative inside, see
-    :func:`volreg.resample.signed_distance_map`), clipped to ``[-clip, clip]``
+    :func:`volreg.warp.resample.signed_distance_map`), clipped to ``[-clip, clip]``
     and blurred by a Gaussian of ``smoothing`` mm; beyond the mask's bounding
     box padded by ``clip`` it is the constant ``clip``.  Exposes the interface
-    of :class:`~volreg.implicit.ImplicitSurface` that the warp objective uses:
+    of :class:`~volreg.features.implicit.ImplicitSurface` that the warp objective uses:
     :meth:`evaluate`, :meth:`bounds` and ``band``.
 
     Parameters

@@ -242,7 +242,7 @@ class ImplicitSurface:
     min_width : float, mm, optional
         Smallest kernel width.  Default: 8 times the median distance between
         neighbouring points.  Tie it to the voxel size when the points come from
-        a label volume (:func:`volreg.surfaces.implicit_surfaces` uses 4 voxels).
+        a label volume (:func:`volreg.features.label_surfaces.implicit_surfaces` uses 4 voxels).
     max_width : float, mm, optional
         Largest kernel width; default half the diameter (bounding-box diagonal).
     density : float

@@ -161,7 +161,7 @@ class InverseWarp(_PointMap):
     ``jacobian``, as for a warp); ``evaluate(y, order=1)``
     also gives the Jacobian of the inverse, ``J(x)^-1`` at ``x = tau^-1(y)``.
     Its support box is the warp's, so the grid functions of
-    :mod:`volreg.field` sample it like a warp.  ``max_residual`` holds the
+    :mod:`volreg.warp.field` sample it like a warp.  ``max_residual`` holds the
     largest ``|tau(x) - y|`` (mm) seen by the evaluations so far.
 
     Parameters
