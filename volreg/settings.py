@@ -18,7 +18,7 @@ import numpy as np
 
 from volreg.errors import ProtocolError
 
-__all__ = ["Protocol", "SurfaceSettings", "WarpSettings", "replace_settings", "settings_from_mapping"]
+__all__ = ["LINEAR_KINDS", "LinearSettings", "Protocol", "SurfaceSettings", "WarpSettings", "replace_settings", "settings_from_mapping"]
 
 
 @dataclass(frozen=True)
@@ -204,6 +204,30 @@ class SurfaceSettings:
             raise ValueError(f"Expected `distance_smoothing` in [0, 10] voxels, got {self.distance_smoothing}.")
 
 
+#: The kinds of linear stage a protocol may ask for, from none to the most general.
+LINEAR_KINDS = ("none", "rigid", "similarity", "affine")
+
+
+@dataclass(frozen=True)
+class LinearSettings:
+    """The linear stage before the kernel warp (the protocol's linear section).
+
+    Attributes
+    ----------
+    kind : {"none", "rigid", "similarity", "affine"}
+        The linear map found first: ``"affine"`` (the default) as ANTs' SyN and
+        greedy's users run before a deformable stage, since two subjects differ in
+        pose, size and proportions; ``"rigid"`` for the same subject in two sessions;
+        ``"none"`` for pairs already aligned (the kernel warp alone).
+    """
+
+    kind: str = "affine"
+
+    def __post_init__(self) -> None:
+        if self.kind not in LINEAR_KINDS:
+            raise ValueError(f"Expected `kind` in {LINEAR_KINDS}, got {self.kind!r}.")
+
+
 @dataclass(frozen=True)
 class Protocol:
     """Every setting of a run, by section."""
@@ -212,6 +236,7 @@ class Protocol:
     description: str = ""
     surface: SurfaceSettings = field(default_factory=SurfaceSettings)
     warp: WarpSettings = field(default_factory=WarpSettings)
+    linear: LinearSettings = field(default_factory=LinearSettings)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data (for reports and saved models)."""

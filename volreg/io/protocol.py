@@ -1,8 +1,9 @@
 """Protocols: named, validated presets of every setting, read from TOML.
 
 A protocol file has the sections ``[protocol]`` (``name``, ``description``),
-``[surface]`` (:class:`~volreg.settings.SurfaceSettings`) and ``[warp]``
-(:class:`~volreg.settings.WarpSettings`).  Keys left out take their defaults;
+``[surface]`` (:class:`~volreg.settings.SurfaceSettings`), ``[warp]``
+(:class:`~volreg.settings.WarpSettings`) and ``[linear]``
+(:class:`~volreg.settings.LinearSettings`).  Keys left out take their defaults;
 an unknown section or key, or a value of the wrong type, is an error naming it.
 Presets ship in the repository's ``protocols/`` folder; TOML is parsed with the
 standard library's safe parser (``tomllib``; ``tomli`` before Python 3.11).
@@ -21,7 +22,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
-from volreg.settings import Protocol, SurfaceSettings, WarpSettings, settings_from_mapping
+from volreg.settings import LinearSettings, Protocol, SurfaceSettings, WarpSettings, settings_from_mapping
 from volreg.errors import ProtocolError
 
 __all__ = ["PROTOCOL_DIR", "load_protocol", "protocol_to_toml"]
@@ -57,9 +58,10 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ProtocolError(f"Protocol `{path}` is not valid TOML: {exc}.") from None
-    unknown = set(data) - {"protocol", "surface", "warp"}
+    unknown = set(data) - {"protocol", "surface", "warp", "linear"}
     if unknown:
-        raise ProtocolError(f"Unknown section [{sorted(unknown)[0]}] in `{path}`; expected [protocol], [surface], [warp].")
+        raise ProtocolError(f"Unknown section [{sorted(unknown)[0]}] in `{path}`; "
+                            "expected [protocol], [surface], [warp], [linear].")
     head = data.get("protocol", {})
     if not isinstance(head, Mapping) or set(head) - {"name", "description"}:
         extra = sorted(set(head) - {"name", "description"}) if isinstance(head, Mapping) else ["?"]
@@ -70,6 +72,7 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
             description=str(head.get("description", "")),
             surface=settings_from_mapping(SurfaceSettings, data.get("surface", {}), "surface"),
             warp=settings_from_mapping(WarpSettings, data.get("warp", {}), "warp"),
+            linear=settings_from_mapping(LinearSettings, data.get("linear", {}), "linear"),
         )
     except ProtocolError as exc:
         raise ProtocolError(f"{exc} (in `{path}`)") from None
@@ -90,7 +93,7 @@ def protocol_to_toml(protocol: Protocol, *, comment: str = "") -> str:
     """
     lines = [f"# {line}" for line in comment.splitlines()] if comment else []
     lines += ["[protocol]", f"name = {_toml_value(protocol.name)}", f"description = {_toml_value(protocol.description)}"]
-    for section in ("surface", "warp"):
+    for section in ("surface", "warp", "linear"):
         lines += ["", f"[{section}]"]
         for key, value in dataclasses.asdict(getattr(protocol, section)).items():
             lines.append(f"# {key}: default (derived from the data)" if value is None else f"{key} = {_toml_value(value)}")
