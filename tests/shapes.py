@@ -117,3 +117,36 @@ def label_volume(shape, spacing, direction, origin, sdf, label=1, dtype=np.uint8
     pts = geom.grid_points().reshape(-1, len(shape))
     inside = sdf(pts) < 0
     return geom.with_array((inside.reshape(shape) * label).astype(dtype))
+
+
+def _inside_shape(shape, points):
+    """Inside test of an Ellipsoid or Disc2D (fast; the labels only need the sign)."""
+    return np.sum(((points - shape.centre) / shape.axes) ** 2, axis=1) < 1.0
+
+
+def _shape_labels(shapes, points):
+    """Label of every point: the index + 1 of the last shape holding it, 0 outside all."""
+    out = np.zeros(len(points), dtype=np.uint8)
+    for i, shape in enumerate(shapes):
+        out[_inside_shape(shape, points)] = i + 1
+    return out
+
+
+def posed_volume(shapes, shape, spacing, origin, direction=None, matrix=None, translation=None) -> LabelVolume:
+    """The labels of ``shapes`` posed by ``T: x -> matrix x + translation`` on a grid:
+    ``volume(y) = labels(T^-1 y)`` at the voxel centres (identity when no map is given)."""
+    d = len(shape)
+    direction = np.eye(d) if direction is None else direction
+    grid = LabelVolume(np.zeros(shape, np.uint8), origin, spacing, direction)
+    points = grid.grid_points().reshape(-1, d)
+    if matrix is not None:
+        points = (points - translation) @ np.linalg.inv(matrix).T
+    return grid.with_array(_shape_labels(shapes, points).reshape(shape))
+
+
+def grid_around(centre, shape, spacing, direction=None):
+    """Origin of a grid of ``shape`` x ``spacing`` whose middle is at ``centre`` (mm)."""
+    d = len(shape)
+    direction = np.eye(d) if direction is None else direction
+    half = (np.array(shape) - 1) / 2.0 * np.asarray(spacing, float)
+    return np.asarray(centre, float) - direction @ half

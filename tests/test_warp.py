@@ -121,7 +121,7 @@ def test_save_load_round_trip(tmp_path, dim):
     np.testing.assert_array_equal(loaded.jacobian(x), warp.jacobian(x))
     assert loaded.settings == settings and loaded.dim == dim and loaded.widths == warp.widths
     with np.load(path, allow_pickle=False) as data:
-        assert str(data["format"]) == FORMAT and int(data["format_version"]) == 1
+        assert str(data["format"]) == FORMAT and int(data["format_version"]) == 2
         assert data["format"].shape == () and data["format"].dtype.kind == "U"
         assert json.loads(str(data["settings_json"])) == settings
         assert int(data["dim"]) == dim and data["centres_0"].shape == (6, dim)
@@ -164,7 +164,7 @@ def test_load_rejects_bad_files(tmp_path):
 
     check("wrong_format.npz", {**good, "format": np.array("something-else")}, "format")
     check("no_format.npz", {k: v for k, v in good.items() if k != "format"}, "format")
-    check("newer.npz", {**good, "format_version": np.array(2)}, "format_version 2")
+    check("newer.npz", {**good, "format_version": np.array(3)}, "format_version 3")
     check("missing_key.npz", {k: v for k, v in good.items() if k != "coeffs_1"}, "coeffs_1")
     check("missing_settings.npz", {k: v for k, v in good.items() if k != "settings_json"}, "settings_json")
     check("bad_shape.npz", {**good, "coeffs_0": good["coeffs_0"][:-1]}, "same shape")

@@ -12,9 +12,9 @@ from volreg.cli._common import PROG
 from volreg.errors import UsageError
 from volreg.grid import Grid
 from volreg.io import read_grid, read_image, read_labels, write_labels, write_scalar
-from volreg.io.fields import read_displacement
+from volreg.io.fields import read_displacement, read_itk_linear
 from volreg.progress import ProgressBars
-from volreg.warp.field import displacement_on_grid
+from volreg.warp.field import displacement_on_grid, linear_displacement_on_grid
 from volreg.warp.model import KernelWarp
 from volreg.warp.resample import resample_image, resample_labels
 
@@ -27,9 +27,11 @@ def add_parser(commands) -> None:
         "apply",
         help="warp an image with a saved result",
         description="Resample IMAGE (labels or intensities) onto the grid of REF through a saved warp: "
-        "a model.npz or an ANTs/ITK displacement field (warp.nii.gz) from `volreg register`.",
+        "a model.npz or an ANTs/ITK displacement field (warp.nii.gz) from `volreg register`, or an ITK "
+        "linear transform (.tfm, .txt, .mat).",
     )
-    apply.add_argument("warp", metavar="MODEL_OR_WARP", type=Path, help="model.npz or warp.nii.gz")
+    apply.add_argument("warp", metavar="MODEL_OR_WARP", type=Path,
+                       help="model.npz, warp.nii.gz or an ITK linear transform (.tfm, .txt, .mat)")
     apply.add_argument("image", metavar="IMAGE", type=Path, help="image in moving space")
     apply.add_argument("--reference", metavar="REF", type=Path, required=True, help="image whose grid the output takes (fixed space)")
     apply.add_argument("-o", "--output", metavar="OUT", type=Path, required=True, help="output image (.nii.gz, .nii, .nrrd, .mha)")
@@ -52,7 +54,11 @@ def run(args: argparse.Namespace) -> int:
             warp = KernelWarp.load(args.warp)
             if warp.dim != reference.ndim:
                 raise UsageError(f"Model `{args.warp}` is {warp.dim}-D but --reference `{args.reference}` is {reference.ndim}-D.")
+            # the model's linear part included: outside the kernels' support u = (A - I) x + b
             u = displacement_on_grid(warp, reference, progress=progress)
+        elif name.endswith((".tfm", ".txt", ".mat")):
+            linear = read_itk_linear(args.warp, dim=reference.ndim)
+            u = linear_displacement_on_grid(linear, reference)
         elif name.endswith(".nii") or name.endswith(".nii.gz"):
             u_field, grid = read_displacement(args.warp)
             if grid.ndim != reference.ndim:
@@ -62,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
             else:  # as ITK: the field is interpolated linearly at the reference voxels, zero outside it
                 u = np.stack([resample_image(u_field[..., d], grid, at, order=1) for d in range(grid.ndim)], axis=-1)
         else:
-            raise UsageError(f"MODEL_OR_WARP `{args.warp}` must be a model.npz or a displacement field .nii/.nii.gz.")
+            raise UsageError(f"MODEL_OR_WARP `{args.warp}` must be a model.npz, a displacement field .nii/.nii.gz "
+                             "or an ITK linear transform .tfm/.txt/.mat.")
         points = at + u
         if args.interpolation in ("label", "nearest"):
             image = read_labels(args.image)

@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
             with ProgressBars(quiet=args.quiet) as progress:
                 warp = _register(source, target, protocol, None, progress)
         warped = warp(source.vertices)
-        frames = morph_vertices(source.vertices, warped, args.frames)
+        frames = morph_vertices(source.vertices, warped, args.frames, linear=warp.linear)
         shared = sorted(set(source.arrays) & set(target.arrays))
         ts = np.linspace(0.0, 1.0, args.frames)
         colours = None

@@ -26,7 +26,8 @@ import numpy as np
 from scipy import ndimage
 
 from volreg import __version__
-from volreg.warp.field import displacement_on_grid
+from volreg.warp.field import displacement_on_grid, linear_displacement_on_grid, support_slices
+from volreg.warp.model import linear_outside
 from volreg.evaluation.metrics import dice
 from volreg.warp.resample import resample_labels
 from volreg.grid import LabelVolume, as_grid
@@ -105,14 +106,6 @@ def error_summary(errors: np.ndarray, voxel: float | None = None) -> dict:
     return out
 
 
-def _union_box(warps) -> tuple[np.ndarray, np.ndarray] | None:
-    boxes = [w.bounds() for w in warps if hasattr(w, "bounds")]
-    boxes = [b for b in boxes if b is not None]
-    if not boxes:
-        return None
-    return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
-
-
 def error_on_grid(
     forward,
     backward,
@@ -123,18 +116,27 @@ def error_on_grid(
 ) -> np.ndarray:
     """The inverse-consistency error ``|backward(forward(x)) - x|`` at every voxel centre of ``grid``.
 
-    Only voxels inside the union of the two warps' support boxes can have a
-    non-zero error (outside both, both warps are the identity); only they are
-    evaluated.
+    Outside the box where the chain ``backward(forward(x))`` is linear
+    (:func:`~volreg.warp.model.linear_outside`: ``forward``'s support box and the
+    preimage of ``backward``'s under ``forward``'s linear part) the round trip
+    is ``M x`` with ``M`` the product of the two linear parts, and the error
+    ``|M x - x|`` is filled in closed form (zero without linear parts); only
+    the voxels inside the box are evaluated.  A map without ``bounds()`` makes
+    every voxel evaluated.
 
     Returns
     -------
     (*grid.shape) float ndarray, mm
     """
     grid = as_grid(grid, "grid")
-    out = np.zeros(int(np.prod(grid.shape)))
-    box = _union_box((forward, backward))
-    window = None if box is None else grid.index_window(*box)
+    chain = (forward, backward)
+    _, linear = linear_outside(chain, dim=grid.ndim)
+    window = support_slices(chain, grid)
+    if linear.is_identity or (window is not None and all(
+            s.start == 0 and s.stop == n for s, n in zip(window, grid.shape))):
+        out = np.zeros(int(np.prod(grid.shape)))
+    else:
+        out = np.linalg.norm(linear_displacement_on_grid(linear, grid), axis=-1).ravel()
     if window is None:
         return out.reshape(grid.shape)
     for part in grid.chunks(chunk, window):
@@ -182,7 +184,9 @@ def warp_pad(warp, volume: LabelVolume) -> float:
     :func:`~volreg.warp.fit.fit_warp` records the pad it used (``warp.settings["pad"]``:
     the protocol's ``pad``, or 10 % of the source diameter when that is unset), so every
     fitted warp, saved or not, gives it.  A warp that records none (made by hand, or a
-    model file written without it) gets 10 % of ``volume``'s largest extent.
+    model file written without it) gets 10 % of ``volume``'s largest extent.  The pad is
+    a distance in ``volume``'s (fixed) frame, where the kernel centres lie: a linear
+    part of the warp does not change it.
 
     Parameters
     ----------

@@ -1,4 +1,7 @@
-"""Displacement fields as ANTs and ITK read and write them (NIfTI-1, 5-D, intent vector).
+"""Displacement fields and linear transforms as ANTs and ITK read and write them.
+
+Displacement fields: NIfTI-1, 5-D, intent vector.  Linear transforms: ITK's
+"Insight Transform File V1.0" text format (``.tfm`` or ``.txt``).
 
 Convention (docs/conventions.md): a displacement field lives on the fixed
 (reference) grid; voxel ``x`` holds ``u(x) = tau(x) - x`` in ITK physical
@@ -8,11 +11,19 @@ space (LPS, mm), so that a moving image is pulled back as
 sform (code 1) holding the RAS form of the LPS grid.  The vector components
 are *not* flipped to RAS: ITK (and so ANTs, SimpleITK, Slicer) store them as
 LPS, and read them back as such.
+
+A linear transform ``x -> A x + b`` (:class:`~volreg.warp.linear.LinearMap`) is
+written as ITK's ``AffineTransform_double_3_3`` (``_2_2`` in 2-D): ``Parameters``
+are ``A`` row by row, then ``b``; ``FixedParameters`` the centre, zero.  ITK's
+transforms map points of the output (fixed) space to the input (moving) space,
+in LPS mm -- the direction and frame of volreg's pull-back ``tau`` -- so no
+flips are needed; ITK, SimpleITK, ANTs and 3D Slicer read the file as it is.
 """
 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import nibabel as nib
@@ -23,8 +34,9 @@ from volreg.grid import Grid, GridLike, as_grid
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
 from volreg.io.images import _check_input, _check_nifti, _sitk_reason
+from volreg.warp.linear import LinearMap
 
-__all__ = ["write_displacement", "read_displacement"]
+__all__ = ["write_displacement", "read_displacement", "write_itk_linear", "read_itk_linear"]
 
 _LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 
@@ -131,3 +143,199 @@ def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
         np.array(img.GetDirection()).reshape(dim, dim),
     )
     return u, grid
+
+
+#: First line of ITK's text transform files.
+_ITK_HEADER = "#Insight Transform File V1.0"
+#: Suffixes ITK's transform reader takes as its text format.
+_ITK_TEXT_SUFFIXES = (".tfm", ".txt")
+#: Transforms whose parameters are the matrix row by row, then the translation; fixed: the centre.
+_MATRIX_OFFSET = re.compile(r"^(AffineTransform|MatrixOffsetTransformBase)_(double|float)_(\d+)_(\d+)$")
+#: SimpleITK transform classes that are ``x -> A (x - c) + t + c`` (GetMatrix, GetTranslation, GetCenter).
+_SITK_LINEAR = (
+    "AffineTransform",
+    "Euler2DTransform",
+    "Euler3DTransform",
+    "Similarity2DTransform",
+    "Similarity3DTransform",
+    "VersorTransform",
+    "VersorRigid3DTransform",
+    "ScaleVersor3DTransform",
+    "ScaleSkewVersor3DTransform",
+    "ComposeScaleSkewVersor3DTransform",
+)
+
+
+def _number(value: float) -> str:
+    """A float as the shortest text that reads back as the same double."""
+    text = repr(float(value))
+    return "0" if text in ("0.0", "-0.0") else text
+
+
+def write_itk_linear(path: str | os.PathLike[str], linear: LinearMap, *, force: bool = False) -> None:
+    """Write a linear map as an ITK text transform file ("Insight Transform File V1.0"), atomically.
+
+    Parameters
+    ----------
+    path : path-like
+        ``.tfm`` (or ``.txt``): the suffixes ITK reads as text transforms.
+    linear : LinearMap
+        ``x -> A x + b``, D = 2 or 3, mapping fixed points to moving points (LPS mm),
+        as ITK's transforms do.  Written as ``AffineTransform_double_D_D`` with
+        ``Parameters`` = ``A`` row-major then ``b`` (mm) and ``FixedParameters`` =
+        the centre, zero; numbers are written to full double precision.
+    force : bool
+        Overwrite an existing ``path``.
+
+    Raises
+    ------
+    VolregIOError
+        On another suffix, or an existing ``path`` without ``force``.
+    ValueError
+        If ``linear`` is not a :class:`~volreg.warp.linear.LinearMap`.
+    """
+    p = Path(path)
+    if not p.name.lower().endswith(_ITK_TEXT_SUFFIXES):
+        raise VolregIOError(f"Linear transform `{p}` must be named .tfm or .txt, the suffixes ITK reads as text transforms.")
+    if not isinstance(linear, LinearMap):
+        raise ValueError(f"Expected a LinearMap as `linear`, got {type(linear).__name__}.")
+    d = linear.dim
+    params = [*np.asarray(linear.matrix, float).ravel(), *np.asarray(linear.translation, float)]
+    text = (
+        f"{_ITK_HEADER}\n"
+        "#Transform 0\n"
+        f"Transform: AffineTransform_double_{d}_{d}\n"
+        f"Parameters: {' '.join(_number(v) for v in params)}\n"
+        f"FixedParameters: {' '.join('0' for _ in range(d))}\n"
+    )
+    with atomic_output(p, force=force) as tmp:
+        with open(tmp, "w", encoding="ascii", newline="\n") as fh:
+            fh.write(text)
+
+
+def _linear_map(path: Path, kind: str, matrix, translation, centre, dim: int | None) -> LinearMap:
+    """``x -> A (x - c) + t + c`` as a LinearMap, checked; errors name the file."""
+    a = np.asarray(matrix, dtype=float)
+    d = a.shape[0]
+    if dim is not None and d != dim:
+        raise VolregIOError(f"Linear transform `{path}` is {d}-D ({kind}); expected a {dim}-D transform.")
+    t = np.asarray(translation, dtype=float)
+    c = np.asarray(centre, dtype=float)
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(t)) and np.all(np.isfinite(c))):
+        raise VolregIOError(f"Linear transform `{path}` holds NaN or Inf; expected finite parameters.")
+    det = float(np.linalg.det(a))
+    if not det > 0:
+        raise VolregIOError(
+            f"Linear transform `{path}` has a matrix of determinant {det:.3g}; expected a positive determinant "
+            "(no reflection, no collapse)."
+        )
+    return LinearMap(a, t + c - a @ c)
+
+
+def _parse_itk_text(path: Path, text: str, dim: int | None) -> LinearMap | None:
+    """The linear map of an ITK text file whose one transform is an affine / matrix-offset one.
+
+    ``None`` when the file holds one transform of another kind (left to SimpleITK).
+    """
+    kinds, fields = [], []
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith("Transform:"):
+            kinds.append(line.partition(":")[2].strip())
+            fields.append({})
+        elif fields and line.startswith(("Parameters:", "FixedParameters:")):
+            key, _, values = line.partition(":")
+            fields[-1][key] = values.split()
+    if not kinds:
+        raise VolregIOError(f"Linear transform `{path}` names no transform; expected an ITK transform file.")
+    if kinds[0].startswith("CompositeTransform"):  # a composite of one transform is that transform
+        kinds, fields = kinds[1:], fields[1:]
+    if len(kinds) != 1:
+        raise VolregIOError(
+            f"Linear transform `{path}` holds {len(kinds)} transforms; expected a single linear transform."
+        )
+    kind = kinds[0]
+    match = _MATRIX_OFFSET.match(kind)
+    if match is None:
+        return None
+    d, d2 = int(match.group(3)), int(match.group(4))
+    if d != d2 or d not in (2, 3):
+        raise VolregIOError(f"Linear transform `{path}` is a {kind}; expected a 2-D or 3-D transform (_2_2 or _3_3).")
+    try:
+        params = np.array([float(v) for v in fields[0].get("Parameters", [])])
+        fixed = np.array([float(v) for v in fields[0].get("FixedParameters", [])])
+    except ValueError:
+        raise VolregIOError(f"Linear transform `{path}` has parameters that are not numbers.") from None
+    if params.size != d * d + d or fixed.size != d:
+        raise VolregIOError(
+            f"Linear transform `{path}` ({kind}) has {params.size} parameters and {fixed.size} fixed parameters; "
+            f"expected {d * d + d} and {d}."
+        )
+    return _linear_map(path, kind, params[: d * d].reshape(d, d), params[d * d :], fixed, dim)
+
+
+def read_itk_linear(path: str | os.PathLike[str], *, dim: int | None = None) -> LinearMap:
+    """Read a linear transform from an ITK transform file as ``x -> A x + b``.
+
+    Reads ITK's text format (``AffineTransform_*`` and
+    ``MatrixOffsetTransformBase_*``, double or float, with any centre ``c``: the
+    map is ``A (x - c) + t + c``, so ``b = t + c - A c``) and, through SimpleITK,
+    the other linear kinds it reads and writes (Euler, Similarity, Versor,
+    VersorRigid3D, ScaleVersor3D, ScaleSkewVersor3D) in text or MATLAB ``.mat``
+    files (as ANTs writes them).  The transform maps fixed points to moving points
+    in LPS mm, as volreg's ``tau``.
+
+    Parameters
+    ----------
+    path : path-like
+    dim : {2, 3}, optional
+        The dimension the transform must have.
+
+    Returns
+    -------
+    LinearMap
+
+    Raises
+    ------
+    VolregIOError
+        One line naming the file: missing or unreadable, not a transform file, a
+        composite or non-linear transform (displacement field, B-spline), another
+        dimension than ``dim``, non-finite parameters, or a matrix whose
+        determinant is not positive (a reflection).
+    """
+    p = Path(path)
+    if not p.exists():
+        raise VolregIOError(f"Linear transform `{p}` does not exist.")
+    if p.is_dir():
+        raise VolregIOError(f"Linear transform `{p}` is a directory; expected an ITK transform file (.tfm, .txt, .mat).")
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(len(_ITK_HEADER) + 64)
+    except OSError as exc:
+        raise VolregIOError(f"Linear transform `{p}` cannot be read: {exc.strerror}.") from None
+    if head.lstrip().startswith(_ITK_HEADER.encode()):
+        try:
+            text = p.read_text(encoding="ascii")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise VolregIOError(f"Linear transform `{p}` is not a readable text transform file: {exc}.") from None
+        linear = _parse_itk_text(p, text, dim)
+        if linear is not None:
+            return linear
+    try:
+        transform = sitk.ReadTransform(str(p))
+    except RuntimeError as exc:
+        raise VolregIOError(f"Linear transform `{p}` could not be read as an ITK transform: {_sitk_reason(exc)}.") from None
+    if type(transform).__name__ == "CompositeTransform" and transform.GetNumberOfTransforms() == 1:
+        transform = transform.GetNthTransform(0).Downcast()
+    kind = type(transform).__name__
+    if kind == "TranslationTransform":
+        offset = np.array(transform.GetOffset(), dtype=float)
+        return _linear_map(p, kind, np.eye(len(offset)), offset, np.zeros(len(offset)), dim)
+    if kind not in _SITK_LINEAR:
+        raise VolregIOError(
+            f"Linear transform `{p}` holds a {transform.GetName()}; expected one linear transform "
+            "(affine, rigid or similarity)."
+        )
+    d = transform.GetDimension()
+    return _linear_map(p, kind, np.array(transform.GetMatrix(), dtype=float).reshape(d, d),
+                       transform.GetTranslation(), transform.GetCenter(), dim)

@@ -1,7 +1,10 @@
-"""The kernel warp tau(x) = x + sum_j c_j k(x, x_j) (paper eq. 9) and everything that fits and uses it.
+"""The warp tau(x) = A x + b + sum_j c_j k(x, x_j) (paper eq. 9 after a linear map) and what fits and uses it.
 
 Modules
 -------
+linear
+    :class:`~volreg.warp.linear.LinearMap` (the linear part A x + b) and :func:`~volreg.warp.linear.fit_linear`,
+    the rigid/similarity/affine stage fitted to label moments and distance maps before the kernel warp.
 model
     :class:`~volreg.warp.model.KernelWarp` (evaluate, Jacobian, compose) and its ``.npz`` file format.
 sampling

@@ -5,37 +5,103 @@ or anything with ``evaluate``) is continuous; these functions sample it at the
 voxel centres of a reference grid (a :class:`~volreg.grid.Grid`, a
 :class:`~volreg.grid.LabelVolume`, whose array is not used, or a
 ``(shape, affine)`` pair).  Only the voxels inside the warp's support box are
-evaluated -- elsewhere ``tau(x) = x`` exactly -- in chunks
+evaluated -- elsewhere the warp is exactly its linear part ``x -> A x + b``
+(``tau(x) = x`` without one), filled in closed form -- in chunks
 (:meth:`~volreg.grid.Grid.chunks`), with a progress callback.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Callable
 
 import numpy as np
 
 from volreg._threads import single_blas
-from volreg.grid import GridLike, as_grid
-from volreg.warp.model import jacobian_det
+from volreg.grid import Grid, GridLike, as_grid
+from volreg.warp.linear import LinearMap
+from volreg.warp.model import jacobian_det, linear_outside
 
-__all__ = ["displacement_on_grid", "fields_on_grid", "jacobian_determinant_on_grid", "support_slices"]
+__all__ = [
+    "displacement_on_grid",
+    "fields_on_grid",
+    "jacobian_determinant_on_grid",
+    "linear_displacement_on_grid",
+    "support_slices",
+]
 
 ProgressCallback = Callable[[str, int, int], None]
 
 
-def support_slices(warp, reference: GridLike) -> tuple[slice, ...] | None:
-    """Index slices of ``reference`` covering the warp's support box (``None``: no voxel).
+def _chain(warp) -> list:
+    return list(warp) if isinstance(warp, Sequence) else [warp]
 
-    A warp without ``bounds()`` (e.g. a composition) is taken to move every voxel.
+
+def support_slices(warp, reference: GridLike) -> tuple[slice, ...] | None:
+    """Index slices of ``reference`` covering the box outside which the warp is linear (``None``: no voxel).
+
+    Parameters
+    ----------
+    warp : KernelWarp, ComposedWarp, InverseWarp, any map, or a sequence of maps
+        A sequence is the chain applied in its order
+        (:func:`~volreg.warp.model.linear_outside`).  A map without ``bounds()``
+        is taken to move every voxel.
+    reference : Grid, LabelVolume or (shape, affine)
+
+    Returns
+    -------
+    tuple of D slices, or None
+        ``None`` when the warp is linear everywhere or its box misses the grid.
     """
     reference = as_grid(reference, "reference")
-    if not hasattr(warp, "bounds"):
-        return tuple(slice(0, n) for n in reference.shape)
-    bounds = warp.bounds()
-    if bounds is None:
+    box, _ = linear_outside(_chain(warp), dim=reference.ndim)
+    if box is None:
         return None
-    return reference.index_window(*bounds)
+    lo, hi = box
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        return tuple(slice(0, n) for n in reference.shape)
+    return reference.index_window(lo, hi)
+
+
+def _outside_linear(warp, reference: Grid, window: tuple[slice, ...] | None) -> LinearMap | None:
+    """The linear part that holds outside ``window``; ``None`` if it is the identity or ``window`` is the grid."""
+    if window is not None and all(s.start == 0 and s.stop == n for s, n in zip(window, reference.shape)):
+        return None
+    linear = linear_outside(_chain(warp), dim=reference.ndim)[1]
+    return None if linear.is_identity else linear
+
+
+def linear_displacement_on_grid(linear: LinearMap | None, reference: GridLike) -> np.ndarray:
+    """``u(x) = A x + b - x`` at every voxel centre of ``reference``, in closed form.
+
+    The map is affine in the voxel index ``i`` (``x = origin + M i``), so the field
+    is a constant plus one outer product per axis; no world points are formed.
+
+    Parameters
+    ----------
+    linear : LinearMap or None
+        ``x -> A x + b``; ``None`` or the identity give zeros.
+    reference : Grid, LabelVolume or (shape, affine)
+
+    Returns
+    -------
+    (*reference.shape, D) float64 ndarray, LPS mm
+    """
+    reference = as_grid(reference, "reference")
+    dim = reference.ndim
+    out = np.zeros((*reference.shape, dim))
+    if linear is None or linear.is_identity:
+        return out
+    if linear.dim != dim:
+        raise ValueError(f"Expected a `linear` map of dimension {dim}, got D={linear.dim}.")
+    a = linear.matrix - np.eye(dim)
+    steps = a @ (reference.direction * reference.spacing[None, :])  # column d: u change per index step on axis d
+    out[...] = a @ reference.origin + linear.translation
+    for d, n in enumerate(reference.shape):
+        shape = [1] * dim + [dim]
+        shape[d] = n
+        out += (np.arange(n, dtype=float)[:, None] * steps[:, d]).reshape(shape)
+    return out
 
 
 def _on_grid(warp, reference: GridLike, order: int, chunk: int, progress: ProgressCallback | None, stage: str):
@@ -75,11 +141,16 @@ def displacement_on_grid(
     Returns
     -------
     (*reference.shape, D) float64 ndarray, LPS mm
-        Zero outside the warp's support.  This is the field that ANTs and ITK
-        call a displacement field on the fixed (reference) grid.
+        Outside the warp's support ``(A - I) x + b`` (zero without a linear
+        part).  This is the field that ANTs and ITK call a displacement field
+        on the fixed (reference) grid.
     """
     reference = as_grid(reference, "reference")
-    out = np.zeros((int(np.prod(reference.shape)), reference.ndim))
+    linear = _outside_linear(warp, reference, support_slices(warp, reference))
+    if linear is None:
+        out = np.zeros((int(np.prod(reference.shape)), reference.ndim))
+    else:
+        out = linear_displacement_on_grid(linear, reference).reshape(-1, reference.ndim)
     for flat, points, (tau, *_) in _on_grid(warp, reference, 0, chunk, progress, stage):
         out[flat] = tau - points
     return out.reshape(*reference.shape, reference.ndim)
@@ -103,10 +174,13 @@ def jacobian_determinant_on_grid(
     Returns
     -------
     (*reference.shape) float64 ndarray
-        1 outside the warp's support; ``<= 0`` where the warp folds space.
+        ``det A`` outside the warp's support (1 without a linear part);
+        ``<= 0`` where the warp folds space.
     """
     reference = as_grid(reference, "reference")
-    out = np.ones(int(np.prod(reference.shape)))
+    linear = _outside_linear(warp, reference, support_slices(warp, reference))
+    n = int(np.prod(reference.shape))
+    out = np.ones(n) if linear is None else np.full(n, float(jacobian_det(linear.matrix)))
     for flat, _, (_, jac) in _on_grid(warp, reference, 1, chunk, progress, "Jacobian"):
         out[flat] = jacobian_det(jac)
     return out.reshape(reference.shape)
@@ -136,14 +210,21 @@ def fields_on_grid(
     Returns
     -------
     u : (*reference.shape, D) float64 ndarray, LPS mm
-        ``tau(x) - x``; zero outside the warp's support.
+        ``tau(x) - x``; ``(A - I) x + b`` outside the warp's support (zero
+        without a linear part).
     det : (*reference.shape) float64 ndarray
-        ``det d tau / dx``; 1 outside the warp's support.
+        ``det d tau / dx``; ``det A`` outside the warp's support (1 without a
+        linear part).
     """
     reference = as_grid(reference, "reference")
     n = int(np.prod(reference.shape))
-    u = np.zeros((n, reference.ndim))
-    det = np.ones(n)
+    linear = _outside_linear(warp, reference, support_slices(warp, reference))
+    if linear is None:
+        u = np.zeros((n, reference.ndim))
+        det = np.ones(n)
+    else:
+        u = linear_displacement_on_grid(linear, reference).reshape(-1, reference.ndim)
+        det = np.full(n, float(jacobian_det(linear.matrix)))
     for flat, points, (tau, jac) in _on_grid(warp, reference, 1, chunk, progress, "evaluate warp"):
         u[flat] = tau - points
         det[flat] = jacobian_det(jac)

@@ -1,21 +1,26 @@
 """The inverse of a kernel warp by Newton iteration with the analytic Jacobian.
 
-A kernel warp ``tau(x) = x + u(x)`` (:class:`~volreg.warp.KernelWarp`) is
-smooth, with an analytic Jacobian ``J = d tau / d x``; where it does not fold
+A kernel warp ``tau(x) = L(x) + u(x)`` (:class:`~volreg.warp.KernelWarp`, with
+linear part ``L(x) = A x + b``, the identity unless the warp has one) is smooth,
+with an analytic Jacobian ``J = d tau / d x``; where it does not fold
 (``det J > 0``) it is invertible, and ``tau^-1(y)`` is the root of
 ``r(x) = tau(x) - y``.  Newton's method solves it::
 
-    x_0 = y - u(y),      x_{n+1} = x_n - J(x_n)^-1 (tau(x_n) - y)
+    z = L^-1(y),   x_0 = z - A^-1 u(z),   x_{n+1} = x_n - J(x_n)^-1 (tau(x_n) - y)
 
-converging quadratically once close.  Where ``det J`` is small (near a fold)
-the Newton step is unreliable, so a damped fixed-point step
-``x_{n+1} = x_n - (tau(x_n) - y) / 2`` is taken instead; any step that does not
-reduce ``|r|`` is halved (up to a few times).  The residual ``|tau(x) - y|`` of
-every point is returned, so callers can state how exact the inverse is.
+(``x_0 = y - u(y)`` without a linear part), converging quadratically once close.
+Where ``det J`` is small (below ``min_det det A``, near a fold) the Newton step
+is unreliable, so a damped fixed-point step ``x_{n+1} = x_n - A^-1 (tau(x_n) - y) / 2``
+is taken instead; any step that does not reduce ``|r|`` is halved (up to a few
+times).  The residual ``|tau(x) - y|`` of every point is returned, so callers
+can state how exact the inverse is.
 
-Outside the warp's support box ``tau`` is the identity; a warp without folds
-maps that box onto itself, so targets outside it are their own preimages and
-are not iterated.
+Outside the warp's support box ``B`` (fixed space) ``tau = L`` exactly.  So a
+target ``y`` whose linear preimage ``L^-1(y)`` lies outside ``B`` -- a target
+outside ``L(B)`` -- has that preimage (``tau(L^-1 y) = y``), the only one for a
+warp without folds: it is not iterated.  The inverse is therefore exactly
+``L^-1`` outside the bounding box of ``L(B)`` in moving space
+(:meth:`InverseWarp.bounds`).
 
 Not in the paper (Section 3 fits the forward warp only); used for the
 consistency test (Section 5) and to carry points and images the other way.
@@ -29,7 +34,8 @@ from typing import Callable
 import numpy as np
 
 from volreg.kernels import _check_points
-from volreg.warp.model import _PointMap
+from volreg.warp.linear import LinearMap
+from volreg.warp.model import _box_through, _PointMap, linear_outside
 
 __all__ = ["InverseSolution", "invert_points", "InverseWarp"]
 
@@ -65,6 +71,12 @@ def _in_box(points: np.ndarray, bounds) -> np.ndarray:
     return np.all((points >= lo) & (points <= hi), axis=1)
 
 
+def _linear_of(warp) -> LinearMap:
+    """The linear part of a map (the identity for one without)."""
+    linear = getattr(warp, "linear", None)
+    return LinearMap.identity(warp.dim) if linear is None else linear
+
+
 def invert_points(
     warp,
     targets: np.ndarray,
@@ -81,8 +93,10 @@ def invert_points(
     ----------
     warp : KernelWarp or ComposedWarp
         Anything with ``evaluate(points, order=1) -> (tau, jacobian)``; a
-        ``bounds()`` method (support box) lets targets outside it skip the
-        iteration.
+        ``bounds()`` method (the box outside which the map equals its
+        ``linear`` part, or the identity for a map without one) lets targets
+        whose linear preimage lies outside it skip the iteration: their
+        preimage is ``A^-1 (y - b)``.
     targets : (N, D) float array_like, mm
         Points ``y`` in the warp's target space (LPS).
     tol : float, mm
@@ -91,7 +105,8 @@ def invert_points(
         Iteration limit; points still above ``tol`` keep their best estimate
         and ``converged`` is False for them.
     min_det : float
-        Below this ``det J`` the damped fixed-point step replaces Newton's.
+        Below ``min_det * det A`` (``det A = 1`` without a linear part) the
+        damped fixed-point step replaces Newton's.
     chunk : int
         Points solved at once (bounds temporary memory; the result does not
         depend on it).
@@ -108,16 +123,34 @@ def invert_points(
         raise ValueError(f"Expected `max_iter` >= 1, got {max_iter!r}.")
     y_all = _check_points("targets", targets, warp.dim)
     n = len(y_all)
-    x_all = y_all.copy()
-    res_all = np.zeros(n)
-    bounds = warp.bounds() if hasattr(warp, "bounds") else ((np.full(warp.dim, -np.inf), np.full(warp.dim, np.inf)))
-    inside = np.flatnonzero(_in_box(y_all, bounds))
+    bounds, linear = linear_outside([warp])
+    if linear.is_identity:
+        # tau = identity outside the box: targets there are their own preimages, exactly
+        affine = None
+        x_all = y_all.copy()
+        res_all = np.zeros(n)
+        inside = np.flatnonzero(_in_box(y_all, bounds))
+        det_floor = min_det
+    else:
+        affine = linear
+        a_inv = np.linalg.inv(linear.matrix)
+        x_all = linear.inverse()(y_all)  # the preimage wherever it lies outside the box
+        inside = _in_box(x_all, bounds)
+        res_all = np.zeros(n)
+        res_all[~inside] = np.linalg.norm(linear(x_all[~inside]) - y_all[~inside], axis=1)  # rounding only
+        inside = np.flatnonzero(inside)
+        det_floor = min_det * float(np.linalg.det(linear.matrix))
     worst_iter = 0
     for s in range(0, len(inside), chunk):
         idx = inside[s : s + chunk]
         y = y_all[idx]
-        tau_y, = warp.evaluate(y, order=0)
-        x = 2.0 * y - tau_y  # x0 = y - u(y)
+        if affine is None:
+            tau_y, = warp.evaluate(y, order=0)
+            x = 2.0 * y - tau_y  # x0 = y - u(y)
+        else:
+            z = x_all[idx]  # L^-1(y)
+            tau_z, = warp.evaluate(z, order=0)
+            x = z - (tau_z - y) @ a_inv.T  # x0 = z - A^-1 u(z), as tau(z) - y = u(z) up to rounding
         tau_x, jac = warp.evaluate(x, order=1)
         r = tau_x - y
         rn = np.linalg.norm(r, axis=1)
@@ -127,8 +160,8 @@ def invert_points(
             it += 1
             xa, ra, ja, rna = x[active], r[active], jac[active], rn[active]
             det = np.linalg.det(ja)
-            step = -0.5 * ra
-            good = det > min_det
+            step = -0.5 * ra if affine is None else -0.5 * ra @ a_inv.T
+            good = det > det_floor
             if good.any():
                 step[good] = -np.linalg.solve(ja[good], ra[good][..., None])[..., 0]
             scale = np.ones(len(active))
@@ -160,9 +193,10 @@ class InverseWarp(_PointMap):
     ``InverseWarp(warp)(y)`` gives the preimages (also ``displacement`` and
     ``jacobian``, as for a warp); ``evaluate(y, order=1)``
     also gives the Jacobian of the inverse, ``J(x)^-1`` at ``x = tau^-1(y)``.
-    Its support box is the warp's, so the grid functions of
-    :mod:`volreg.warp.field` sample it like a warp.  ``max_residual`` holds the
-    largest ``|tau(x) - y|`` (mm) seen by the evaluations so far.
+    Its box (:meth:`bounds`, moving space) and :attr:`linear` part follow from
+    the warp's, so the grid functions of :mod:`volreg.warp.field` sample it like
+    a warp.  ``max_residual`` holds the largest ``|tau(x) - y|`` (mm) seen by the
+    evaluations so far.
 
     Parameters
     ----------
@@ -177,9 +211,28 @@ class InverseWarp(_PointMap):
         self.max_residual = 0.0
         self.unconverged = 0
 
-    def bounds(self):
-        """The support box of the forward warp (outside it, both are the identity)."""
-        return self.warp.bounds() if hasattr(self.warp, "bounds") else None
+    @property
+    def linear(self) -> LinearMap:
+        """``L^-1``, the inverse of the warp's linear part: the inverse map outside :meth:`bounds`."""
+        linear = _linear_of(self.warp)
+        return linear if linear.is_identity else linear.inverse()
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Corners ``(lo, hi)``, each (D,) mm in MOVING space, of a box outside which the inverse is linear.
+
+        The bounding box of ``L(B)``, the warp's box ``B`` (fixed space) under its
+        linear part ``L`` (``B`` itself without one): a target outside it has its
+        preimage ``L^-1(y)`` outside ``B``, where ``tau = L``.  ``None`` when the
+        warp is linear everywhere; an infinite box when the warp has no
+        ``bounds`` (nothing is known: every point is evaluated).
+        """
+        if not hasattr(self.warp, "bounds"):
+            return np.full(self.dim, -np.inf), np.full(self.dim, np.inf)
+        box = self.warp.bounds()
+        linear = _linear_of(self.warp)
+        if box is None or linear.is_identity:
+            return box
+        return _box_through(box, linear)
 
     def evaluate(self, points: np.ndarray, *, order: int = 1, chunk: int | None = None, progress=None):
         """``tau^-1(points)`` and (``order == 1``) its Jacobian, (N, D) and (N, D, D)."""

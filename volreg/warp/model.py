@@ -1,4 +1,4 @@
-"""Kernel warps: ``tau(x) = x + sum_l sum_j c_j k(|x - x_j| / sigma_l)`` (paper eq. 9).
+"""Kernel warps: ``tau(x) = A x + b + sum_l sum_j c_j k(|x - x_j| / sigma_l)`` (paper eq. 9).
 
 Each component of the warp is ``tau_d(x) = x_d + <w_d, Phi(x)>`` (9); by the
 representer theorem ``w_d`` is a finite kernel expansion over training points,
@@ -9,7 +9,14 @@ levels before it; the warp is their sum.  With the compactly supported Wu
 kernel (13) every evaluation is a neighbour query (:func:`volreg.kernels.kernel_sum`)
 and the Jacobian is analytic::
 
-    J[n, a, b] = d tau_a / d x_b = delta_ab + sum_l sum_j c_j[a] d k_l(x_n, x_j) / d x_b
+    J[n, a, b] = d tau_a / d x_b = A_ab + sum_l sum_j c_j[a] d k_l(x_n, x_j) / d x_b
+
+A linear part ``x -> A x + b`` (:class:`~volreg.warp.linear.LinearMap`, ``det A > 0``)
+may precede the kernel expansion; it is the identity (``A = I``, ``b = 0``) unless
+given, and then the evaluation is exactly that of ``x + sum ...``.  The kernel
+sums are evaluated at ``x`` itself (fixed space), so the centres ``x_j`` are
+fixed-space points whatever the linear part.  Outside the box of the kernels'
+supports (:meth:`KernelWarp.bounds`) the warp is exactly its linear part.
 
 The warp lives in continuous space: it is evaluated and differentiated at any
 points, without a grid, and saved as its centres, coefficients and widths
@@ -34,15 +41,27 @@ from typing import Any, Callable, Union
 import numpy as np
 
 from volreg.kernels import CellGrid, _check_points, kernel_sum, put_rows, spatial_order, take_rows
+from volreg.warp.linear import LinearMap
 
-__all__ = ["WarpLevel", "KernelWarp", "ComposedWarp", "FORMAT", "FORMAT_VERSION", "DEFAULT_CHUNK", "jacobian_det"]
+__all__ = [
+    "WarpLevel",
+    "KernelWarp",
+    "ComposedWarp",
+    "FORMAT",
+    "FORMAT_VERSION",
+    "DEFAULT_CHUNK",
+    "jacobian_det",
+    "linear_outside",
+]
 
 ProgressCallback = Callable[[str, int, int], None]
 
 #: Value of the ``format`` entry of a saved warp.
 FORMAT = "volreg-kernel-warp"
-#: Version of the saved layout this module writes and reads.
-FORMAT_VERSION = 1
+#: Version of the saved layout this module writes (it reads this one and every earlier one).
+#: Version 2 added the linear part (``linear_matrix``, ``linear_translation``); a
+#: version-1 file has none and loads with the identity.
+FORMAT_VERSION = 2
 #: Default number of points evaluated at once: the (N, D, D) Jacobian buffer of
 #: a 3-D chunk is then 72 MB.
 DEFAULT_CHUNK = 1_000_000
@@ -181,6 +200,17 @@ def _normalise_settings(settings: Mapping[str, Any] | None) -> str:
         raise ValueError(f"Expected JSON-serialisable `settings`: {exc}.") from None
 
 
+def _check_linear(linear: Any, dim: int) -> LinearMap:
+    """``linear`` as a LinearMap of dimension ``dim`` (``None``: the identity)."""
+    if linear is None:
+        return LinearMap.identity(dim)
+    if not isinstance(linear, LinearMap):
+        raise ValueError(f"Expected a LinearMap as `linear`, got {type(linear).__name__}.")
+    if linear.dim != dim:
+        raise ValueError(f"Expected a `linear` map of dimension {dim}, got D={linear.dim}.")
+    return linear
+
+
 class _PointMap:
     """``__call__``, ``displacement`` and ``jacobian`` of a map, from its ``evaluate``."""
 
@@ -205,10 +235,10 @@ class _PointMap:
 
 
 class KernelWarp(_PointMap):
-    """A multi-scale kernel warp ``tau(x) = x + sum_l u_l(x)`` (paper eq. 9).
+    """A multi-scale kernel warp ``tau(x) = A x + b + sum_l u_l(x)`` (paper eq. 9).
 
-    Immutable: :meth:`with_level` returns a new warp.  Calling the object
-    evaluates ``tau``.
+    Immutable: :meth:`with_level` and :meth:`then` return new warps.  Calling
+    the object evaluates ``tau``.
 
     Parameters
     ----------
@@ -221,11 +251,17 @@ class KernelWarp(_PointMap):
         JSON-serialisable description of how the warp was made (the
         protocol).  Stored as its JSON round trip (tuples become lists, keys
         strings) and saved with the model.
+    linear : LinearMap, optional
+        The linear part ``x -> A x + b`` (D x D, ``det A > 0``; ``b`` in mm),
+        applied to ``x`` beside the kernel sums, which are evaluated at ``x``
+        (fixed space).  Default: the identity, and then every result is bit
+        for bit that of the warp without a linear part.
 
     Attributes
     ----------
     levels : tuple of WarpLevel
     dim : int
+    linear : LinearMap
 
     Examples
     --------
@@ -242,6 +278,7 @@ class KernelWarp(_PointMap):
         *,
         dim: int,
         settings: Mapping[str, Any] | None = None,
+        linear: LinearMap | None = None,
     ) -> None:
         if isinstance(dim, bool) or not isinstance(dim, (int, np.integer)) or int(dim) not in (2, 3):
             raise ValueError(f"Expected `dim` 2 or 3, got {dim!r}.")
@@ -255,6 +292,17 @@ class KernelWarp(_PointMap):
         self._levels = levels
         self._dim = dim
         self._settings_json = _normalise_settings(settings)
+        self._linear = _check_linear(linear, dim)
+
+    @classmethod
+    def _make(cls, levels: tuple[WarpLevel, ...], dim: int, settings_json: str, linear: LinearMap) -> "KernelWarp":
+        """A warp from parts already checked (no validation, no copies)."""
+        new = cls.__new__(cls)
+        new._levels = levels
+        new._dim = dim
+        new._settings_json = settings_json
+        new._linear = linear
+        return new
 
     # ----------------------------------------------------------------------------------
     # Construction and description
@@ -265,16 +313,36 @@ class KernelWarp(_PointMap):
         return cls((), dim=dim, settings=settings)
 
     def with_level(self, level: WarpLevel) -> "KernelWarp":
-        """A new warp with ``level`` appended (same settings); ``self`` is unchanged."""
+        """A new warp with ``level`` appended (same settings and linear part); ``self`` is unchanged."""
         if not isinstance(level, WarpLevel):
             raise ValueError(f"Expected a WarpLevel as `level`, got {type(level).__name__}.")
         if level.dim != self.dim:
             raise ValueError(f"Expected a `level` of dimension {self.dim}, got D={level.dim}.")
-        new = KernelWarp.__new__(KernelWarp)
-        new._levels = self._levels + (level,)
-        new._dim = self._dim
-        new._settings_json = self._settings_json
-        return new
+        return KernelWarp._make(self._levels + (level,), self._dim, self._settings_json, self._linear)
+
+    def then(self, linear: LinearMap) -> "KernelWarp":
+        """The warp ``x -> linear(self(x))``, as a kernel warp (same centres, widths and settings).
+
+        With ``linear = (A_L, b_L)``: the linear part becomes ``A_L A``,
+        ``A_L b + b_L``, and every coefficient ``c_j`` becomes ``A_L c_j``
+        (the kernel sums are linear in the coefficients).
+
+        Parameters
+        ----------
+        linear : LinearMap
+            Of dimension :attr:`dim`.
+
+        Returns
+        -------
+        KernelWarp
+            ``self`` itself when ``linear`` is the identity.
+        """
+        linear = _check_linear(linear, self._dim)
+        if linear.is_identity:
+            return self
+        a = linear.matrix
+        levels = tuple(WarpLevel(lev.centres, lev.coeffs @ a.T, lev.width) for lev in self._levels)
+        return KernelWarp._make(levels, self._dim, self._settings_json, self._linear.then(linear))
 
     @property
     def levels(self) -> tuple[WarpLevel, ...]:
@@ -297,14 +365,22 @@ class KernelWarp(_PointMap):
         return [lev.width for lev in self._levels]
 
     @property
+    def linear(self) -> LinearMap:
+        """The linear part ``x -> A x + b`` (the identity when none was given)."""
+        return self._linear
+
+    @property
     def is_identity(self) -> bool:
-        """Whether ``tau(x) = x`` everywhere (no levels, or all coefficients zero)."""
-        return all(lev.is_zero for lev in self._levels)
+        """Whether ``tau(x) = x`` everywhere (identity linear part; no levels, or all coefficients zero)."""
+        return self._linear.is_identity and all(lev.is_zero for lev in self._levels)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """Corners ``(lo, hi)``, each (D,) mm, of a box outside which ``tau(x) = x``.
+        """Corners ``(lo, hi)``, each (D,) mm in fixed space, of a box outside which ``tau`` is linear.
 
-        ``None`` for a warp without centres.
+        Outside the box ``tau(x) = A x + b`` exactly (:attr:`linear`; ``tau(x) = x``
+        without a linear part): it holds every kernel's support, the balls of
+        radius ``width`` around the centres.  ``None`` for a warp without centres:
+        ``tau`` is then its linear part everywhere.
         """
         levels = [lev for lev in self._levels if len(lev)]
         if not levels:
@@ -315,7 +391,8 @@ class KernelWarp(_PointMap):
 
     def __repr__(self) -> str:
         levels = ", ".join(f"{lev.width:g} mm: {len(lev)}" for lev in self._levels)
-        return f"KernelWarp(dim={self.dim}, levels=[{levels}])"
+        linear = "" if self._linear.is_identity else ", linear"
+        return f"KernelWarp(dim={self.dim}, levels=[{levels}]{linear})"
 
     # ----------------------------------------------------------------------------------
     # Evaluation
@@ -328,7 +405,7 @@ class KernelWarp(_PointMap):
         chunk: int | None = None,
         progress: ProgressCallback | None = None,
     ) -> tuple[np.ndarray, ...]:
-        """``tau`` and (if ``order == 1``) its Jacobian at ``points``.
+        """``tau = A x + b + sum_l u_l(x)`` and (if ``order == 1``) its Jacobian at ``points``.
 
         Parameters
         ----------
@@ -349,12 +426,15 @@ class KernelWarp(_PointMap):
         tau : (N, D) float ndarray, mm
             ``tau(points)``.
         jacobian : (N, D, D) float ndarray, dimensionless (if ``order == 1``)
-            ``jacobian[n, a, b] = d tau_a / d x_b`` at ``points[n]``.
+            ``jacobian[n, a, b] = d tau_a / d x_b`` at ``points[n]``: ``A`` plus
+            the kernel sums' gradients.
         """
         order = _check_order(order)
         chunk = _check_chunk(chunk)
         points = _check_points("points", points, self.dim)
         n, dim = points.shape
+        # Without a linear part the points are added as they are (no product with I).
+        affine = None if self._linear.is_identity else self._linear
         tau = np.empty((n, dim))
         jac = np.empty((n, dim, dim)) if order == 1 else None
         active = [lev for lev in self._levels if not lev.is_zero]
@@ -367,9 +447,14 @@ class KernelWarp(_PointMap):
             outs = (np.zeros((m, dim)), np.zeros((m, dim, dim)))[: order + 1]
             for lev in active:
                 kernel_sum(qs, lev.grid, lev.coeffs, lev.width, order=order, out=outs)
-            outs[0][:] += qs
-            if order == 1:
-                outs[1][:] += np.eye(dim)
+            if affine is None:
+                outs[0][:] += qs
+                if order == 1:
+                    outs[1][:] += np.eye(dim)
+            else:
+                outs[0][:] += affine(qs)
+                if order == 1:
+                    outs[1][:] += affine.matrix
             for o, dest in zip(outs, (tau, jac)):
                 if perm is None:
                     dest[s : s + m] = o
@@ -399,8 +484,10 @@ class KernelWarp(_PointMap):
         dict
             ``format`` (``"volreg-kernel-warp"``), ``format_version`` (int),
             ``volreg_version`` and ``settings_json`` (0-d unicode strings),
-            ``dim`` (0-d int), ``widths`` ((L,) float, mm), and per level ``i``
-            ``centres_<i>`` and ``coeffs_<i>`` ((M_i, D) float, mm).
+            ``dim`` (0-d int), ``widths`` ((L,) float, mm), per level ``i``
+            ``centres_<i>`` and ``coeffs_<i>`` ((M_i, D) float, mm), and the
+            linear part ``linear_matrix`` ((D, D) float) and
+            ``linear_translation`` ((D,) float, mm).
         """
         from volreg import __version__
 
@@ -411,6 +498,8 @@ class KernelWarp(_PointMap):
             "settings_json": np.array(self._settings_json),
             "dim": np.array(self.dim, dtype=np.int64),
             "widths": np.array(self.widths, dtype=float).reshape(-1),
+            "linear_matrix": np.array(self._linear.matrix, dtype=float),
+            "linear_translation": np.array(self._linear.translation, dtype=float),
         }
         for i, lev in enumerate(self._levels):
             out[f"centres_{i}"] = np.asarray(lev.centres)
@@ -420,6 +509,8 @@ class KernelWarp(_PointMap):
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> "KernelWarp":
         """Rebuild a warp from :meth:`to_arrays` output (or an opened ``.npz``).
+
+        Arrays of format version 1 (no linear entries) give the identity linear part.
 
         Raises
         ------
@@ -542,8 +633,8 @@ def _parse(arrays: Mapping[str, np.ndarray]) -> KernelWarp:
     if fmt != FORMAT:
         raise _FormatError(f"`format` is {fmt!r}, expected {FORMAT!r}")
     version = _get_int(arrays, "format_version")
-    if version != FORMAT_VERSION:
-        raise _FormatError(f"format_version {version} is not supported (this volreg reads {FORMAT_VERSION})")
+    if not 1 <= version <= FORMAT_VERSION:
+        raise _FormatError(f"format_version {version} is not supported (this volreg reads 1 to {FORMAT_VERSION})")
     _get_string(arrays, "volreg_version")
     settings_text = _get_string(arrays, "settings_json")
     try:
@@ -582,10 +673,105 @@ def _parse(arrays: Mapping[str, np.ndarray]) -> KernelWarp:
     )
     if extra:
         raise _FormatError(f"{len(widths)} widths but also entries {', '.join(extra)}")
-    return KernelWarp(levels, dim=dim, settings=settings)
+    return KernelWarp(levels, dim=dim, settings=settings, linear=_parse_linear(arrays, version, dim))
+
+
+_LINEAR_KEYS = ("linear_matrix", "linear_translation")
+
+
+def _parse_linear(arrays: Mapping[str, np.ndarray], version: int, dim: int) -> LinearMap | None:
+    """The linear part of saved arrays: required from format version 2, absent before."""
+    if version < 2:
+        present = [k for k in _LINEAR_KEYS if k in arrays]
+        if present:
+            raise _FormatError(f"format_version {version} has no linear part, but the file holds `{present[0]}`")
+        return None
+    matrix = _get(arrays, "linear_matrix")
+    translation = _get(arrays, "linear_translation")
+    for key, arr, shape in (("linear_matrix", matrix, (dim, dim)), ("linear_translation", translation, (dim,))):
+        if arr.shape != shape or arr.dtype.kind not in "fiu":
+            raise _FormatError(
+                f"`{key}` should be a float array of shape {shape}, got dtype {arr.dtype} shape {arr.shape}"
+            )
+        if not np.all(np.isfinite(arr)):
+            raise _FormatError(f"`{key}` holds NaN or Inf")
+    det = float(np.linalg.det(matrix.astype(float)))
+    if not det > 0:
+        raise _FormatError(f"`linear_matrix` should have a positive determinant, got {det:.3g}")
+    try:
+        return LinearMap(matrix, translation)
+    except ValueError as exc:
+        raise _FormatError(f"`linear_matrix` and `linear_translation` are not a linear map ({_one_line(exc)})") from None
 
 
 AnyWarp = Union[KernelWarp, "ComposedWarp"]
+
+Box = tuple[np.ndarray, np.ndarray]
+
+
+def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The 2^D corners of the box ``[lo, hi]``, (2^D, D)."""
+    dim = len(lo)
+    pick = np.array(list(np.ndindex(*([2] * dim))), dtype=bool)
+    return np.where(pick, hi, lo)
+
+
+def _box_through(box: Box, linear: LinearMap) -> Box:
+    """The bounding box of ``linear`` applied to the box ``[lo, hi]`` (an infinite box stays infinite)."""
+    lo, hi = (np.asarray(c, dtype=float) for c in box)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        return np.full(len(lo), -np.inf), np.full(len(lo), np.inf)
+    corners = linear(_box_corners(lo, hi))
+    return corners.min(axis=0), corners.max(axis=0)
+
+
+def linear_outside(warps: Sequence[Any], *, dim: int | None = None) -> tuple[Box | None, LinearMap]:
+    """Where the chain ``x -> w_k(... w_2(w_1(x)))`` is linear, and that linear map.
+
+    Each map ``w_i`` is linear outside its box ``B_i`` (``w_i.bounds()``) and equals
+    its linear part ``L_i`` there (``w_i.linear``; the identity for a map without
+    one).  A point ``x`` outside ``B_1`` goes to ``L_1 x``; outside the preimage of
+    ``B_2`` under ``L_1`` as well, on to ``L_2 L_1 x``; and so on.  So the chain is
+    ``L_k ... L_1`` outside the union of the bounding boxes of
+    ``(L_{i-1} ... L_1)^-1 (B_i)``.  Without linear parts this is the union of the
+    boxes themselves, exactly.
+
+    Parameters
+    ----------
+    warps : sequence of maps
+        In the order they are applied: KernelWarp, ComposedWarp, InverseWarp, or
+        any map; a ``bounds()`` returning ``None`` means linear everywhere, a map
+        without ``bounds`` is taken to be non-linear everywhere.
+    dim : int, optional
+        Number of spatial dimensions D; default the first map's ``dim``.
+
+    Returns
+    -------
+    box : ((D,), (D,)) float ndarrays, mm, or None
+        Corners ``(lo, hi)`` in the space of ``w_1``'s inputs, infinite when some map
+        has no ``bounds``; ``None`` when the chain is linear everywhere.
+    linear : LinearMap
+        ``L_k ... L_1``, what the chain is outside ``box``.
+    """
+    warps = list(warps)
+    if not warps:
+        raise ValueError("Expected at least one map in `warps`.")
+    dim = int(warps[0].dim if dim is None else dim)
+    before = LinearMap.identity(dim)  # L_{i-1} ... L_1
+    boxes: list[Box] = []
+    for w in warps:
+        if not hasattr(w, "bounds"):
+            boxes.append((np.full(dim, -np.inf), np.full(dim, np.inf)))
+        else:
+            box = w.bounds()
+            if box is not None:
+                boxes.append(box if before.is_identity else _box_through(box, before.inverse()))
+        linear = getattr(w, "linear", None)
+        if linear is not None and not linear.is_identity:
+            before = linear if before.is_identity else before.then(linear)
+    if not boxes:
+        return None, before
+    return (np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)), before
 
 
 class ComposedWarp(_PointMap):
@@ -633,6 +819,18 @@ class ComposedWarp(_PointMap):
     def is_identity(self) -> bool:
         """Whether every warp in the chain is the identity."""
         return all(w.is_identity for w in self._warps)
+
+    @property
+    def linear(self) -> LinearMap:
+        """The composition of the warps' linear parts: the chain outside :meth:`bounds`."""
+        return linear_outside(self._warps)[1]
+
+    def bounds(self) -> Box | None:
+        """Corners ``(lo, hi)``, each (D,) mm, of a box outside which the chain is :attr:`linear`.
+
+        See :func:`linear_outside`; ``None`` when no warp has centres.
+        """
+        return linear_outside(self._warps)[0]
 
     def __repr__(self) -> str:
         return f"ComposedWarp({', '.join(map(repr, self._warps))})"

@@ -1,0 +1,331 @@
+"""The linear stage (volreg.warp.linear.fit_linear) on label pairs posed by a known map.
+
+Every pair is built as moving(y) = fixed(T^-1 y): the label function of analytic shapes
+is sampled (nearest neighbour, at voxel centres) at T^-1 of the moving grid's voxel
+centres, so that T (x -> A x + b, fixed mm -> moving mm) is the answer.  The recovered
+map is compared with T at the fixed volume's label voxels: the mean of
+|A x + b - T x| in mm.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from shapes import Disc2D, Ellipsoid, label_volume, rotation
+from shapes import grid_around as _around
+from shapes import posed_volume as _volume
+
+from volreg.grid import LabelVolume
+from volreg.warp.linear import LinearFit, LinearMap, cut_labels, fit_linear
+
+# Six blobs placed without symmetry (label i + 1 is BLOBS[i]); semi-axes and centres, mm.
+BLOBS = [
+    Ellipsoid((9, 7, 6), (-12, -8, 3)),
+    Ellipsoid((7, 6, 8), (10, -10, -6)),
+    Ellipsoid((6, 8, 5), (4, 12, 8)),
+    Ellipsoid((8, 5, 6), (-9, 10, -8)),
+    Ellipsoid((5, 6, 7), (16, 6, 4)),
+    Ellipsoid((6, 5, 5), (-3, -2, -14)),
+]
+
+
+def _error(fit: LinearFit, matrix, translation, fixed: LabelVolume) -> float:
+    """Mean |A x + b - T x| (mm) over the fixed volume's label voxels."""
+    x = fixed.grid_points()[fixed.array > 0]
+    return float(np.mean(np.linalg.norm(fit.map(x) - (x @ np.asarray(matrix).T + translation), axis=1)))
+
+
+def test_asymmetric_ellipsoid_rigid_is_recovered_up_to_its_symmetries():
+    """One label: the principal axes start.  An ellipsoid with three different semi-axes
+    is mapped onto itself by the half turns about its axes, so the pose is defined up to
+    those four maps; the fit must be within half a voxel of one of them."""
+    ellipsoid = Ellipsoid((20, 13, 8), (0, 0, 0))
+    rot = rotation(30, (0.3, 0.5, 0.8))
+    shift = np.array([25.0, -20.0, 24.0])
+    shift *= 40.0 / np.linalg.norm(shift)
+    fixed = _volume([ellipsoid], (48, 48, 48), (1, 1, 1), _around((0, 0, 0), (48,) * 3, (1, 1, 1)))
+    moving = _volume([ellipsoid], (56, 56, 56), (1, 1, 1), _around(shift, (56,) * 3, (1, 1, 1)),
+                     matrix=rot, translation=shift)
+    fit = fit_linear(fixed, moving, kind="rigid")
+    # One label: no centroid Procrustes; principal axes and the centroid translation compete.
+    names = [c["name"] for c in fit.log["candidates"]]
+    assert sum(name.startswith("principal axes") for name in names) == 4
+    assert not any(name.startswith("centroids (") for name in names)
+    errors = [_error(fit, rot @ np.diag(s), shift, fixed) for s in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1])]
+    # A quarter of the 1 mm voxel: each boundary voxel is placed to within half a voxel
+    # by nearest-neighbour sampling, and the fit averages thousands of them (measured:
+    # 0.05 mm).
+    assert min(errors) < 0.25, errors
+    assert abs(np.linalg.det(fit.map.matrix) - 1.0) < 1e-9  # rigid stays rigid
+
+
+@pytest.mark.parametrize("kind", ["rigid", "similarity"])
+def test_ellipsoid_with_a_bump_has_one_answer(kind):
+    """An ellipsoid with a bump has no symmetry: 45 degrees and 50 mm, the exact pose."""
+    shapes = [Ellipsoid((20, 13, 9), (0, 0, 0)), Ellipsoid((6, 6, 6), (14, 8, 3))]
+    scale = 1.0 if kind == "rigid" else 1.15
+    a = scale * rotation(45, (0.3, -0.5, 0.8))
+    shift = np.array([30.0, 30.0, -28.0])
+    shift *= 50.0 / np.linalg.norm(shift)
+    fixed = _volume(shapes, (52, 52, 52), (1, 1, 1), _around((2, 0, 0), (52,) * 3, (1, 1, 1)))
+    moving = _volume(shapes, (64, 64, 64), (1, 1, 1), _around(shift, (64,) * 3, (1, 1, 1)), matrix=a,
+                     translation=shift)
+    fit = fit_linear(fixed, moving, kind=kind)
+    # A quarter of the 1 mm voxel (nearest-neighbour boundaries, averaged over the
+    # surface; measured: 0.03 mm).
+    assert _error(fit, a, shift, fixed) < 0.25
+    assert fit.log["map"]["scales"] == pytest.approx([scale] * 3, abs=0.01)
+
+
+def test_blobs_similarity_45_degrees_50_mm_scale_1_2():
+    """Six labels: the centroid (Umeyama) start, then the distance fit."""
+    a = 1.2 * rotation(45, (0.3, 0.5, 0.8))
+    shift = np.array([30.0, -30.0, 28.0])
+    shift *= 50.0 / np.linalg.norm(shift)
+    fixed = _volume(BLOBS, (56, 56, 56), (1, 1, 1), _around((0, 0, 0), (56,) * 3, (1, 1, 1)))
+    moving = _volume(BLOBS, (72, 72, 72), (1, 1, 1), _around(shift, (72,) * 3, (1, 1, 1)), matrix=a,
+                     translation=shift)
+    fit = fit_linear(fixed, moving, kind="similarity")
+    assert fit.log["start"] == "centroids"
+    assert fit.log["labels"] == [1, 2, 3, 4, 5, 6]
+    # A quarter of the 1 mm voxel (nearest-neighbour boundaries, averaged over six
+    # surfaces; measured: 0.01 mm).
+    assert _error(fit, a, shift, fixed) < 0.25
+    described = fit.map.describe()
+    assert described["rotation_deg"] == pytest.approx(45.0, abs=0.5)
+    assert described["scales"] == pytest.approx([1.2] * 3, abs=0.01)
+
+
+def test_blobs_affine_with_scales_0_8_to_1_25():
+    """A general affine map (scales 0.8, 1 and 1.25 along oblique axes, then a rotation)."""
+    axes = rotation(20, (0, 0, 1))
+    a = rotation(30, (1, -0.4, 0.3)) @ axes.T @ np.diag([0.8, 1.0, 1.25]) @ axes
+    shift = np.array([-20.0, 25.0, 15.0])
+    fixed = _volume(BLOBS, (56, 56, 56), (1, 1, 1), _around((0, 0, 0), (56,) * 3, (1, 1, 1)))
+    moving = _volume(BLOBS, (72, 72, 72), (1, 1, 1), _around(shift, (72,) * 3, (1, 1, 1)), matrix=a,
+                     translation=shift)
+    fit = fit_linear(fixed, moving, kind="affine")
+    # A quarter of the 1 mm voxel, as for the rigid fits: the symmetric cost keeps the
+    # affine map from shrinking (measured: 0.04 mm).
+    assert _error(fit, a, shift, fixed) < 0.25
+    assert np.abs(fit.map.matrix - a).max() < 0.02
+    assert sorted(fit.log["map"]["scales"]) == pytest.approx([0.8, 1.0, 1.25], abs=0.02)
+
+
+def test_fixed_at_2_mm_moving_at_1_mm():
+    rot = rotation(25, (-0.2, 0.6, 0.3))
+    shift = np.array([12.0, 20.0, -15.0])
+    fixed = _volume(BLOBS, (30, 30, 30), (2, 2, 2), _around((0, 0, 0), (30,) * 3, (2, 2, 2)))
+    moving = _volume(BLOBS, (64, 64, 64), (1, 1, 1), _around(shift, (64,) * 3, (1, 1, 1)), matrix=rot,
+                     translation=shift)
+    fit = fit_linear(fixed, moving, kind="rigid")
+    # A quarter of the coarser (2 mm) voxel: its boundaries are placed to +-1 mm, and
+    # the fit averages them (measured: 0.02 mm).
+    assert _error(fit, rot, shift, fixed) < 0.5
+    # The distance maps are never finer than the coarser volume's voxel.
+    assert min(level["spacing_mm"] for level in fit.log["levels"]) == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("oblique_in", ["fixed", "moving"])
+def test_anisotropic_oblique_volume_against_1_mm(oblique_in):
+    """0.8 x 0.8 x 2.5 mm voxels against 1 mm, with an oblique direction matrix in one header."""
+    rot = rotation(25, (-0.2, 0.6, 0.3))
+    shift = np.array([12.0, 20.0, -15.0])
+    oblique = rotation(20, (1, 2, 0.5))
+    thick = {"shape": (70, 70, 24), "spacing": (0.8, 0.8, 2.5)}
+    if oblique_in == "fixed":
+        fixed = _volume(BLOBS, thick["shape"], thick["spacing"],
+                        _around((0, 0, 0), thick["shape"], thick["spacing"], oblique), oblique)
+        moving = _volume(BLOBS, (64, 64, 64), (1, 1, 1), _around(shift, (64,) * 3, (1, 1, 1)), matrix=rot,
+                         translation=shift)
+    else:
+        fixed = _volume(BLOBS, (56, 56, 56), (1, 1, 1), _around((0, 0, 0), (56,) * 3, (1, 1, 1)))
+        moving = _volume(BLOBS, thick["shape"], thick["spacing"],
+                         _around(shift, thick["shape"], thick["spacing"], oblique), oblique, matrix=rot,
+                         translation=shift)
+    fit = fit_linear(fixed, moving, kind="rigid")
+    # A quarter of the coarser volume's voxel, taken as the geometric mean of its sides
+    # (0.8 * 0.8 * 2.5) ** (1 / 3) = 1.17 mm: boundaries across the 2.5 mm slices are
+    # placed to +-1.25 mm, those within a slice to +-0.4 mm (measured: 0.05-0.08 mm).
+    assert _error(fit, rot, shift, fixed) < 0.29
+
+
+def test_identical_volumes_give_the_identity():
+    fixed = _volume(BLOBS, (56, 56, 56), (1, 1, 1), _around((0, 0, 0), (56,) * 3, (1, 1, 1)))
+    fit = fit_linear(fixed, fixed, kind="affine")
+    # Every boundary sample lies exactly on the other volume's zero level: the identity
+    # is the exact minimum, reached to the solver's tolerance.
+    assert np.abs(fit.map.matrix - np.eye(3)).max() < 1e-3
+    assert np.abs(fit.map.translation).max() < 0.05
+
+
+def test_moving_cut_through_one_label_still_recovers_the_map():
+    """A partial field of view: the moving image ends across one label (a seventh blob
+    that sticks out), whose centroid is then biased."""
+    shapes = BLOBS + [Ellipsoid((7, 6, 6), (2, 4, 27))]
+    rot = rotation(25, (-0.2, 0.6, 0.3))
+    shift = np.array([12.0, 20.0, -15.0])
+    fixed = _volume(shapes, (48, 48, 72), (1, 1, 1), _around((0, 0, 7), (48, 48, 72), (1, 1, 1)))
+    moving = _volume(shapes, (80, 80, 80), (1, 1, 1), _around(shift, (80,) * 3, (1, 1, 1)), matrix=rot,
+                     translation=shift)
+    assert cut_labels(fixed) == [] and cut_labels(moving) == []
+    # The index plane along axis 2 that keeps 40-70 % of label 7 and every other label whole.
+    full = np.count_nonzero(moving.array == 7)
+    stop = next(k for k in range(80, 0, -1) if np.count_nonzero(moving.array[:, :, :k] == 7) < 0.7 * full)
+    cropped = LabelVolume(moving.array[:, :, :stop], moving.origin, moving.spacing, moving.direction)
+    assert np.count_nonzero(cropped.array == 7) > 0.4 * full
+    assert all(np.count_nonzero(cropped.array == v) == np.count_nonzero(moving.array == v) for v in range(1, 7))
+    assert cut_labels(cropped) == [7]
+    fit = fit_linear(fixed, cropped, kind="similarity")
+    assert fit.log["cut_labels"] == {"fixed": [], "moving": [7]}
+    assert 7 in fit.log["labels"]  # the cut label stays in the cost
+    assert fit.log["levels"][-1]["samples_outside_view"] > 0
+    # A quarter of the 1 mm voxel, as for the whole field of view: the samples that
+    # fall outside the cropped image carry no cost instead of pulling the map
+    # (measured: 0.02 mm).
+    assert _error(fit, rot, shift, fixed) < 0.25
+
+
+@pytest.mark.parametrize("kind", ["rigid", "similarity", "affine"])
+def test_two_dimensional(kind):
+    """2-D: one label, an ellipse with a round bump (which breaks the ellipse's
+    symmetry), 40 degrees, 32 mm."""
+    shapes = [Disc2D((18, 10), (0, 0)), Disc2D((5, 5), (14, 9))]
+    fixed = _volume(shapes, (64, 64), (1, 1), _around((0, 0), (64, 64), (1, 1)))
+    fixed = fixed.with_array(np.where(fixed.array > 0, 1, 0).astype(np.uint8))  # one label
+    theta = np.deg2rad(40)
+    a = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    if kind != "rigid":
+        a = a @ np.diag([1.2, 1.2 if kind == "similarity" else 0.9])
+    shift = np.array([20.0, -25.0])
+    moving = _volume(shapes, (80, 80), (1, 1), _around(shift, (80, 80), (1, 1)), matrix=a, translation=shift)
+    moving = moving.with_array(np.where(moving.array > 0, 1, 0).astype(np.uint8))
+    fit = fit_linear(fixed, moving, kind=kind)
+    assert fit.map.dim == 2
+    # A quarter of the 1 mm pixel (nearest-neighbour outlines, averaged along them, with
+    # fewer samples than in 3-D; measured: 0.03-0.14 mm).
+    assert _error(fit, a, shift, fixed) < 0.25
+
+
+def test_kind_none_gives_the_identity_at_once():
+    fixed = _volume(BLOBS[:2], (40, 40, 40), (1, 1, 1), _around((0, 0, 0), (40,) * 3, (1, 1, 1)))
+    moving = _volume(BLOBS[:2], (40, 40, 40), (1, 1, 1), _around((5, 0, 0), (40,) * 3, (1, 1, 1)),
+                     matrix=np.eye(3), translation=np.array([5.0, 0.0, 0.0]))
+    fit = fit_linear(fixed, moving, kind="none")
+    assert fit.map.is_identity
+    assert fit.log["kind"] == "none" and fit.log["levels"] == []
+
+
+def test_bad_kind_is_a_value_error_naming_it():
+    fixed = _volume(BLOBS[:1], (40, 40, 40), (1, 1, 1), _around((-12, -8, 3), (40,) * 3, (1, 1, 1)))
+    with pytest.raises(ValueError, match=r"`kind`.*'shear'"):
+        fit_linear(fixed, fixed, kind="shear")
+
+
+def test_requested_label_absent_is_a_value_error():
+    fixed = _volume(BLOBS[:2], (40, 40, 40), (1, 1, 1), _around((0, 0, 0), (40,) * 3, (1, 1, 1)))
+    with pytest.raises(ValueError, match=r"`labels`.*\[7\]"):
+        fit_linear(fixed, fixed, kind="rigid", labels=[1, 7])
+
+
+def test_cut_labels_are_those_on_the_outermost_layer():
+    array = np.zeros((6, 7, 5), dtype=np.int16)
+    array[0, 3, 2] = 3  # first layer of axis 0
+    array[2, 6, 1] = 5  # last layer of axis 1
+    array[2:4, 2:4, 1:4] = 9  # inside
+    array[3, 3, 4] = 11  # last layer of axis 2
+    volume = LabelVolume(array, (0, 0, 0), (1, 1, 1), np.eye(3))
+    assert cut_labels(volume) == [3, 5, 11]
+    # An axis of length 1 is no edge: a single slice cuts nothing along its normal.
+    flat = LabelVolume(np.pad(np.full((3, 3, 1), 4, np.uint8), ((1, 1), (1, 1), (0, 0))), (0, 0, 0), (1, 1, 1),
+                       np.eye(3))
+    assert cut_labels(flat) == []
+
+
+def test_log_is_json_ready_and_progress_is_reported():
+    a = rotation(10, (0, 0, 1))
+    shift = np.array([3.0, -2.0, 1.0])
+    fixed = _volume(BLOBS, (56, 56, 56), (1, 1, 1), _around((0, 0, 0), (56,) * 3, (1, 1, 1)))
+    moving = _volume(BLOBS, (56, 56, 56), (1, 1, 1), _around(shift, (56,) * 3, (1, 1, 1)), matrix=a,
+                     translation=shift)
+    reports = []
+    fit = fit_linear(fixed, moving, kind="rigid", labels=[1, 2, 3, 4], progress=lambda *r: reports.append(r))
+    text = json.dumps(fit.log, allow_nan=False)
+    log = json.loads(text)
+    assert log["labels"] == [1, 2, 3, 4]
+    assert log["start"] in ("centroids", "principal axes", "identity")
+    assert {c["name"] for c in log["candidates"]} >= {"identity"}
+    assert all(level["iterations"] >= 1 and level["spacing_mm"] >= 1.0 for level in log["levels"])
+    assert log["seconds"] > 0
+    stages = [r[0] for r in reports]
+    assert "linear start" in stages and reports[-1] == ("fit linear", len(log["levels"]), len(log["levels"]))
+    assert isinstance(fit.map, LinearMap)
+
+
+def test_grids_here_match_label_volume_of_the_shapes_module():
+    """``label_volume`` of tests/shapes.py and this file's ``_volume`` agree (same voxel centres)."""
+    ellipsoid = BLOBS[0]
+    origin = _around((0, 0, 0), (40,) * 3, (1, 1, 1))
+    ours = _volume([ellipsoid], (40, 40, 40), (1, 1, 1), origin)
+    theirs = label_volume((40, 40, 40), (1, 1, 1), np.eye(3), origin, lambda p: ellipsoid.signed_distance(p))
+    assert np.array_equal(ours.array, theirs.array)
+
+
+def test_cost_jacobian_is_the_derivative_of_the_residuals():
+    """The analytic Jacobian (chain rule through the interpolated maps) against central
+    differences, on distance maps that are linear functions (interpolated exactly)."""
+    from volreg.warp import linear as lin
+
+    rng = np.random.default_rng(7)
+    for dim in (2, 3):
+        q, _ = np.linalg.qr(rng.normal(size=(dim, dim)))
+        q[:, 0] *= np.sign(np.linalg.det(q))
+        vol_f = LabelVolume(np.zeros((40,) * dim, np.uint8), rng.normal(size=dim), rng.uniform(0.7, 1.5, dim), q)
+        vol_m = LabelVolume(np.zeros((40,) * dim, np.uint8), rng.normal(size=dim), rng.uniform(0.7, 1.5, dim),
+                            np.eye(dim))
+
+        def linear_map(volume, dim=dim):
+            cells = np.stack(np.meshgrid(*[np.arange(30.0)] * dim, indexing="ij"), axis=-1)
+            value = cells @ (rng.normal(size=dim) * volume.spacing)
+            grads = np.gradient(value, *volume.spacing)
+            return np.full(dim, 3.0), volume.spacing.copy(), np.stack([value, *grads], axis=-1)
+
+        bank_f, bank_m = lin._MapBank(vol_f, [linear_map(vol_f)]), lin._MapBank(vol_m, [linear_map(vol_m)])
+        fwd = lin._Samples(vol_f.index_to_world(rng.uniform(12, 22, (40, dim))), np.zeros(40, int), np.ones(40))
+        back = lin._Samples(vol_m.index_to_world(rng.uniform(12, 22, (40, dim))), np.zeros(40, int), np.ones(40))
+        a0 = np.eye(dim) + 0.05 * rng.normal(size=(dim, dim))
+        start = LinearMap(a0, vol_m.index_to_world(np.full((1, dim), 17.0))[0]
+                          - a0 @ vol_f.index_to_world(np.full((1, dim), 17.0))[0])
+        for kind in ("rigid", "similarity", "affine"):
+            local = lin._Local(kind, dim)
+            cost = lin._Cost(local, start, rng.normal(size=dim), bank_f, bank_m, fwd, back)
+            p = 0.03 * rng.normal(size=local.size)
+            _, jac = cost.evaluate(p)
+            numeric = np.zeros_like(jac)
+            for k in range(local.size):
+                e = np.zeros(local.size)
+                e[k] = 1e-6
+                numeric[:, k] = (cost.evaluate(p + e)[0] - cost.evaluate(p - e)[0]) / 2e-6
+            assert np.abs(jac - numeric).max() < 1e-6 * np.abs(numeric).max(), (dim, kind)
+
+
+def test_a_label_pushed_out_of_view_does_not_win():
+    """A ball (symmetric under half turns about its centre) and a small cube beside it, the
+    cube shifted by 3 mm in the moving volume.  Half turns fit the ball exactly and would
+    carry the cube out of the image; the cube's samples keep their cost out there (it is
+    not cut by the image edge), so the map stays near the identity."""
+    shape = (40, 40, 40)
+    index = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
+    fixed_a = np.zeros(shape, np.uint8)
+    fixed_a[np.linalg.norm(index - 14, axis=-1) < 7] = 1
+    moving_a = fixed_a.copy()
+    fixed_a[31:33, 13:15, 13:15] = 2
+    moving_a[33:35, 13:15, 13:15] = 2
+    geometry = {"spacing": np.full(3, 1.5), "origin": np.zeros(3), "direction": np.eye(3)}
+    fixed, moving = LabelVolume(fixed_a, **geometry), LabelVolume(moving_a, **geometry)
+    for kind in ("rigid", "affine"):
+        fit = fit_linear(fixed, moving, kind=kind)
+        assert fit.log["map"]["rotation_deg"] < 5.0, (kind, fit.log["map"])
+        assert fit.log["levels"][-1]["samples_outside_view"] == 0
