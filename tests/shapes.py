@@ -150,3 +150,14 @@ def grid_around(centre, shape, spacing, direction=None):
     direction = np.eye(d) if direction is None else direction
     half = (np.array(shape) - 1) / 2.0 * np.asarray(spacing, float)
     return np.asarray(centre, float) - direction @ half
+
+
+# Six blobs placed without symmetry (label i + 1 is BLOBS[i]); semi-axes and centres, mm.
+BLOBS = [
+    Ellipsoid((9, 7, 6), (-12, -8, 3)),
+    Ellipsoid((7, 6, 8), (10, -10, -6)),
+    Ellipsoid((6, 8, 5), (4, 12, 8)),
+    Ellipsoid((8, 5, 6), (-9, 10, -8)),
+    Ellipsoid((5, 6, 7), (16, 6, 4)),
+    Ellipsoid((6, 5, 5), (-3, -2, -14)),
+]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import csv
 import os
 import signal
@@ -141,3 +143,7 @@ def test_consistency_pairs(cohort, tmp_path):
     # the blobs differ by a few mm: the two registrations agree to well under a voxel (2.5 mm)
     assert 0.0 < float(row["consistency_mean_mm"]) < 1.25
     assert float(row["consistency_p95_mm"]) >= float(row["consistency_mean_mm"])
+    # both directions' plausibility reviews: the cell is "ok" exactly when neither found anything
+    reviews = [d["review"] for d in json.loads((pair / "consistency.json").read_text())["directions"].values()]
+    assert len(reviews) == 2
+    assert (row["review"] == "ok") == all(r["plausible"] for r in reviews)

@@ -176,3 +176,8 @@ def test_symmetric_option_lowers_the_error(both_ways, tmp_path):
     assert sym["directions"]["backward"]["mean_dice"]["after"] >= back_plain - 0.005
     # the forward direction is registered exactly as without the option
     assert sym["directions"]["forward"]["mean_dice"] == plain["directions"]["forward"]["mean_dice"]
+    # each direction carries its registration's plausibility review, as register's report.json does
+    for name in ("forward", "backward"):
+        review = sym["directions"][name]["review"]
+        saved = json.loads((tmp_path / "sym" / name / "report.json").read_text())["review"]
+        assert review == saved and review["plausible"] == (not review["findings"])

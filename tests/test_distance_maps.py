@@ -134,13 +134,15 @@ def test_bad_arguments(kwargs, message):
 def test_distance_maps_carry_a_label_without_a_surface():
     """A label of a few voxels (no surface: too small) drives the warp through its distance map:
     a cube of 2 x 2 x 2 voxels less one 10 voxels from a sphere, shifted by 2 voxels in the moving volume, comes
-    back in place (Dice 1) with the maps and is missed without them."""
+    back in place (Dice 1) with the maps and is missed without them (no linear stage, which would
+    move it by its own distance maps)."""
     from volreg.evaluation.metrics import dice
     from volreg.io.protocol import load_protocol
     from volreg.register import register_labels
     from volreg.warp.field import fields_on_grid
     from volreg.warp.resample import resample_labels
     from volreg.grid import LabelVolume
+    from volreg.settings import LinearSettings
 
     shape = (40, 40, 40)
     index = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
@@ -155,7 +157,8 @@ def test_distance_maps_carry_a_label_without_a_surface():
     out = {}
     for weight in (0.0, 2.0):
         protocol = load_protocol("default")
-        protocol = dataclasses.replace(protocol, surface=dataclasses.replace(protocol.surface, distance_weight=weight))
+        protocol = dataclasses.replace(protocol, surface=dataclasses.replace(protocol.surface, distance_weight=weight),
+                                       linear=LinearSettings("none"))
         result = register_labels(fixed, moving, protocol=protocol)
         assert result.labels == [1]  # label 2 has no surface either way
         assert result.distance_labels == ([1, 2] if weight else [])

@@ -13,22 +13,12 @@ import json
 
 import numpy as np
 import pytest
-from shapes import Disc2D, Ellipsoid, label_volume, rotation
+from shapes import BLOBS, Disc2D, Ellipsoid, label_volume, rotation
 from shapes import grid_around as _around
 from shapes import posed_volume as _volume
 
 from volreg.grid import LabelVolume
 from volreg.warp.linear import LinearFit, LinearMap, cut_labels, fit_linear
-
-# Six blobs placed without symmetry (label i + 1 is BLOBS[i]); semi-axes and centres, mm.
-BLOBS = [
-    Ellipsoid((9, 7, 6), (-12, -8, 3)),
-    Ellipsoid((7, 6, 8), (10, -10, -6)),
-    Ellipsoid((6, 8, 5), (4, 12, 8)),
-    Ellipsoid((8, 5, 6), (-9, 10, -8)),
-    Ellipsoid((5, 6, 7), (16, 6, 4)),
-    Ellipsoid((6, 5, 5), (-3, -2, -14)),
-]
 
 
 def _error(fit: LinearFit, matrix, translation, fixed: LabelVolume) -> float:

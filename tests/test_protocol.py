@@ -4,16 +4,18 @@ import pytest
 
 from volreg.errors import ProtocolError
 from volreg.io.protocol import PROTOCOL_DIR, load_protocol
-from volreg.settings import Protocol, SurfaceSettings, WarpSettings
+from volreg.io.protocol import protocol_to_toml
+from volreg.settings import LinearSettings, Protocol, ReviewSettings, SurfaceSettings, WarpSettings
 
 
 def test_default_preset_names_every_default():
     p = load_protocol("default")
     assert p.name == "default"
     assert p.warp == WarpSettings() and p.surface == SurfaceSettings()
+    assert p.linear == LinearSettings("affine") and p.review == ReviewSettings(strict=False)
     assert p == Protocol(name="default", description=p.description)
     text = (PROTOCOL_DIR / "default.toml").read_text()
-    for section in (p.warp, p.surface):  # every setting is named in the file (some commented: optional)
+    for section in (p.warp, p.surface, p.linear, p.review):  # every setting is named in the file (some commented: optional)
         for name in section.__dataclass_fields__:
             assert f"{name} =" in text, name
 
@@ -37,6 +39,10 @@ def test_a_file_overrides_and_keeps_the_rest(tmp_path):
         ("[surface]\nsmoothing = 50\n", "`smoothing` in \\[0, 10\\]"),
         ("[protocol]\nnam = 'x'\n", "Unknown setting `protocol.nam`"),
         ("[warp\n", "not valid TOML"),
+        ("[linear]\nkind = 'rotation'\n", "`kind` in"),
+        ("[linear]\nkind = 2\n", "`linear.kind` to be str"),
+        ("[review]\nstrict = 'yes'\n", "`review.strict` to be bool"),
+        ("[review]\nstrict = 1\n", "`review.strict` to be bool"),
     ],
 )
 def test_bad_files_are_refused_by_name(tmp_path, body, message):
@@ -49,3 +55,12 @@ def test_bad_files_are_refused_by_name(tmp_path, body, message):
 def test_unknown_preset():
     with pytest.raises(ProtocolError, match="Protocol `nope` not found.*default"):
         load_protocol("nope")
+
+
+def test_linear_and_review_sections_round_trip(tmp_path):
+    f = tmp_path / "mine.toml"
+    f.write_text('[linear]\nkind = "rigid"\n[review]\nstrict = true\n')
+    p = load_protocol(f)
+    assert p.linear.kind == "rigid" and p.review.strict is True and p.warp == WarpSettings()
+    (tmp_path / "again.toml").write_text(protocol_to_toml(p))
+    assert load_protocol(tmp_path / "again.toml") == p

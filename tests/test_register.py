@@ -77,8 +77,8 @@ def known_pair(tmp_path_factory):
 def test_outputs_written(known_pair):
     d, *_ = known_pair
     names = sorted(p.name for p in (d / "out").iterdir())
-    assert names == sorted(["warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz", "model.npz", "jacobian.nii.gz",
-                            "report.json", "report.png"])
+    assert names == sorted(["warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz", "model.npz", "linear.tfm",
+                            "jacobian.nii.gz", "report.json", "report.png"])
 
 
 def test_inverse_warp_file(known_pair):
@@ -329,6 +329,6 @@ def test_demo_command(tmp_path, monkeypatch, capsys):
     assert "endpoint error mean" in capsys.readouterr().out
     names = {p.name for p in (tmp_path / "demo").iterdir()}
     assert names == {"fixed.nii.gz", "moving.nii.gz", "warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz",
-                     "model.npz", "jacobian.nii.gz", "report.json", "report.png"}
+                     "model.npz", "linear.tfm", "jacobian.nii.gz", "report.json", "report.png"}
     report = json.loads((tmp_path / "demo" / "report.json").read_text())
     assert report["endpoint_error_mm"]["mean"] < report["endpoint_error_mm"]["identity_mean"] / 3

@@ -27,7 +27,8 @@ def pair(tmp_path_factory):
                                  rng=np.random.default_rng(3))
     write_labels(a, d / "a.nii.gz")
     write_labels(deform_labels(a, truth), d / "b.nii.gz")
-    (d / "p.toml").write_text(TEST_PROTOCOL)
+    # Without the linear stage: lambda_loc = 0 then leaves the identity both ways.
+    (d / "p.toml").write_text(TEST_PROTOCOL + '\n[linear]\nkind = "none"\n')
     return d
 
 
@@ -46,7 +47,7 @@ def test_tune_prefers_a_registration_over_the_consistent_identity(pair, tmp_path
         assert float(r["score_mm"]) == pytest.approx(float(r["consistency_mm"]) + float(r["holdout_mm"]))
     assert (identity["chosen"], registered["chosen"]) == ("0", "1")
     tuned = load_protocol(tmp_path / "out" / "tuned.toml")
-    assert tuned.warp.lambda_loc == 100.0 and tuned.name == "test-tuned"
+    assert tuned.warp.lambda_loc == 100.0 and tuned.name == "test-tuned" and tuned.linear.kind == "none"
     assert tuned.warp == replace_settings(load_protocol(pair / "p.toml"), {"lambda_loc": 100.0}).warp
 
 

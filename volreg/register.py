@@ -39,6 +39,7 @@ __all__ = [
     "check_pair",
     "despeckle",
     "estimated_peak_gb",
+    "feature_unit",
     "register_both_ways",
     "register_labels",
     "register_surfaces",
@@ -181,12 +182,20 @@ class LabelRegistration(RegistrationResult):
         ``surface.distance_weight`` > 0).
     stages : list of dict
         Per stage: ``{"stage", "seconds"}``.
+    linear : LinearFit
+        The linear stage (:func:`~volreg.warp.linear.fit_linear`): its map, also the
+        linear part of ``warp``, and its log.
+    cut_labels : dict
+        ``{"fixed": [...], "moving": [...]}``: labels cut by the edge of each image (partial
+        field of view); near the edges the locational cost is not counted.
     """
 
     labels: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
     stages: list = field(default_factory=list)
     distance_labels: list = field(default_factory=list)
+    linear: object = None
+    cut_labels: dict = field(default_factory=dict)
 
 
 @single_blas
@@ -246,14 +255,23 @@ def register_labels(
         volumes (with distance maps every common label drives, surface or not).
     """
     from volreg.io.protocol import load_protocol
+    from volreg.warp.linear import cut_labels, fit_linear
 
     protocol = load_protocol("default") if protocol is None else protocol
     common, labels = _candidate_labels(fixed, moving, drive_labels)
+    unit = feature_unit(fixed, moving)
     stages = []
+
+    t0 = time.perf_counter()
+    linear_fit = fit_linear(fixed, moving, kind=protocol.linear.kind, labels=labels, progress=progress)
+    linear = linear_fit.map
+    cut = {"fixed": [int(v) for v in cut_labels(fixed)], "moving": [int(v) for v in cut_labels(moving)]}
+    stages.append(dict(stage="linear", seconds=time.perf_counter() - t0))
+
     t0 = time.perf_counter()
     clean_fixed, clean_moving, labels, skipped = _despeckled(fixed, moving, labels, drive_labels is None,
                                                              protocol.surface)
-    s_fixed, s_moving, notes = _surface_pairs(clean_fixed, clean_moving, labels, protocol.surface, progress)
+    s_fixed, s_moving, notes = _surface_pairs(clean_fixed, clean_moving, labels, protocol.surface, unit, progress)
     skipped += notes
     used = [v for v in labels if v in s_fixed and v in s_moving]
     if not used and protocol.surface.distance_weight <= 0:
@@ -265,7 +283,7 @@ def register_labels(
     stages.append(dict(stage="surfaces", seconds=time.perf_counter() - t0))
 
     t0 = time.perf_counter()
-    pairs = _implicit_pairs(fixed, moving, s_fixed, s_moving, used, protocol.surface, progress)
+    pairs = _implicit_pairs(s_fixed, s_moving, used, protocol.surface, unit, linear, progress)
     stages.append(dict(stage="implicit surfaces", seconds=time.perf_counter() - t0))
 
     distance_labels = []
@@ -276,15 +294,74 @@ def register_labels(
         t0 = time.perf_counter()
         distance_labels = common if drive_labels is None else labels
         boxes_f, boxes_m = fixed.label_boxes(), moving.label_boxes()
-        pairs += _distance_pairs(fixed, moving, distance_labels, boxes_f, boxes_m, protocol.surface, progress)
+        pairs += _distance_pairs(fixed, moving, distance_labels, boxes_f, boxes_m, protocol.surface, unit, linear,
+                                 progress)
         stages.append(dict(stage="voxel distance maps", seconds=time.perf_counter() - t0))
 
     t0 = time.perf_counter()
     points = _warp_volume_points(fixed, s_fixed, used, distance_labels, boxes_f)
-    result = fit_warp(pairs, points, landmarks=landmarks, settings=protocol.warp, prior=prior, progress=progress)
+    # The kernel warp phi is fitted between the fixed features and the moving ones seen through
+    # the linear part (tau = L o phi), so landmarks and the prior are taken back through L^-1.
+    back = None if linear.is_identity else linear.inverse()
+    if back is not None and landmarks is not None:
+        landmarks = (landmarks[0], back(np.asarray(landmarks[1], float)))
+    if back is not None and prior is not None:
+        prior = _then(prior, back)
+    valid = None
+    if cut["fixed"] or cut["moving"]:
+        margin = (protocol.surface.min_width_voxels + protocol.surface.distance_clip) * unit
+        valid = _field_of_view_test(fixed, moving, linear, margin)
+    result = fit_warp(pairs, points, landmarks=landmarks, settings=protocol.warp, prior=prior, valid=valid,
+                      progress=progress)
+    warp = result.warp if linear.is_identity else result.warp.then(linear)
     stages.append(dict(stage="fit warp", seconds=time.perf_counter() - t0))
-    return LabelRegistration(result.warp, result.log, labels=used, skipped=skipped, stages=stages,
-                             distance_labels=[int(v) for v in distance_labels])
+    return LabelRegistration(warp, result.log, labels=used, skipped=skipped, stages=stages,
+                             distance_labels=[int(v) for v in distance_labels], linear=linear_fit,
+                             cut_labels=cut)
+
+
+def feature_unit(fixed, moving) -> float:
+    """The length (mm) in which the protocol's voxel-counted surface settings are given: the
+    largest voxel spacing of the two volumes.
+
+    Smoothing, the finest implicit width and the distance clip and blur are set in this one
+    unit for both volumes, so that the same object at two resolutions gives the same features
+    (the coarser grid sets the scale: finer detail is not in both).
+    """
+    return float(max(np.max(fixed.spacing), np.max(moving.spacing)))
+
+
+def _then(first: Callable[[np.ndarray], np.ndarray], second: Callable[[np.ndarray], np.ndarray]):
+    """``x -> second(first(x))``."""
+    def composed(points: np.ndarray) -> np.ndarray:
+        return second(np.asarray(first(points), float))
+    return composed
+
+
+def _inside_field_of_view(volume, points: np.ndarray, margin: float) -> np.ndarray:
+    """Whether each point (N, D), mm, lies inside ``volume``'s voxel domain by at least ``margin`` mm
+    (axes of a single voxel do not count)."""
+    index = volume.world_to_index(points)
+    keep = np.ones(len(points), dtype=bool)
+    for axis, (n, step) in enumerate(zip(volume.shape, volume.spacing)):
+        if n <= 1:
+            continue
+        m = margin / step
+        keep &= (index[:, axis] >= -0.5 + m) & (index[:, axis] <= n - 0.5 - m)
+    return keep
+
+
+def _field_of_view_test(fixed, moving, linear, margin: float) -> Callable[[np.ndarray], np.ndarray]:
+    """The locational-cost samples that both images see: inside the fixed field of view, and
+    mapped by the linear part inside the moving one, each by ``margin`` mm.
+
+    Where a label is cut by the edge of an image, marching cubes closes it along the edge;
+    that face is not a boundary of the object and must not pull the warp, so samples near
+    either image's edge carry no locational cost (:func:`~volreg.warp.fit.fit_warp` ``valid``).
+    """
+    def valid(points: np.ndarray) -> np.ndarray:
+        return _inside_field_of_view(fixed, points, margin) & _inside_field_of_view(moving, linear(points), margin)
+    return valid
 
 
 def _candidate_labels(fixed, moving, drive_labels: Sequence[int] | None) -> tuple[list[int], list[int]]:
@@ -354,8 +431,10 @@ def _despeckled(fixed, moving, labels: list[int], choose: bool, settings: Surfac
     return clean_fixed, clean_moving, labels, skipped
 
 
-def _surface_pairs(clean_fixed, clean_moving, labels: list[int], settings: SurfaceSettings, progress):
+def _surface_pairs(clean_fixed, clean_moving, labels: list[int], settings: SurfaceSettings, unit: float, progress):
     """The boundary meshes of ``labels`` in both volumes; labels too small for one are noted, not fatal.
+
+    Both are blurred by ``settings.smoothing * unit`` mm (:func:`feature_unit`), whatever their grids.
 
     Returns
     -------
@@ -363,15 +442,16 @@ def _surface_pairs(clean_fixed, clean_moving, labels: list[int], settings: Surfa
     skipped : list of str
         One note per label and volume without a surface.
     """
-    from volreg.features.label_surfaces import label_surfaces
+    from volreg.features.label_surfaces import label_surfaces, voxel_size
 
     surfaces = {}
     skipped = []
     for name, volume in (("fixed", clean_fixed), ("moving", clean_moving)):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            surfaces[name] = label_surfaces(volume, labels, on_small="warn", smoothing=settings.smoothing,
-                                            progress=progress)
+            # label_surfaces counts the blur in this volume's own largest spacing
+            smoothing = settings.smoothing * unit / voxel_size(volume)
+            surfaces[name] = label_surfaces(volume, labels, on_small="warn", smoothing=smoothing, progress=progress)
         if settings.distance_weight > 0:
             skipped += [f"{name} volume: {str(w.message).rstrip('.')}; its voxel distance map drives instead." for w in caught]
         else:
@@ -379,14 +459,18 @@ def _surface_pairs(clean_fixed, clean_moving, labels: list[int], settings: Surfa
     return surfaces["fixed"], surfaces["moving"], skipped
 
 
-def _implicit_pairs(fixed, moving, s_fixed, s_moving, used: list[int], settings: SurfaceSettings,
+def _implicit_pairs(s_fixed, s_moving, used: list[int], settings: SurfaceSettings, unit: float, linear,
                     progress) -> list[FeaturePair]:
-    """One pair of kernel implicit surfaces (paper Section 4) per label in ``used``: fixed (f1), moving (f2)."""
-    from volreg.features.label_surfaces import voxel_size
+    """One pair of kernel implicit surfaces (paper Section 4) per label in ``used``: fixed (f1), moving (f2).
+
+    Both with the finest width ``settings.min_width_voxels * unit`` mm (:func:`feature_unit`); the
+    moving one seen through ``linear`` (:class:`~volreg.features.mapped.LinearlyMapped`) unless
+    that is the identity.
+    """
+    from volreg.features.mapped import LinearlyMapped
 
     pairs = []
-    w_fixed = settings.min_width_voxels * voxel_size(fixed)
-    w_moving = settings.min_width_voxels * voxel_size(moving)
+    w_fixed = w_moving = settings.min_width_voxels * unit
     jobs = []
     for v in used:
         # One coarsest width and one offset for both objects of a label: far from the
@@ -405,7 +489,7 @@ def _implicit_pairs(fixed, moving, s_fixed, s_moving, used: list[int], settings:
     fits = thread_map(fit, jobs)
     try:
         for i, (f1, f2) in enumerate(zip(fits, fits)):
-            pairs.append(FeaturePair(f1, f2))
+            pairs.append(FeaturePair(f1, f2 if linear.is_identity else LinearlyMapped(f2, linear)))
             if progress is not None:
                 progress("fit implicit surfaces", i + 1, len(used))
     finally:
@@ -414,15 +498,20 @@ def _implicit_pairs(fixed, moving, s_fixed, s_moving, used: list[int], settings:
 
 
 def _distance_pairs(fixed, moving, labels: list[int], boxes_f: dict, boxes_m: dict, settings: SurfaceSettings,
-                    progress) -> list[FeaturePair]:
+                    unit: float, linear, progress) -> list[FeaturePair]:
     """One pair of voxel signed-distance maps per label (fixed, moving), weighted by ``settings.distance_weight``.
 
-    ``boxes_f``, ``boxes_m`` are the volumes' label boxes (:meth:`LabelVolume.label_boxes`).
+    ``boxes_f``, ``boxes_m`` are the volumes' label boxes (:meth:`LabelVolume.label_boxes`); clip and
+    blur are counted in ``unit`` mm for both (:func:`feature_unit`); the moving map is seen through
+    ``linear`` unless that is the identity.
     """
+    from volreg.features.mapped import LinearlyMapped
+
     pairs = []
     for i, v in enumerate(labels):
-        pairs.append(FeaturePair(_voxel_distance(fixed, v, boxes_f, settings),
-                                 _voxel_distance(moving, v, boxes_m, settings), settings.distance_weight))
+        f2 = _voxel_distance(moving, v, boxes_m, settings, unit)
+        pairs.append(FeaturePair(_voxel_distance(fixed, v, boxes_f, settings, unit),
+                                 f2 if linear.is_identity else LinearlyMapped(f2, linear), settings.distance_weight))
         if progress is not None:
             progress("voxel distance maps", i + 1, len(labels))
     return pairs
@@ -450,13 +539,12 @@ def _boundary_points(volume, value: int, box) -> np.ndarray:
     return volume.index_to_world(np.argwhere(edge) + np.array([w.start for w in window]))
 
 
-def _voxel_distance(volume, value: int, boxes: dict, settings):
+def _voxel_distance(volume, value: int, boxes: dict, settings, unit: float):
     """The :class:`~volreg.distance_maps.VoxelDistance` of label ``value`` of ``volume`` (its
     bounding box in ``boxes``), with the clip and blur of ``settings`` (a SurfaceSettings;
-    voxels of the largest spacing)."""
+    counted in ``unit`` mm)."""
     from volreg.features.distance_maps import VoxelDistance
 
-    unit = float(np.max(volume.spacing))
     clip, smoothing = settings.distance_clip * unit, settings.distance_smoothing * unit
     # Only the label's box, padded beyond VoxelDistance's own crop, is compared with the value.
     pad = np.ceil((clip + 3 * smoothing) / volume.spacing).astype(int) + 3
@@ -556,7 +644,8 @@ def check_pair(fixed, moving, fixed_name: object = "fixed", moving_name: object 
 
 #: The files :func:`write_registration` writes into its output folder.
 REGISTRATION_OUTPUTS = (
-    "warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz", "model.npz", "jacobian.nii.gz", "report.json", "report.png",
+    "warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz", "model.npz", "jacobian.nii.gz", "linear.tfm", "report.json",
+    "report.png",
 )
 
 
@@ -610,6 +699,7 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
     figures, the inverse's residual, the fit's levels, and (given ``truth``, the true warp) the
     endpoint error; without stages and timings."""
     from volreg.evaluation.metrics import folded_fraction, label_scores
+    from volreg.evaluation.review import findings_summary, judged_labels, label_voxel_counts, review_registration
     from volreg.io.summary import package_versions
     from volreg.warp.resample import resample_labels
 
@@ -619,6 +709,13 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
     scores_before = label_scores(fixed.array, before, labels, fixed.spacing)
     scores_after = label_scores(fixed.array, warped_array, labels, fixed.spacing)
     inside = fixed.array != 0
+    linear = result.linear.map.describe() if result.linear is not None else None
+    voxels, interior = label_voxel_counts(fixed.array)
+    cut = sorted(set(result.cut_labels.get("fixed", [])) | set(result.cut_labels.get("moving", [])))
+    findings = review_registration(
+        scores_before, scores_after, voxel_mm=feature_unit(fixed, moving), label_voxels=voxels,
+        label_interior=interior, linear=linear, cut_labels=cut, folded_fraction=folded_fraction(jac, inside))
+    judged = judged_labels(scores_after, label_voxels=voxels, label_interior=interior, cut_labels=cut)
     report = {
         "volreg_version": __version__,
         "command": "register",
@@ -650,6 +747,9 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
             "max_residual_mm": inverse.max_residual,
             "unconverged_voxels": inverse.unconverged,
         },
+        "linear": None if linear is None else {"kind": protocol.linear.kind, **linear, "fit": result.linear.log},
+        "cut_labels": result.cut_labels,
+        "review": findings_summary(findings, judged=judged),
         "levels": result.log,
         "protocol": protocol.to_dict(),
         "versions": package_versions(),
@@ -670,12 +770,14 @@ def _write_fields(folder, fixed, moving, warp, fields: _FixedGridFields, u_inver
     """Write the model, both displacement fields, the warped labels, the Jacobian map and the
     report figure into ``folder`` (an :class:`~volreg.io._atomic.OutputFolder`), recording each."""
     from volreg.io import write_labels, write_scalar
-    from volreg.io.fields import write_displacement
+    from volreg.io.fields import write_displacement, write_itk_linear
     from volreg.io.report_figure import write_report_figure
 
     paths = {name: folder.path / name for name in REGISTRATION_OUTPUTS}
     warp.save(paths["model.npz"], force=force)
     folder.record(paths["model.npz"])
+    write_itk_linear(paths["linear.tfm"], warp.linear, force=force)
+    folder.record(paths["linear.tfm"])
     write_displacement(fields.displacement, fixed, paths["warp.nii.gz"], force=force)
     folder.record(paths["warp.nii.gz"])
     write_displacement(u_inverse, moving, paths["inverse_warp.nii.gz"], force=force)
@@ -756,8 +858,9 @@ def write_registration(
     u(x) = tau(x) - x on the fixed grid, LPS mm, as ANTs/ITK read it),
     ``inverse_warp.nii.gz`` (the inverse's displacement on the moving grid),
     ``warped.nii.gz`` (the moving labels on the fixed grid), ``model.npz`` (the
-    kernel warp, paper eq. 9), ``jacobian.nii.gz`` (det d tau / dx on the fixed
-    grid), ``report.png`` and ``report.json`` (the report returned).
+    warp, paper eq. 9 with its linear part), ``linear.tfm`` (the linear part alone,
+    an ITK transform), ``jacobian.nii.gz`` (det d tau / dx on the fixed grid),
+    ``report.png`` and ``report.json`` (the report returned).
 
     Parameters
     ----------

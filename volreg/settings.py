@@ -18,7 +18,7 @@ import numpy as np
 
 from volreg.errors import ProtocolError
 
-__all__ = ["LINEAR_KINDS", "LinearSettings", "Protocol", "SurfaceSettings", "WarpSettings", "replace_settings", "settings_from_mapping"]
+__all__ = ["LINEAR_KINDS", "LinearSettings", "Protocol", "ReviewSettings", "SurfaceSettings", "WarpSettings", "replace_settings", "settings_from_mapping"]
 
 
 @dataclass(frozen=True)
@@ -229,6 +229,26 @@ class LinearSettings:
 
 
 @dataclass(frozen=True)
+class ReviewSettings:
+    """What the plausibility review of a registration does with its findings (the protocol's
+    review section; the checks and their limits: :class:`~volreg.evaluation.review.ReviewLimits`).
+
+    Attributes
+    ----------
+    strict : bool
+        ``False`` (the default): findings are warnings (stderr and ``report.json``) and the
+        exit status stays 0.  ``True``: an implausible result also makes ``register`` and
+        ``consistency`` exit with status 3 (its outputs are still written, to be looked at).
+    """
+
+    strict: bool = False
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.strict, bool):
+            raise ValueError(f"Expected `strict` true or false, got {self.strict!r}.")
+
+
+@dataclass(frozen=True)
 class Protocol:
     """Every setting of a run, by section."""
 
@@ -237,6 +257,7 @@ class Protocol:
     surface: SurfaceSettings = field(default_factory=SurfaceSettings)
     warp: WarpSettings = field(default_factory=WarpSettings)
     linear: LinearSettings = field(default_factory=LinearSettings)
+    review: ReviewSettings = field(default_factory=ReviewSettings)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data (for reports and saved models)."""
@@ -253,7 +274,9 @@ def settings_from_mapping(cls, values: Mapping[str, Any], where: str):
         if key not in fields:
             raise ProtocolError(f"Unknown setting `{where}.{key}`; expected one of: {', '.join(sorted(fields))}.")
         want = fields[key].type if isinstance(fields[key].type, str) else fields[key].type.__name__
-        if "int" in want and "float" not in want:
+        if want == "bool":
+            ok = isinstance(value, bool)
+        elif "int" in want and "float" not in want:
             ok = isinstance(value, int) and not isinstance(value, bool)
         elif "float" in want:
             ok = isinstance(value, (int, float)) and not isinstance(value, bool)

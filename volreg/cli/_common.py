@@ -70,6 +70,24 @@ def _warn(command: str, message: str) -> None:
     print(f"{PROG} {command}: warning: {message}", file=sys.stderr)
 
 
+def _warn_review(command: str, report: dict) -> None:
+    """One warning line on stderr per finding of the report's plausibility review."""
+    for finding in report.get("review", {}).get("findings", []):
+        _warn(command, finding["message"])
+
+
+def _strict_status(command: str, protocol, reviews: list[dict]) -> int:
+    """The exit status after plausibility reviews: 3 (with one error line) when the protocol's
+    ``[review] strict`` is set and a review found something, else 0."""
+    count = sum(len(review.get("findings", [])) for review in reviews)
+    if not (protocol.review.strict and count):
+        return 0
+    print(f"{PROG} {command}: error: the result is implausible ({count} finding{'s' * (count != 1)}, above and in "
+          "the report) and the protocol's [review] strict is true; the outputs are written, for a look.",
+          file=sys.stderr)
+    return 3
+
+
 def _sha256(path: Path) -> str:
     """The SHA-256 checksum of a file, as the reports record inputs."""
     h = hashlib.sha256()
@@ -87,6 +105,11 @@ def _fit_logger(command: str) -> Callable[[LabelRegistration], None]:
         print(f"{PROG} {command}: {text}", file=sys.stderr)
 
     def log_fit(result: LabelRegistration) -> None:
+        if result.linear is not None:
+            d = result.linear.map.describe()
+            log(f"linear part: rotation {d['rotation_deg']:.1f} deg, scales "
+                f"{', '.join(f'{v:.3f}' for v in d['scales'])}, translation "
+                f"{', '.join(f'{v:.1f}' for v in d['translation'])} mm")
         log(f"driving labels {result.labels} (surfaces), {result.distance_labels} (voxel distance maps)")
         for note in result.skipped:
             log(note)

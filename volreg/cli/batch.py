@@ -25,7 +25,7 @@ from volreg.io._atomic import make_directory
 __all__ = ["add_parser", "read_manifest", "plan_pairs", "run_pair", "run"]
 
 COLUMNS = ["fixed_id", "moving_id", "status", "error", "mean_dice_before", "mean_dice_after", "consistency_mean_mm",
-           "consistency_p95_mm", "folded_fraction", "seconds", "outdir"]
+           "consistency_p95_mm", "folded_fraction", "review", "seconds", "outdir"]
 
 
 def add_parser(commands) -> None:
@@ -134,17 +134,24 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
                 rep = write_consistency_test(a, b, out, protocol=proto, force=True, inputs=inputs, progress=progress)
                 fwd = rep["directions"]["forward"]["mean_dice"]
                 row.update(mean_dice_before=fwd["before"], mean_dice_after=fwd["after"],
-                           consistency_mean_mm=rep["region"]["mean_mm"], consistency_p95_mm=rep["region"]["p95_mm"])
+                           consistency_mean_mm=rep["region"]["mean_mm"], consistency_p95_mm=rep["region"]["p95_mm"],
+                           review=_review_cell([d["review"] for d in rep["directions"].values()]))
             else:
                 inputs = {"fixed": {"path": str(fpath), "sha256": sha[0]}, "moving": {"path": str(mpath), "sha256": sha[1]}}
                 rep = write_registration(a, b, out, protocol=proto, force=True, inputs=inputs, progress=progress)
                 row.update(mean_dice_before=rep["mean_dice"]["before"], mean_dice_after=rep["mean_dice"]["after"],
-                           folded_fraction=rep["jacobian"]["folded_fraction"])
+                           folded_fraction=rep["jacobian"]["folded_fraction"], review=_review_cell([rep["review"]]))
         row.update(status="done", error="", seconds=time.perf_counter() - start, fixed_sha256=sha[0], moving_sha256=sha[1])
         write_json(row, out / "batch_row.json", force=True)
     except EXPECTED_ERRORS as exc:
         row.update(status="failed", error=" ".join(str(exc).split()), seconds=time.perf_counter() - start)
     return row
+
+
+def _review_cell(reviews: list[dict]) -> str:
+    """The batch.csv cell of a pair's plausibility reviews: "ok", or their findings' messages joined by " | "."""
+    messages = [f["message"] for review in reviews for f in review.get("findings", [])]
+    return " | ".join(messages) if messages else "ok"
 
 
 def _write_table(rows: list[dict], path: Path) -> None:

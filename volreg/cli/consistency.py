@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from volreg.cli._common import PROG, _fit_logger, _label_list, _sha256
+from volreg.cli._common import PROG, _fit_logger, _label_list, _sha256, _strict_status, _warn
 from volreg.errors import UsageError
 from volreg.evaluation.consistency import write_consistency_test
 from volreg.grid import LabelVolume
@@ -102,8 +102,13 @@ def run(args: argparse.Namespace) -> int:
             drive_labels=args.drive_labels, force=args.force, inputs=inputs, progress=progress,
             on_fit=_fit_logger("consistency") if args.verbose else None,
         )
+    for name, direction in report["directions"].items():
+        for finding in direction.get("review", {}).get("findings", []):
+            _warn("consistency", f"{name} registration: {finding['message']}")
     r = report["region"]
     print(f"{PROG} consistency: inverse-consistency error over A's padded labels mean {r['mean_mm']:.4f} mm "
           f"({r['mean_voxels']:.4f} voxel), p95 {r['p95_mm']:.4f} mm, max {r['max_mm']:.4f} mm; round-trip Dice "
           f"{report['mean_round_trip_dice']:.3f}; {args.output} ({time.perf_counter() - start:.0f} s)")
-    return 0
+    if protocol is None:  # saved results: nothing registered here, nothing reviewed
+        return 0
+    return _strict_status("consistency", protocol, [d.get("review", {}) for d in report["directions"].values()])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from volreg.cli._common import _fit_logger, _sha256, _summary_line
+from volreg.cli._common import _fit_logger, _sha256, _summary_line, _warn_review
 from volreg.io import read_labels, write_labels
 from volreg.io._atomic import output_folder
 from volreg.io.protocol import load_protocol
@@ -53,5 +53,6 @@ def run(args: argparse.Namespace) -> int:
             report = write_registration(fixed, moving, args.output, protocol=protocol, force=True, inputs=inputs,
                                         truth=truth, progress=progress,
                                         on_fit=_fit_logger("demo") if args.verbose else None)
+    _warn_review("demo", report)
     print(_summary_line("demo", report, args.output))
     return 0

@@ -3,13 +3,23 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
-from volreg.cli._common import _fit_logger, _label_list, _load_landmarks, _sha256, _summary_line
+from volreg.cli._common import (
+    _fit_logger,
+    _label_list,
+    _load_landmarks,
+    _sha256,
+    _strict_status,
+    _summary_line,
+    _warn_review,
+)
 from volreg.io import read_labels
 from volreg.io.protocol import load_protocol
 from volreg.progress import ProgressBars
 from volreg.register import check_pair, write_registration
+from volreg.settings import LINEAR_KINDS, LinearSettings
 
 __all__ = ["add_parser", "run"]
 
@@ -20,15 +30,20 @@ def add_parser(commands) -> None:
         "register",
         help="register two label volumes (the main job)",
         description="Register the MOVING label volume to the FIXED one with a kernel warp driven by the "
-        "labels' surfaces, and write into OUTDIR: warp.nii.gz (ANTs/ITK displacement field on the fixed grid, "
-        "LPS mm, pull-back), warped.nii.gz (moving labels on the fixed grid), model.npz (the kernel warp), "
-        "jacobian.nii.gz (det of its analytic Jacobian), report.json and report.png.",
+        "labels' surfaces, after a linear stage (affine by default), and write into OUTDIR: warp.nii.gz "
+        "(ANTs/ITK displacement field on the fixed grid, LPS mm, pull-back, the whole map), warped.nii.gz "
+        "(moving labels on the fixed grid), model.npz (the warp), "
+        "jacobian.nii.gz (det of its analytic Jacobian), linear.tfm (the linear part alone, ITK transform), "
+        "report.json and report.png. Implausible results are named in one warning line each on stderr.",
     )
     register.add_argument("fixed", metavar="FIXED", type=Path, help="fixed label volume (defines the output grid)")
     register.add_argument("moving", metavar="MOVING", type=Path, help="moving label volume")
     register.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
     register.add_argument("--protocol", metavar="NAME|FILE", default="default",
                           help="protocol preset (see `volreg protocols`) or TOML file (default: default)")
+    register.add_argument("--linear", choices=LINEAR_KINDS, default=None,
+                          help="linear stage before the kernel warp (default: the protocol's [linear] kind, "
+                          "affine in the presets)")
     register.add_argument("--drive-labels", metavar="IDS", type=_label_list, default=None,
                           help="labels whose surfaces drive the warp, e.g. 1,4,7 (default: every label in both "
                           "volumes that is compact enough); every label is warped")
@@ -43,6 +58,8 @@ def add_parser(commands) -> None:
 def run(args: argparse.Namespace) -> int:
     """``volreg register FIXED MOVING -o OUTDIR``."""
     protocol = load_protocol(args.protocol)
+    if args.linear is not None:
+        protocol = dataclasses.replace(protocol, linear=LinearSettings(kind=args.linear))
     fixed = read_labels(args.fixed)
     moving = read_labels(args.moving)
     check_pair(fixed, moving, args.fixed, args.moving)
@@ -57,5 +74,6 @@ def run(args: argparse.Namespace) -> int:
         report = write_registration(fixed, moving, args.output, protocol=protocol, drive_labels=args.drive_labels,
                                     landmarks=landmarks, force=args.force, inputs=inputs, progress=progress,
                                     on_fit=_fit_logger("register") if args.verbose else None)
+    _warn_review("register", report)
     print(_summary_line("register", report, args.output))
-    return 0
+    return _strict_status("register", protocol, [report["review"]])

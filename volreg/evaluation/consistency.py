@@ -350,7 +350,8 @@ def write_consistency_test(
             both = register_both_ways(a, b, protocol=protocol, drive_labels=drive_labels, outdir=outdir, force=force,
                                       inputs=inputs, progress=progress, on_fit=on_fit)
             forward, backward = both.forward.warp, both.backward.warp
-            directions = {name: {"outdir": str(outdir / name), "mean_dice": rep["mean_dice"], "seconds": rep["seconds"]}
+            directions = {name: {"outdir": str(outdir / name), "mean_dice": rep["mean_dice"], "seconds": rep["seconds"],
+                                 "review": rep["review"]}
                           for name, rep in both.reports.items()}
         figures, error = consistency_test(a, b, forward, backward, progress=progress)
         report = {

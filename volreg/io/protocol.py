@@ -2,8 +2,9 @@
 
 A protocol file has the sections ``[protocol]`` (``name``, ``description``),
 ``[surface]`` (:class:`~volreg.settings.SurfaceSettings`), ``[warp]``
-(:class:`~volreg.settings.WarpSettings`) and ``[linear]``
-(:class:`~volreg.settings.LinearSettings`).  Keys left out take their defaults;
+(:class:`~volreg.settings.WarpSettings`), ``[linear]``
+(:class:`~volreg.settings.LinearSettings`) and ``[review]``
+(:class:`~volreg.settings.ReviewSettings`).  Keys left out take their defaults;
 an unknown section or key, or a value of the wrong type, is an error naming it.
 Presets ship in the repository's ``protocols/`` folder; TOML is parsed with the
 standard library's safe parser (``tomllib``; ``tomli`` before Python 3.11).
@@ -22,7 +23,14 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
-from volreg.settings import LinearSettings, Protocol, SurfaceSettings, WarpSettings, settings_from_mapping
+from volreg.settings import (
+    LinearSettings,
+    Protocol,
+    ReviewSettings,
+    SurfaceSettings,
+    WarpSettings,
+    settings_from_mapping,
+)
 from volreg.errors import ProtocolError
 
 __all__ = ["PROTOCOL_DIR", "load_protocol", "protocol_to_toml"]
@@ -58,10 +66,10 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ProtocolError(f"Protocol `{path}` is not valid TOML: {exc}.") from None
-    unknown = set(data) - {"protocol", "surface", "warp", "linear"}
+    unknown = set(data) - {"protocol", "surface", "warp", "linear", "review"}
     if unknown:
         raise ProtocolError(f"Unknown section [{sorted(unknown)[0]}] in `{path}`; "
-                            "expected [protocol], [surface], [warp], [linear].")
+                            "expected [protocol], [surface], [warp], [linear], [review].")
     head = data.get("protocol", {})
     if not isinstance(head, Mapping) or set(head) - {"name", "description"}:
         extra = sorted(set(head) - {"name", "description"}) if isinstance(head, Mapping) else ["?"]
@@ -73,6 +81,7 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
             surface=settings_from_mapping(SurfaceSettings, data.get("surface", {}), "surface"),
             warp=settings_from_mapping(WarpSettings, data.get("warp", {}), "warp"),
             linear=settings_from_mapping(LinearSettings, data.get("linear", {}), "linear"),
+            review=settings_from_mapping(ReviewSettings, data.get("review", {}), "review"),
         )
     except ProtocolError as exc:
         raise ProtocolError(f"{exc} (in `{path}`)") from None
@@ -93,7 +102,7 @@ def protocol_to_toml(protocol: Protocol, *, comment: str = "") -> str:
     """
     lines = [f"# {line}" for line in comment.splitlines()] if comment else []
     lines += ["[protocol]", f"name = {_toml_value(protocol.name)}", f"description = {_toml_value(protocol.description)}"]
-    for section in ("surface", "warp", "linear"):
+    for section in ("surface", "warp", "linear", "review"):
         lines += ["", f"[{section}]"]
         for key, value in dataclasses.asdict(getattr(protocol, section)).items():
             lines.append(f"# {key}: default (derived from the data)" if value is None else f"{key} = {_toml_value(value)}")

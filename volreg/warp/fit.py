@@ -8,7 +8,8 @@ For each level, from a kernel width of half the source diameter down to
    centres are the level's kernel centres.  The locational cost is sampled at
    the finest level's boxes on every level (not in the paper, whose coarse
    levels see only their own few boxes), and each feature only within a band
-   around its source surface (``WarpSettings.band``);
+   around its source surface (``WarpSettings.band``) and, given ``valid``, only
+   where ``valid`` holds (e.g. where the target image sees the object);
 2. with landmarks, start from the convex problem (12): kernel ridge regression
    of the landmark residuals, solved exactly;
 3. minimise the objective (11) (:class:`~volreg.warp.objective.LevelObjective`)
@@ -88,7 +89,7 @@ def check_folding(warp: KernelWarp, reference, det: np.ndarray, max_fraction: fl
     levels = warp.levels
     first = len(levels) - 1
     for k in range(1, len(levels)):
-        if folded_fraction(jacobian_determinant_on_grid(KernelWarp(levels[:k], dim=warp.dim), reference)) > max_fraction:
+        if folded_fraction(jacobian_determinant_on_grid(KernelWarp(levels[:k], dim=warp.dim, linear=warp.linear), reference)) > max_fraction:
             first = k - 1
             break
     raise RegistrationDiverged(
@@ -170,6 +171,47 @@ def _feature_samples(features, samples: np.ndarray, band: float | None, reach: f
     return None if all(o is None for o in out) else out
 
 
+def _valid_subsets(subsets: list | None, valid: Callable[[np.ndarray], np.ndarray], samples: np.ndarray,
+                   n_features: int) -> tuple[list | None, int]:
+    """Intersect the per-feature samples with the samples where ``valid`` holds.
+
+    Parameters
+    ----------
+    subsets : list of (N_l,) int ndarrays or None, or None
+        Per feature, the samples where its locational cost counts (:func:`_feature_samples`);
+        ``None`` (for one feature or for all) means every sample.
+    valid : callable
+        ``valid(samples) -> (N,) bool ndarray``.
+    samples : (N, D) float ndarray, mm
+        The locational-cost samples.
+    n_features : int
+        Number of feature pairs.
+
+    Returns
+    -------
+    subsets : list of (N_l,) int ndarrays or None, or None
+        ``subsets`` unchanged when ``valid`` holds at every sample; otherwise one
+        sorted index array per feature.
+    count : int
+        Number of samples where ``valid`` holds.
+
+    Raises
+    ------
+    ValueError
+        If ``valid`` does not return a boolean array of shape (N,).
+    """
+    mask = np.asarray(valid(samples))
+    if mask.shape != (len(samples),) or mask.dtype != bool:
+        raise ValueError(f"Expected `valid` to return a bool array of shape ({len(samples)},) (one flag per "
+                         f"sample), got {mask.dtype} of shape {mask.shape}.")
+    count = int(np.count_nonzero(mask))
+    if count == len(samples):
+        return subsets, count
+    keep = np.flatnonzero(mask)
+    per_feature = [None] * n_features if subsets is None else subsets
+    return [keep if idx is None else idx[mask[idx]] for idx in per_feature], count
+
+
 @dataclass(frozen=True)
 class _Inputs:
     """The checked inputs of one fit, shared by every level.
@@ -187,6 +229,8 @@ class _Inputs:
     neighbourhood : (D + 1, D) float ndarray, mm, or None
         Offsets of the neighbourhood cost (5).
     prior : callable or None
+    valid : callable or None
+        ``valid(samples) -> (N,) bool``: where the locational cost may count.
     """
 
     features: Sequence[FeaturePair]
@@ -196,10 +240,14 @@ class _Inputs:
     settings: WarpSettings
     neighbourhood: np.ndarray | None
     prior: Callable[[np.ndarray], np.ndarray] | None
+    valid: Callable[[np.ndarray], np.ndarray] | None = None
 
 
-def _check_inputs(features, source_points, landmarks, settings: WarpSettings, prior) -> _Inputs:
+def _check_inputs(features, source_points, landmarks, settings: WarpSettings, prior, valid=None) -> _Inputs:
     """Check the arguments of :func:`fit_warp` and resolve its data-derived settings."""
+    if valid is not None and not callable(valid):
+        raise ValueError(f"Expected `valid` as a callable (samples (N, D) mm -> (N,) bool) or None, "
+                         f"got {type(valid).__name__}.")
     pts = _check_points("source_points", source_points)
     if len(pts) < 2:
         raise ValueError(f"Expected at least 2 `source_points`, got {len(pts)}.")
@@ -217,7 +265,7 @@ def _check_inputs(features, source_points, landmarks, settings: WarpSettings, pr
             )
         landmarks = (src_l, dst_l)
     neighbourhood = simplex_vertices(dim, settings.neighbourhood) if settings.neighbourhood > 0 else None
-    return _Inputs(features, pts, diameter, landmarks, settings.resolved(diameter), neighbourhood, prior)
+    return _Inputs(features, pts, diameter, landmarks, settings.resolved(diameter), neighbourhood, prior, valid)
 
 
 def _level_schedule(diameter: float, settings: WarpSettings) -> tuple[list[float], list[float]]:
@@ -270,13 +318,16 @@ class _SampleSet:
         The fold-check points: the samples and, where they are sparser than half
         ``min_width``, the centres of their octree children.
     subsets : list of (N_l,) int ndarrays or None
-        Per feature, the samples where it counts (:func:`_feature_samples`).
+        Per feature, the samples where it counts: within its band (:func:`_feature_samples`)
+        and, given ``valid``, where ``valid`` holds (:func:`_valid_subsets`).
     consistency : dict
         ``sample_targets`` and ``lambda_target`` of the consistency term, or empty.
     base : (N, D) float ndarray, mm
         ``tau_prev(x)`` at ``points``.
     jacobian : (P, D, D) float ndarray
         ``d tau_prev / dx`` at ``check``.
+    valid_count : int or None
+        Number of samples where ``valid`` holds; ``None`` without ``valid``.
     """
 
     step: float
@@ -286,6 +337,7 @@ class _SampleSet:
     consistency: dict
     base: np.ndarray
     jacobian: np.ndarray
+    valid_count: int | None = None
 
     @classmethod
     def build(cls, inputs: _Inputs, step: float, warp: KernelWarp) -> _SampleSet:
@@ -296,16 +348,20 @@ class _SampleSet:
         # Fold-check points: the samples and their octree children, a lattice of at most half
         # min_width; samples that dense (sample_scale <= 0.5) are checked as they are.
         check = samples if step <= 0.5 * s.min_width * (1 + 1e-9) else _with_children(samples)
-        if warp.levels:
+        if warp.levels or not warp.linear.is_identity:
             jacobian, base = warp.jacobian(check), warp(samples)
         else:
             jacobian, base = np.broadcast_to(np.eye(dim), (len(check), dim, dim)).copy(), samples.copy()
         subsets = _feature_samples(inputs.features, samples, s.band, reach=s.neighbourhood)
+        valid_count = None
+        if inputs.valid is not None:
+            # Samples outside `valid` stay fold-check points but carry no locational cost.
+            subsets, valid_count = _valid_subsets(subsets, inputs.valid, samples, len(inputs.features))
         consistency = {}
         if inputs.prior is not None and s.lambda_consistency > 0:
             consistency = dict(sample_targets=np.asarray(inputs.prior(samples), float),
                                lambda_target=s.lambda_consistency)
-        return cls(step, samples, check, subsets, consistency, base, jacobian)
+        return cls(step, samples, check, subsets, consistency, base, jacobian, valid_count)
 
     def add_level(self, jacobian: np.ndarray, base: np.ndarray) -> None:
         """Carry a fitted level: its Jacobian (P, D, D) at ``check`` is added, and the
@@ -531,6 +587,8 @@ def _fit_level(level: int, width: float, samples: _SampleSet, warp: KernelWarp,
                  converged=info["converged"], fold_points=int(np.count_nonzero(fold.active)),
                  fold_rounds=info["fold_rounds"], fold_scale=scale, objective_start=float(e0),
                  objective=float(objective(coeffs.ravel())[0]), terms_start=terms0, terms=dict(objective.last_terms))
+    if samples.valid_count is not None:
+        entry["valid_samples"] = samples.valid_count
     return WarpLevel(centres, coeffs, width), entry
 
 
@@ -542,6 +600,7 @@ def fit_warp(
     landmarks: tuple[np.ndarray, np.ndarray] | None = None,
     settings: WarpSettings = WarpSettings(),
     prior: Callable[[np.ndarray], np.ndarray] | None = None,
+    valid: Callable[[np.ndarray], np.ndarray] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> RegistrationResult:
     """Fit the kernel warp coarse to fine (paper Sections 3.4-3.5).
@@ -561,6 +620,18 @@ def fit_warp(
         :class:`~volreg.warp.inverse.InverseWarp` of the opposite registration; with
         ``settings.lambda_consistency > 0`` the objective gains
         ``lambda_consistency mean_x |tau(x) - prior(x)|^2`` over the samples.
+    valid : callable, optional
+        ``valid(samples) -> (N,) bool ndarray``, given the locational-cost samples
+        (``(N, D)`` float ndarray, mm, source space): where it is ``False`` a sample
+        carries no locational cost (3)-(6) for any feature, e.g. where the target
+        image does not see the object (a label cut by the image edge, whose cut is
+        not a boundary of the object and must not pull the warp).  Those samples
+        stay fold-check points; the regulariser, landmark and consistency terms
+        are unchanged, and the locational cost keeps its normalisation by the
+        number of all samples (a masked sample counts as zero cost).  Called once
+        per sample set (levels sharing a sample spacing share it).  ``None``
+        (default): every sample counts, as does a mask that is ``True``
+        everywhere, with identical results.
     progress : callable, optional
         ``progress(stage, done, total)`` after each level.
 
@@ -570,9 +641,17 @@ def fit_warp(
         The warp (its ``settings`` with ``pad`` and ``min_width`` resolved) and one log
         entry per level: ``level``, ``width`` (mm), ``samples``, ``centres``,
         ``iterations``, ``converged``, ``fold_points``, ``fold_rounds``, ``fold_scale``,
-        ``objective_start``, ``objective``, ``terms_start``, ``terms``, ``seconds``.
+        ``objective_start``, ``objective``, ``terms_start``, ``terms``, ``seconds``;
+        with ``valid``, also ``valid_samples`` (the samples where it holds).
+
+    Raises
+    ------
+    ValueError
+        Bad inputs, or ``valid`` returning anything but a bool array of shape (N,).
+    RegistrationDiverged
+        If a level's objective stops being finite.
     """
-    inputs = _check_inputs(features, source_points, landmarks, settings, prior)
+    inputs = _check_inputs(features, source_points, landmarks, settings, prior, valid)
     widths, steps = _level_schedule(inputs.diameter, inputs.settings)
     warp = KernelWarp(dim=inputs.points.shape[1], settings=asdict(inputs.settings))
     log = []
