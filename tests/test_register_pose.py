@@ -138,7 +138,8 @@ def test_the_same_labels_at_two_resolutions_stay_in_place(moving_grid):
 def test_a_label_cut_by_the_moving_image_edge_is_reported_and_does_not_pull(tmp_path):
     """A seventh blob sticks out of the moving image (cropped through it, 40-70 % kept): the label
     is reported as cut, left out of the review, and the image edge does not drag the warp: the
-    part of it still in view lands within a voxel (the pose is a rigid 20 degrees, 15 mm)."""
+    part of it still in view lands as well as the whole labels do (the pose is a rigid 20 degrees,
+    15 mm)."""
     shapes = BLOBS + [Ellipsoid((7, 6, 6), (2, 4, 27))]
     a, b = rotation(20, (-0.2, 0.6, 0.3)), np.array([10.0, 8.0, -6.0])
     fixed = posed_volume(shapes, (32, 32, 48), (1.5,) * 3, grid_around((0, 0, 7), (32, 32, 48), (1.5,) * 3))
@@ -163,7 +164,8 @@ def test_a_label_cut_by_the_moving_image_edge_is_reported_and_does_not_pull(tmp_
     index = cropped.world_to_index(x @ a.T + b)
     in_view = np.all((index >= 1.5) & (index <= np.array(cropped.shape) - 2.5), axis=1)
     assert err[label != 7].mean() < 0.6, err[label != 7].mean()
-    assert err[(label == 7) & in_view].mean() < 1.5, err[(label == 7) & in_view].mean()
+    # Measured 0.32 mm; with the closing face counted (no edge mask) 0.67 mm.
+    assert err[(label == 7) & in_view].mean() < 0.5, err[(label == 7) & in_view].mean()
 
 
 def test_findings_leave_the_exit_status_0_unless_the_protocol_is_strict(capsys):

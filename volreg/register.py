@@ -310,7 +310,8 @@ def register_labels(
     valid = None
     if cut["fixed"] or cut["moving"]:
         margin = (protocol.surface.min_width_voxels + protocol.surface.distance_clip) * unit
-        valid = _field_of_view_test(fixed, moving, linear, margin)
+        boxes = _world_boxes(fixed, cut["fixed"]) + _world_boxes(moving, cut["moving"], linear.inverse())
+        valid = _field_of_view_test(fixed, moving, linear, margin, boxes)
     result = fit_warp(pairs, points, landmarks=landmarks, settings=protocol.warp, prior=prior, valid=valid,
                       progress=progress)
     warp = result.warp if linear.is_identity else result.warp.then(linear)
@@ -351,16 +352,40 @@ def _inside_field_of_view(volume, points: np.ndarray, margin: float) -> np.ndarr
     return keep
 
 
-def _field_of_view_test(fixed, moving, linear, margin: float) -> Callable[[np.ndarray], np.ndarray]:
-    """The locational-cost samples that both images see: inside the fixed field of view, and
-    mapped by the linear part inside the moving one, each by ``margin`` mm.
+def _world_boxes(volume, labels: list[int], to_fixed=None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The world (mm) bounding boxes ``(lo, hi)`` of ``labels``' voxels in ``volume``, their
+    corners taken through ``to_fixed`` (a point map) when given."""
+    if not labels:
+        return []
+    all_boxes = volume.label_boxes()
+    out = []
+    for label in labels:
+        box = all_boxes[label]
+        corners = np.array([[s.start - 0.5 if c == 0 else s.stop - 0.5 for s, c in zip(box, bits)]
+                            for bits in np.ndindex(*([2] * len(box)))], float)
+        world = volume.index_to_world(corners)
+        if to_fixed is not None:
+            world = to_fixed(world)
+        out.append((world.min(axis=0), world.max(axis=0)))
+    return out
+
+
+def _field_of_view_test(fixed, moving, linear, margin: float, boxes) -> Callable[[np.ndarray], np.ndarray]:
+    """Which locational-cost samples count: all but those near a cut label (within ``margin`` mm
+    of one of ``boxes``, the cut labels' world boxes in fixed space) that are also within
+    ``margin`` mm of the fixed image's edge or, mapped by the linear part, of the moving one's.
 
     Where a label is cut by the edge of an image, marching cubes closes it along the edge;
-    that face is not a boundary of the object and must not pull the warp, so samples near
-    either image's edge carry no locational cost (:func:`~volreg.warp.fit.fit_warp` ``valid``).
+    that face is not a boundary of the object and must not pull the warp, so the samples it
+    reaches carry no locational cost (:func:`~volreg.warp.fit.fit_warp` ``valid``).  Samples
+    near an edge but away from cut labels keep theirs.
     """
     def valid(points: np.ndarray) -> np.ndarray:
-        return _inside_field_of_view(fixed, points, margin) & _inside_field_of_view(moving, linear(points), margin)
+        seen = _inside_field_of_view(fixed, points, margin) & _inside_field_of_view(moving, linear(points), margin)
+        near_cut = np.zeros(len(points), dtype=bool)
+        for lo, hi in boxes:
+            near_cut |= np.all((points >= lo - margin) & (points <= hi + margin), axis=1)
+        return seen | ~near_cut
     return valid
 
 
