@@ -181,3 +181,21 @@ def test_findings_leave_the_exit_status_0_unless_the_protocol_is_strict(capsys):
     assert _strict_status("consistency", strict, [clean, finding, finding]) == 3
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "volreg consistency: error: " in err and "2 findings" in err
+
+
+def test_grids_far_apart_in_world_space_are_brought_together(tmp_path):
+    """Two scanners' coordinates: the moving grid lies 400 mm from the fixed one (no overlap).  With
+    the linear stage the command registers the pair; without one it refuses it in one line."""
+    fixed = _fixed()
+    a, b = rotation(10, (0.2, 0.4, 1.0)), np.array([400.0, -30.0, 15.0])
+    moving = posed_volume(BLOBS, (40,) * 3, (1.5,) * 3, grid_around(b, (40,) * 3, (1.5,) * 3), matrix=a,
+                          translation=b)
+    volreg.write_labels(fixed, tmp_path / "fixed.nii.gz")
+    volreg.write_labels(moving, tmp_path / "moving.nii.gz")
+    args = ["register", str(tmp_path / "fixed.nii.gz"), str(tmp_path / "moving.nii.gz"), "--protocol", "fast",
+            "--quiet"]
+    assert main(args + ["-o", str(tmp_path / "none"), "--linear", "none"]) == 2
+    assert not (tmp_path / "none").exists()
+    assert main(args + ["-o", str(tmp_path / "out"), "--linear", "rigid"]) == 0
+    err = _endpoint_errors(tmp_path / "out", fixed, a, b)
+    assert err.mean() < 0.6, err.mean()

@@ -201,7 +201,7 @@ CASES = [
     ("directory as image", "surface {dir} -o {out}", ["not a regular file"]),
     ("unsupported suffix", "surface {png} -o {out}", ["image.png", "unsupported suffix"]),
     ("no common label", "register {good} {other_label} -o {out}", ["label"]),
-    ("grids far apart", "register {good} {far} -o {out}", ["do not overlap"]),
+    ("grids far apart, no linear stage", "register {good} {far} -o {out} --linear none", ["do not overlap", "no linear stage"]),
     ("empty volume", "register {empty} {good} -o {out}", ["label"]),
     ("landmark counts differ", "register {good} {good2} -o {out} --landmarks {l3} {l2}", ["--landmarks", "3 points", "same number"]),
     ("landmark NaN", "register {good} {good2} -o {out} --landmarks {lnan} {l3}", ["lnan.csv"]),

@@ -633,7 +633,8 @@ def _check_memory(fixed, moving, fixed_name, moving_name) -> None:
         )
 
 
-def check_pair(fixed, moving, fixed_name: object = "fixed", moving_name: object = "moving") -> None:
+def check_pair(fixed, moving, fixed_name: object = "fixed", moving_name: object = "moving", *,
+               linear: str = "none") -> None:
     """Refuse, before any work, a pair of label volumes that cannot be registered.
 
     Parameters
@@ -641,13 +642,17 @@ def check_pair(fixed, moving, fixed_name: object = "fixed", moving_name: object 
     fixed, moving : LabelVolume
     fixed_name, moving_name : str or path-like
         How the messages name the volumes (e.g. their files).
+    linear : {"none", "rigid", "similarity", "affine"}
+        The protocol's linear stage.  With one, grids far apart in world space are
+        fine (the stage brings the labels together, as scans from two scanners need);
+        without, they cannot be registered.
 
     Raises
     ------
     RegistrationInputError
         Volumes of different dimensions, grids that do not overlap in world (LPS)
-        space, or a registration whose estimated peak memory (:func:`estimated_peak_gb`)
-        exceeds the memory available now.
+        space when ``linear`` is ``"none"``, or a registration whose estimated peak
+        memory (:func:`estimated_peak_gb`) exceeds the memory available now.
     """
     if fixed.ndim != moving.ndim:
         raise RegistrationInputError(
@@ -655,11 +660,12 @@ def check_pair(fixed, moving, fixed_name: object = "fixed", moving_name: object 
         )
     lo1, hi1 = world_box(fixed)
     lo2, hi2 = world_box(moving)
-    if np.any(hi1 < lo2) or np.any(hi2 < lo1):
+    if linear == "none" and (np.any(hi1 < lo2) or np.any(hi2 < lo1)):
         raise RegistrationInputError(
             f"The grids of `{fixed_name}` and `{moving_name}` do not overlap in world (LPS) space "
             f"(fixed {np.round(lo1, 1).tolist()}..{np.round(hi1, 1).tolist()} mm, moving "
-            f"{np.round(lo2, 1).tolist()}..{np.round(hi2, 1).tolist()} mm); check their origins and orientations."
+            f"{np.round(lo2, 1).tolist()}..{np.round(hi2, 1).tolist()} mm) and the protocol has no linear stage; "
+            "check their origins and orientations, or use a linear stage ([linear] kind)."
         )
     _check_memory(fixed, moving, fixed_name, moving_name)
 

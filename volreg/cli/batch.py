@@ -127,7 +127,7 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
         if saved is not None:
             return dict(saved, skipped=True)
         proto = load_protocol(protocol)
-        check_pair(a, b, fpath, mpath)
+        check_pair(a, b, fpath, mpath, linear=proto.linear.kind)
         with ProgressBars(quiet=True) as progress:
             if consistency:
                 inputs = {"A": {"path": str(fpath), "sha256": sha[0]}, "B": {"path": str(mpath), "sha256": sha[1]}}

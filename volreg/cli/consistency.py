@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--protocol and --drive-labels apply only when registering; drop them with --forward/--backward.")
     a = read_labels(args.a)
     b = read_labels(args.b)
-    check_pair(a, b, args.a, args.b)
+    protocol = None if saved else load_protocol(args.protocol or "default")
     forward = backward = directions = None
     if saved:
         forward = _load_result(args.forward, a, "--forward", args.a, "A")
@@ -94,7 +94,11 @@ def run(args: argparse.Namespace) -> int:
         if forward.dim != backward.dim:
             raise UsageError("--forward and --backward hold warps of different dimension.")
         directions = {"forward": {"outdir": str(args.forward)}, "backward": {"outdir": str(args.backward)}}
-    protocol = None if saved else load_protocol(args.protocol or "default")
+        # The saved warps' own linear parts, if any, bring far-apart grids together.
+        linear = "none" if forward.linear.is_identity and backward.linear.is_identity else "affine"
+    else:
+        linear = protocol.linear.kind
+    check_pair(a, b, args.a, args.b, linear=linear)
     inputs = {"A": {"path": str(args.a), "sha256": _sha256(args.a)}, "B": {"path": str(args.b), "sha256": _sha256(args.b)}}
     with ProgressBars(quiet=args.quiet) as progress:
         report = write_consistency_test(

@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
         protocol = dataclasses.replace(protocol, linear=LinearSettings(kind=args.linear))
     fixed = read_labels(args.fixed)
     moving = read_labels(args.moving)
-    check_pair(fixed, moving, args.fixed, args.moving)
+    check_pair(fixed, moving, args.fixed, args.moving, linear=protocol.linear.kind)
     landmarks = _load_landmarks(args, fixed, moving)
     inputs = {
         "fixed": {"path": str(args.fixed), "sha256": _sha256(args.fixed)},

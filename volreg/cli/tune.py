@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--grid: {exc}") from None
     a = read_labels(args.a)
     b = read_labels(args.b)
-    check_pair(a, b, args.a, args.b)
+    check_pair(a, b, args.a, args.b, linear=protocol.linear.kind)
     landmarks = _load_landmarks(args, a, b)
     outdir: Path = args.output
     paths = {name: outdir / name for name in OUTPUTS}
