@@ -199,3 +199,27 @@ def test_grids_far_apart_in_world_space_are_brought_together(tmp_path):
     assert main(args + ["-o", str(tmp_path / "out"), "--linear", "rigid"]) == 0
     err = _endpoint_errors(tmp_path / "out", fixed, a, b)
     assert err.mean() < 0.6, err.mean()
+
+
+def test_landmark_errors_are_reported(posed, tmp_path, capsys):
+    """With --landmarks, report.json gives |tau(p) - q| per landmark (mm, and in % of the fixed labels'
+    diameter) and the error before registering; the summary line quotes the mean."""
+    folder, fixed = posed
+    p = np.array([b.centre for b in BLOBS[:4]], float)
+    q = p @ POSE_A.T + POSE_B
+    (tmp_path / "f.csv").write_text("x,y,z\n" + "".join(f"{a},{b},{c}\n" for a, b, c in p))
+    (tmp_path / "m.csv").write_text("x,y,z\n" + "".join(f"{a},{b},{c}\n" for a, b, c in q))
+    out = tmp_path / "out"
+    assert main(["register", str(folder / "fixed.nii.gz"), str(folder / "moving.nii.gz"), "-o", str(out),
+                 "--protocol", "fast", "--quiet", "--landmarks", str(tmp_path / "f.csv"), str(tmp_path / "m.csv")]) == 0
+    assert "landmark error mean" in capsys.readouterr().out
+    block = json.loads((out / "report.json").read_text())["landmarks"]
+    model = volreg.KernelWarp.load(out / "model.npz")
+    expected = np.linalg.norm(model(p) - q, axis=1)
+    assert block["count"] == 4
+    np.testing.assert_allclose(block["error_mm"], expected, rtol=1e-9, atol=1e-9)
+    assert block["identity_mean_mm"] == pytest.approx(np.linalg.norm(p - q, axis=1).mean())
+    assert block["mean_mm"] < 1.0 < block["identity_mean_mm"]
+    # The fixed labels' box (voxel centres) spans about the blobs' extent, 37 x 37 x 34 mm.
+    assert 50.0 < block["diameter_mm"] < 70.0
+    assert block["mean_percent_of_diameter"] == pytest.approx(100 * block["mean_mm"] / block["diameter_mm"])

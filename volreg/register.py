@@ -321,6 +321,50 @@ def register_labels(
                              cut_labels=cut)
 
 
+def landmark_errors(warp, landmarks: tuple[np.ndarray, np.ndarray], fixed) -> dict:
+    """How far the warp carries each fixed landmark from its moving partner (the report's
+    ``landmarks`` block).
+
+    Parameters
+    ----------
+    warp : callable
+        The pull-back map, fixed (N, D) mm -> moving (N, D) mm.
+    landmarks : pair of (L, D) float ndarrays
+        Fixed landmarks and their moving partners, mm.
+    fixed : LabelVolume
+        The fixed volume; the diameter of the box of its label voxels' centres (mm) is the
+        scale of the percentages.
+
+    Returns
+    -------
+    dict
+        ``count``; ``error_mm`` per landmark |tau(p) - q|; ``mean_mm``, ``max_mm``;
+        ``mean_percent_of_diameter`` (of the fixed labels' diameter, ``diameter_mm``); and
+        ``identity_mean_mm``, the mean |p - q| before registering.
+    """
+    p, q = (np.asarray(v, float) for v in landmarks)
+    err = np.linalg.norm(np.asarray(warp(p)) - q, axis=1)
+    array = np.asarray(fixed.array) != 0
+    if not array.any():
+        array = np.ones_like(array)
+    bounds = []
+    for axis in range(array.ndim):
+        hit = np.flatnonzero(array.any(axis=tuple(a for a in range(array.ndim) if a != axis)))
+        bounds.append((hit[0], hit[-1]))
+    corners = fixed.index_to_world(np.array([[b[c] for b, c in zip(bounds, bits)]
+                                             for bits in np.ndindex(*([2] * array.ndim))], float))
+    diameter = float(np.linalg.norm(corners.max(axis=0) - corners.min(axis=0)))
+    return {
+        "count": int(len(p)),
+        "error_mm": [float(v) for v in err],
+        "mean_mm": float(err.mean()),
+        "max_mm": float(err.max()),
+        "diameter_mm": diameter,
+        "mean_percent_of_diameter": float(100.0 * err.mean() / diameter) if diameter > 0 else None,
+        "identity_mean_mm": float(np.linalg.norm(p - q, axis=1).mean()),
+    }
+
+
 def feature_unit(fixed, moving) -> float:
     """The length (mm) in which the protocol's voxel-counted surface settings are given: the
     largest voxel spacing of the two volumes.
@@ -854,6 +898,8 @@ def _register_and_write(fixed, moving, outdir, *, protocol, drive_labels, landma
 
         t0 = time.perf_counter()
         report = _registration_report(fixed, moving, result, fields, inverse, protocol, inputs, truth)
+        if landmarks is not None:
+            report["landmarks"] = landmark_errors(result.warp, landmarks, fixed)
         stages.append(_stage("metrics", t0))
 
         t0 = time.perf_counter()

@@ -133,6 +133,9 @@ def _summary_line(command: str, report: dict, outdir: Path) -> str:
         e = report["endpoint_error_mm"]
         line += (f", endpoint error mean {e['mean']:.2f} mm / p95 {e['p95']:.2f} mm "
                  f"(identity {e['identity_mean']:.2f} / {e['identity_p95']:.2f})")
+    if report.get("landmarks"):
+        m = report["landmarks"]
+        line += f", landmark error mean {m['mean_mm']:.2f} mm / max {m['max_mm']:.2f} mm (identity {m['identity_mean_mm']:.2f})"
     return line + f"; {len(REGISTRATION_OUTPUTS)} files in {outdir}{os.sep} ({report['seconds']:.0f} s)"
 
 
