@@ -139,6 +139,10 @@ def files(tmp_path_factory):
     f["vector"] = d / "rgb.mha"
     (d / "image.png").write_bytes(b"\x89PNG\r\n")
     f["png"] = d / "image.png"
+    write_labels(_cube(lo=7, hi=8), d / "dot.nii.gz")  # a single voxel of label 1
+    f["dot"] = d / "dot.nii.gz"
+    write_labels(_cube(lo=8, hi=9), d / "dot2.nii.gz")
+    f["dot2"] = d / "dot2.nii.gz"
     write_labels(_cube(label=2), d / "other_label.nii.gz")
     f["other_label"] = d / "other_label.nii.gz"
     write_labels(_cube(origin=(500.0, 0.0, 0.0)), d / "far.nii.gz")
@@ -203,6 +207,7 @@ CASES = [
     ("no common label", "register {good} {other_label} -o {out}", ["label"]),
     ("grids far apart, no linear stage", "register {good} {far} -o {out} --linear none", ["do not overlap", "no linear stage"]),
     ("empty volume", "register {empty} {good} -o {out}", ["label"]),
+    ("one-voxel label only", "register {dot} {dot2} -o {out}", ["[1]", "single voxel"]),
     ("landmark counts differ", "register {good} {good2} -o {out} --landmarks {l3} {l2}", ["--landmarks", "3 points", "same number"]),
     ("landmark NaN", "register {good} {good2} -o {out} --landmarks {lnan} {l3}", ["lnan.csv"]),
     ("landmark without header", "register {good} {good2} -o {out} --landmarks {lnohead} {l3}", ["lnohead.csv"]),

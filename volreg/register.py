@@ -300,6 +300,11 @@ def register_labels(
 
     t0 = time.perf_counter()
     points = _warp_volume_points(fixed, s_fixed, used, distance_labels, boxes_f)
+    if len(points) < 2:
+        raise RegistrationInputError(
+            f"The labels that drive the warp ({(used or distance_labels)[:30]}) give {len(points)} point to fit it at "
+            "(a label of a single voxel); expected labels of a few voxels at least."
+        )
     # The kernel warp phi is fitted between the fixed features and the moving ones seen through
     # the linear part (tau = L o phi), so landmarks and the prior are taken back through L^-1.
     back = None if linear.is_identity else linear.inverse()

@@ -385,7 +385,7 @@ def review_registration(
     cut_labels : iterable of int
         Labels cut by the edge of either image: not judged on Dice or distance.
     folded_fraction : float
-        Fraction of the voxels (e.g. the fixed labels' voxels) where ``det d tau / dx <= 0``.
+        Fraction of the fixed labels' voxels where ``det d tau / dx <= 0``.
     limits : ReviewLimits
 
     Returns
@@ -437,7 +437,7 @@ def review_registration(
     if folded_fraction > limits.max_folded_fraction:
         findings.append(Finding(
             None, "folded_fraction", float(folded_fraction), limits.max_folded_fraction,
-            f"the warp folds (det d tau/dx <= 0) at {100 * folded_fraction:.2g} % of the voxels "
+            f"the warp folds (det d tau/dx <= 0) at {100 * folded_fraction:.2g} % of the fixed labels' voxels "
             f"(limit {100 * limits.max_folded_fraction:.2g} %); try a larger `[warp] lambda_fold` or `min_width`."))
 
     # Overlap and distance of the judged labels.
