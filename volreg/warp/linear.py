@@ -644,18 +644,29 @@ class _Side:
         h = max(floor_mm, min(spacing_mm, 0.5 * self.shapes[label].thickness_mm))
         return label, tuple(int(v) for v in _level_factors(self.volume, h))
 
+    def _compute(self, key: tuple):
+        label, factors = key
+        shape = self.shapes[label]
+        h = float(np.min(np.asarray(factors) * self.volume.spacing))
+        margin = max(3.0 * h, min(0.1 * shape.extent_mm, 20.0))
+        return _distance_map(self.volume, label, shape.box, np.asarray(factors), margin)
+
     def label_map(self, key: tuple):
         if key not in self._maps:
-            label, factors = key
-            shape = self.shapes[label]
-            h = float(np.min(np.asarray(factors) * self.volume.spacing))
-            margin = max(3.0 * h, min(0.1 * shape.extent_mm, 20.0))
-            self._maps[key] = _distance_map(self.volume, label, shape.box, np.asarray(factors), margin)
+            self._maps[key] = self._compute(key)
         return self._maps[key]
 
     def bank(self, labels: list[int], spacing_mm: float, floor_mm: float) -> tuple[_MapBank, dict[int, int]]:
         """The maps of ``labels`` at a level, and the position of each label's map in it."""
+        from volreg._threads import thread_map
+
         keys = tuple(self.map_key(label, spacing_mm, floor_mm) for label in labels)
+        # The maps not made yet, largest first, on the thread budget (the distance
+        # transforms release the GIL for much of their work).
+        missing = sorted({k for k in keys if k not in self._maps},
+                         key=lambda k: -np.prod([s.stop - s.start for s in self.shapes[k[0]].box]))
+        for key, value in zip(missing, thread_map(self._compute, missing)):
+            self._maps[key] = value
         if keys not in self._banks:
             entries, where = [], {}
             for key in keys:
