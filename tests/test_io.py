@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gzip
+import json
 import os
 import re
 from pathlib import Path
@@ -838,3 +839,45 @@ def test_vti_vector_and_ambiguous_arrays(tmp_path):
     cells.save(tmp_path / "cells.vti")
     with _raises(tmp_path / "cells.vti", "no point data array"):
         read_labels(tmp_path / "cells.vti")
+
+
+def _mrk(path, positions, statuses):
+    """A Slicer .mrk.json (LPS) with one control point per position and status."""
+    points = [{"position": list(p), "positionStatus": s} for p, s in zip(positions, statuses)]
+    path.write_text(json.dumps({"markups": [{"coordinateSystem": "LPS", "controlPoints": points}]}))
+    return path
+
+
+def test_unplaced_slicer_control_points_are_not_landmarks(tmp_path):
+    from volreg.io.landmarks import read_landmarks
+
+    f = _mrk(tmp_path / "f.mrk.json", [(1, 2, 3), (0, 0, 0), (4, 5, 6)], ["defined", "undefined", "preview"])
+    np.testing.assert_array_equal(read_landmarks(f), [[1, 2, 3], [4, 5, 6]])
+    kept = read_landmarks(f, keep_unplaced=True)
+    assert kept.shape == (3, 3) and np.isnan(kept[1]).all() and np.array_equal(kept[[0, 2]], [[1, 2, 3], [4, 5, 6]])
+    none = _mrk(tmp_path / "none.mrk.json", [(0, 0, 0), (0, 0, 0)], ["undefined", "undefined"])
+    with pytest.raises(VolregIOError, match=r"none.mrk.json.*no placed points \(2 not placed\)"):
+        read_landmarks(none)
+
+
+def test_landmark_pairs_with_an_unplaced_point_are_left_out(tmp_path, capsys):
+    import argparse
+
+    from volreg.cli._common import _load_landmarks
+    from volreg.errors import UsageError
+
+    f = _mrk(tmp_path / "f.mrk.json", [(1, 2, 3), (0, 0, 0), (4, 5, 6)], ["defined", "undefined", "defined"])
+    m = tmp_path / "m.csv"
+    m.write_text("x,y,z\n1.5,2,3\n9,9,9\n4.5,5,6\n")
+    a, b = _load_landmarks(argparse.Namespace(landmarks=[f, m], command="register"))
+    np.testing.assert_array_equal(a, [[1, 2, 3], [4, 5, 6]])
+    np.testing.assert_array_equal(b, [[1.5, 2, 3], [4.5, 5, 6]])  # the partner of the unplaced point goes too
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "volreg register: warning: --landmarks: left out 1 pair" in err and ": 2." in err
+    none = _mrk(tmp_path / "none.mrk.json", [(0, 0, 0)] * 3, ["undefined"] * 3)
+    only = _mrk(tmp_path / "only.mrk.json", [(1, 1, 1), (0, 0, 0), (0, 0, 0)], ["defined", "undefined", "undefined"])
+    other = _mrk(tmp_path / "other.mrk.json", [(0, 0, 0), (1, 1, 1), (2, 2, 2)], ["undefined", "defined", "defined"])
+    with pytest.raises(VolregIOError, match="no placed points"):
+        _load_landmarks(argparse.Namespace(landmarks=[none, m], command="register"))
+    with pytest.raises(UsageError, match="no pair has both points placed"):
+        _load_landmarks(argparse.Namespace(landmarks=[only, other], command="register"))

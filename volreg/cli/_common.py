@@ -143,13 +143,22 @@ def _load_landmarks(args, fixed: LabelVolume | None = None, moving: LabelVolume 
     """The ``--landmarks`` pair, checked for equal counts and (given the volumes) to lie in their images."""
     if args.landmarks is None:
         return None
-    a = read_landmarks(args.landmarks[0])
-    b = read_landmarks(args.landmarks[1])
+    a = read_landmarks(args.landmarks[0], keep_unplaced=True)
+    b = read_landmarks(args.landmarks[1], keep_unplaced=True)
     if len(a) != len(b):
         raise UsageError(
             f"--landmarks: `{args.landmarks[0]}` has {len(a)} points and `{args.landmarks[1]}` {len(b)}; "
             "expected the same number, in corresponding order."
         )
+    unplaced = np.isnan(a).any(axis=1) | np.isnan(b).any(axis=1)
+    if unplaced.any():
+        which = ", ".join(str(i + 1) for i in np.flatnonzero(unplaced)[:10])
+        if unplaced.all():
+            raise UsageError("--landmarks: no pair has both points placed (Slicer positionStatus \"undefined\"); "
+                             "expected at least one placed pair.")
+        _warn(args.command, f"--landmarks: left out {int(unplaced.sum())} pair(s) with a control point not placed "
+              f"(Slicer positionStatus \"undefined\"): {which}.")
+        a, b = a[~unplaced], b[~unplaced]
     for points, volume, path, role in ((a, fixed, args.landmarks[0], "first"), (b, moving, args.landmarks[1], "second")):
         if volume is None:
             continue

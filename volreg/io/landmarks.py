@@ -48,12 +48,21 @@ def _read_fcsv(path: Path, text: str) -> np.ndarray:
     return points * _FLIP if ras else points
 
 
+#: Slicer's ``positionStatus`` of a control point that was never placed (its position means nothing).
+_UNPLACED = ("undefined",)
+
+
 def _read_mrk_json(path: Path, text: str) -> np.ndarray:
+    """The control points, with a row of NaN for each one not placed (``positionStatus``
+    ``"undefined"``): their order pairs them with another file's."""
     data = json.loads(text)
     points = []
     for markup in data.get("markups", []):
         ras = _frame(markup.get("coordinateSystem", "LPS"), path)
         for cp in markup.get("controlPoints", []):
+            if str(cp.get("positionStatus", "defined")).lower() in _UNPLACED:
+                points.append(np.full(3, np.nan))
+                continue
             p = np.asarray(cp["position"], dtype=float)
             points.append(p * _FLIP if ras else p)
     return np.array(points).reshape(-1, 3)
@@ -70,14 +79,19 @@ def _read_csv(path: Path, text: str) -> np.ndarray:
     return np.array([[float(r[c]) for c in cols] for r in rows[1:]]).reshape(-1, 3)
 
 
-def read_landmarks(path: str | os.PathLike[str]) -> np.ndarray:
+def read_landmarks(path: str | os.PathLike[str], *, keep_unplaced: bool = False) -> np.ndarray:
     """Read landmark points as an (L, 3) float array in LPS mm.
+
+    Slicer ``.mrk.json`` control points that were never placed (``positionStatus``
+    ``"undefined"``) are left out, or with ``keep_unplaced`` kept as rows of NaN so
+    that the order still pairs the points with another file's (drop a pair where
+    either side is NaN).
 
     Raises
     ------
     VolregIOError
         Missing or unreadable file, unknown suffix, bad numbers, a non-finite
-        value, or no point at all -- one line naming the file.
+        value, or no placed point at all -- one line naming the file.
     """
     p = Path(path)
     if not p.is_file():
@@ -97,8 +111,12 @@ def read_landmarks(path: str | os.PathLike[str]) -> np.ndarray:
         if isinstance(exc, VolregIOError):
             raise
         raise VolregIOError(f"Landmark file `{p}` could not be parsed: {exc}.") from None
-    if len(points) == 0:
-        raise VolregIOError(f"Landmark file `{p}` holds no points; expected at least one.")
-    if not np.all(np.isfinite(points)):
+    unplaced = np.zeros(len(points), dtype=bool)
+    if name.endswith(".json"):
+        unplaced = np.all(np.isnan(points), axis=1)
+    if not np.any(~unplaced):
+        more = f" ({int(unplaced.sum())} not placed)" if unplaced.any() else ""
+        raise VolregIOError(f"Landmark file `{p}` holds no placed points{more}; expected at least one.")
+    if not np.all(np.isfinite(points[~unplaced])):
         raise VolregIOError(f"Landmark file `{p}` holds NaN or Inf coordinates; expected finite mm.")
-    return points
+    return points if keep_unplaced else points[~unplaced]
