@@ -55,7 +55,7 @@ program it starts), each writing a displacement field on the fixed grid (LPS mm,
 
 Peers get 2 threads (`ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS=2`, greedy `-threads 2`; ANTs seeded with
 `ANTS_RANDOM_SEED=1`); volreg gets `NUMBA_NUM_THREADS=2`. The peers' results vary somewhat from run to
-run even so (on case 3, picsl_greedy 1.4.0.3's endpoint error ranged from 0.95 to 1.70 mm over three
+run even so (on case 3, picsl_greedy 1.4.0.3's endpoint error ranged from 0.95 to 2.17 mm over the
 runs): use `--repeats`.
 
 Scores per case and method: endpoint error |tau(x) - tau_true(x)| at the fixed voxel centres inside the

@@ -319,3 +319,14 @@ def test_a_label_pushed_out_of_view_does_not_win():
         fit = fit_linear(fixed, moving, kind=kind)
         assert fit.log["map"]["rotation_deg"] < 5.0, (kind, fit.log["map"])
         assert fit.log["levels"][-1]["samples_outside_view"] == 0
+
+
+def test_a_volume_filled_by_one_label_gives_the_identity():
+    """No label boundary inside the fixed image: nothing to align, the identity (no traceback)."""
+    grid = {"origin": np.zeros(3), "spacing": np.ones(3), "direction": np.eye(3)}
+    fixed = LabelVolume(np.ones((12, 12, 12), np.uint8), **grid)
+    moving_a = np.zeros((12, 12, 12), np.uint8)
+    moving_a[3:9, 3:9, 3:9] = 1
+    fit = fit_linear(fixed, LabelVolume(moving_a, **grid), kind="affine")
+    assert fit.map.is_identity and "no label boundary" in fit.log["start_candidate"]
+    json.dumps(fit.log)

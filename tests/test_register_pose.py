@@ -150,17 +150,22 @@ def test_a_label_cut_by_the_moving_image_edge_is_reported_and_does_not_pull(tmp_
     cropped = volreg.LabelVolume(moving.array[:, :, :stop], moving.origin, moving.spacing, moving.direction)
     assert np.count_nonzero(cropped.array == 7) > 0.4 * full
     assert all(np.count_nonzero(cropped.array == v) == np.count_nonzero(moving.array == v) for v in range(1, 7))
+    # Label 8, in the fixed volume only (a structure the other subject lacks): not judged either.
+    extra = posed_volume([Ellipsoid((5, 5, 5), (14, -12, 20))], fixed.shape, fixed.spacing, fixed.origin).array
+    fixed = fixed.with_array(np.where((extra > 0) & (fixed.array == 0), 8, fixed.array).astype(np.uint8))
+    assert np.count_nonzero(fixed.array == 8) > 100
     protocol = volreg.load_protocol("fast")
     protocol = dataclasses.replace(protocol, linear=LinearSettings("rigid"))
     report = volreg.write_registration(fixed, cropped, tmp_path / "out", protocol=protocol)
     assert report["cut_labels"] == {"fixed": [], "moving": [7]}
-    assert 7 not in report["review"]["judged_labels"]
+    assert report["review"]["judged_labels"] == [1, 2, 3, 4, 5, 6]
     assert report["review"]["plausible"], report["review"]["findings"]
     err = _endpoint_errors(tmp_path / "out", fixed, a, b)
     inside = fixed.array > 0
     label = fixed.array[inside]
+    err, label = err[label != 8], label[label != 8]
     # Where label 7 maps into the cropped image's view (by the true map), two voxels from its edge.
-    x = fixed.grid_points()[inside]
+    x = fixed.grid_points()[inside & (fixed.array != 8)]
     index = cropped.world_to_index(x @ a.T + b)
     in_view = np.all((index >= 1.5) & (index <= np.array(cropped.shape) - 2.5), axis=1)
     assert err[label != 7].mean() < 0.6, err[label != 7].mean()

@@ -282,3 +282,14 @@ def test_scores_without_the_figures_are_refused():
 def test_bad_limits(kw, match):
     with pytest.raises(ValueError, match=match):
         ReviewLimits(**kw)
+
+
+def test_a_single_slice_stored_as_a_volume_has_interior_voxels():
+    """An axis of length 1 has no neighbours: a 2-D label map stored as (n, m, 1) is judged as 2-D."""
+    from volreg.evaluation.review import label_voxel_counts
+
+    a = np.zeros((40, 40, 1), np.uint8)
+    a[5:25, 5:25, 0] = 1
+    voxels, interior = label_voxel_counts(a)
+    assert voxels == {1: 400} and interior == {1: 18 * 18}
+    assert label_voxel_counts(a[:, :, 0]) == (voxels, interior)

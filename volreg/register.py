@@ -791,7 +791,10 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
     inside = fixed.array != 0
     linear = result.linear.map.describe() if result.linear is not None else None
     voxels, interior = label_voxel_counts(fixed.array)
-    cut = sorted(set(result.cut_labels.get("fixed", [])) | set(result.cut_labels.get("moving", [])))
+    # Not judged: labels cut by an image edge, and labels absent from the moving volume (a
+    # structure one subject lacks, or a field of view that misses it: nothing to align).
+    cut = sorted(set(result.cut_labels.get("fixed", [])) | set(result.cut_labels.get("moving", []))
+                 | (set(fixed.labels().tolist()) - set(moving.labels().tolist())))
     findings = review_registration(
         scores_before, scores_after, voxel_mm=feature_unit(fixed, moving), label_voxels=voxels,
         label_interior=interior, linear=linear, cut_labels=cut, folded_fraction=folded_fraction(jac, inside))

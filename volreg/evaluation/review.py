@@ -272,17 +272,20 @@ def label_voxel_counts(array: np.ndarray) -> tuple[dict[int, int], dict[int, int
     interior : dict of int to int
         Of those, the voxels whose face neighbours all hold the same label (a voxel on the
         image edge is not interior: the edge counts as outside, as for the surface
-        distances of :mod:`volreg.evaluation.metrics`).
+        distances of :mod:`volreg.evaluation.metrics`; axes of length 1 have no neighbours
+        and do not count).
     """
     a = np.asarray(array)
     if a.ndim < 1 or not np.issubdtype(a.dtype, np.integer):
         raise ValueError(f"Expected `array` as an integer label array, got {a.dtype} of shape {a.shape}.")
-    inner = tuple(slice(1, -1) for _ in range(a.ndim))
+    # Axes of one voxel (a single slice stored as a volume) have no neighbours to compare.
+    axes = [k for k in range(a.ndim) if a.shape[k] > 1]
+    inner = tuple(slice(1, -1) if k in axes else slice(None) for k in range(a.ndim))
     core = a[inner]
     interior_core = np.ones(core.shape, dtype=bool)
-    for axis in range(a.ndim):
+    for axis in axes:
         for lo, hi in ((0, -2), (2, None)):
-            shifted = tuple(slice(lo, hi) if k == axis else slice(1, -1) for k in range(a.ndim))
+            shifted = tuple(slice(lo, hi) if k == axis else inner[k] for k in range(a.ndim))
             interior_core &= core == a[shifted]
     voxels = _counts(a)
     inside = _counts(core[interior_core])

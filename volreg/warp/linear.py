@@ -840,6 +840,14 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
     cut_f, cut_m = cut_labels(fixed), cut_labels(moving)
     cut = set(cut_f) | set(cut_m)
 
+    if not any(len(s.points) for s in shapes_f.values()) or not any(len(s.points) for s in shapes_m.values()):
+        # No label has a boundary inside an image (a volume filled by one label): nothing to align.
+        ident = LinearMap.identity(dim)
+        return LinearFit(ident, dict(kind=kind, start="identity", start_candidate="identity (no label boundary in an "
+                                     "image)", candidates=[], levels=[], labels=[int(v) for v in drive],
+                                     cut_labels=dict(fixed=cut_f, moving=cut_m), map=ident.describe(),
+                                     seconds=time.perf_counter() - t_begin))
+
     # Object size, centre, levels.
     _, centre, _ = _union_moments(list(shapes_f.values()))
     lo = np.min([s.points.min(axis=0) for s in shapes_f.values() if len(s.points)], axis=0)
