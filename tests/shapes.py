@@ -161,3 +161,19 @@ BLOBS = [
     Ellipsoid((5, 6, 7), (16, 6, 4)),
     Ellipsoid((6, 5, 5), (-3, -2, -14)),
 ]
+
+
+def ball_and_shifted_cube(whole_cube: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Label arrays (40^3, uint8) of a ball (label 1, radius 7 voxels) and a cube of 2^3 voxels
+    (label 2) 10 voxels beside it, the cube shifted by 2 voxels along axis 0 in the second
+    array; without ``whole_cube`` the cube lacks one voxel (7 voxels: too few for a surface)."""
+    shape = (40, 40, 40)
+    index = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
+    fixed = np.zeros(shape, np.uint8)
+    fixed[np.linalg.norm(index - 14, axis=-1) < 7] = 1
+    moving = fixed.copy()
+    fixed[31:33, 13:15, 13:15] = 2
+    moving[33:35, 13:15, 13:15] = 2
+    if not whole_cube:
+        fixed[32, 14, 14] = moving[34, 14, 14] = 0
+    return fixed, moving

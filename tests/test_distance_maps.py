@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 from scipy import ndimage
+from shapes import ball_and_shifted_cube
 
 from volreg.features.distance_maps import VoxelDistance, clipped_signed_distance
 from volreg.warp.resample import signed_distance_map
@@ -144,14 +145,7 @@ def test_distance_maps_carry_a_label_without_a_surface():
     from volreg.grid import LabelVolume
     from volreg.settings import LinearSettings
 
-    shape = (40, 40, 40)
-    index = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
-    fixed_a = np.zeros(shape, np.uint8)
-    fixed_a[np.linalg.norm(index - 14, axis=-1) < 7] = 1
-    moving_a = fixed_a.copy()
-    fixed_a[31:33, 13:15, 13:15] = 2
-    moving_a[33:35, 13:15, 13:15] = 2
-    fixed_a[32, 14, 14] = moving_a[34, 14, 14] = 0  # 7 voxels: too few for a surface
+    fixed_a, moving_a = ball_and_shifted_cube(whole_cube=False)  # 7 voxels: too few for a surface
     geometry = dict(spacing=np.full(3, 1.5), origin=np.zeros(3), direction=np.eye(3))
     fixed, moving = LabelVolume(fixed_a, **geometry), LabelVolume(moving_a, **geometry)
     out = {}

@@ -13,7 +13,7 @@ import json
 
 import numpy as np
 import pytest
-from shapes import BLOBS, Disc2D, Ellipsoid, label_volume, rotation
+from shapes import BLOBS, Disc2D, Ellipsoid, ball_and_shifted_cube, label_volume, rotation
 from shapes import grid_around as _around
 from shapes import posed_volume as _volume
 
@@ -306,13 +306,7 @@ def test_a_label_pushed_out_of_view_does_not_win():
     cube shifted by 3 mm in the moving volume.  Half turns fit the ball exactly and would
     carry the cube out of the image; the cube's samples keep their cost out there (it is
     not cut by the image edge), so the map stays near the identity."""
-    shape = (40, 40, 40)
-    index = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
-    fixed_a = np.zeros(shape, np.uint8)
-    fixed_a[np.linalg.norm(index - 14, axis=-1) < 7] = 1
-    moving_a = fixed_a.copy()
-    fixed_a[31:33, 13:15, 13:15] = 2
-    moving_a[33:35, 13:15, 13:15] = 2
+    fixed_a, moving_a = ball_and_shifted_cube()
     geometry = {"spacing": np.full(3, 1.5), "origin": np.zeros(3), "direction": np.eye(3)}
     fixed, moving = LabelVolume(fixed_a, **geometry), LabelVolume(moving_a, **geometry)
     for kind in ("rigid", "affine"):
