@@ -293,3 +293,14 @@ def test_a_single_slice_stored_as_a_volume_has_interior_voxels():
     voxels, interior = label_voxel_counts(a)
     assert voxels == {1: 400} and interior == {1: 18 * 18}
     assert label_voxel_counts(a[:, :, 0]) == (voxels, interior)
+
+
+def test_nothing_judged_is_a_finding():
+    """When every label is excluded (here: cut by the image edge), the review says the result was not
+    checked instead of calling it plausible."""
+    before, after, voxels = _case(n=3)
+    findings = _review(before, after, voxels, cut_labels=[1, 2, 3])
+    assert [f.figure for f in findings] == ["judged_labels"]
+    assert "not checked" in findings[0].message and "\n" not in findings[0].message
+    only_background = {0: after[0]}
+    assert _review({0: before[0]}, only_background, voxels) == []

@@ -150,8 +150,9 @@ class Finding:
         several labels at once (then ``labels`` names them).
     figure : str
         What was judged: ``"mean_surface_distance_mm"``, ``"dice"``, ``"dice_drop"`` (Dice
-        before minus Dice after), ``"mean_dice"``, ``"rotation_deg"``, ``"scale"`` or
-        ``"folded_fraction"``.
+        before minus Dice after), ``"mean_dice"``, ``"rotation_deg"``, ``"scale"``,
+        ``"folded_fraction"``, or ``"judged_labels"`` (the count of labels judged, when none
+        could be: the result was not checked).
     value : float
         The figure's value (for several labels: the worst of them).
     limit : float
@@ -361,7 +362,8 @@ def review_registration(
       ``max(max_distance_voxels * voxel_mm, max_distance_mm)`` (labels whose distance is
       undefined, being absent after the warp, are left to the Dice rules);
     * a judged label's Dice after below ``min_dice``;
-    * a judged label's Dice after more than ``max_dice_drop`` below its Dice before.
+    * a judged label's Dice after more than ``max_dice_drop`` below its Dice before;
+    * no label judged at all (the result could not be checked).
 
     Judged labels (:func:`judged_labels`): non-zero labels of ``scores_after`` with at least
     ``min_voxels`` voxels in the fixed volume, not in ``cut_labels`` and, given
@@ -445,6 +447,12 @@ def review_registration(
 
     # Overlap and distance of the judged labels.
     after = {v: _check_scores("scores_after", scores_after, v, ("dice", "mean_surface_distance_mm")) for v in judged}
+    if not judged and any(int(v) != 0 for v in scores_after):
+        findings.append(Finding(
+            None, "judged_labels", 0.0, 1.0,
+            f"no label could be judged on Dice or boundary distance (each is under {limits.min_voxels} voxels in "
+            "the fixed volume, a thin sheet, cut by an image edge, or absent from the moving volume), so the "
+            "result was not checked; look at report.png."))
     if judged:
         mean_dice = sum(float(after[v]["dice"]) for v in judged) / len(judged)
         if mean_dice < limits.min_mean_dice:
