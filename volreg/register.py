@@ -255,7 +255,7 @@ def register_labels(
         volumes (with distance maps every common label drives, surface or not).
     """
     from volreg.io.protocol import load_protocol
-    from volreg.warp.linear import cut_labels, fit_linear
+    from volreg.warp.linear import fit_linear
 
     protocol = load_protocol("default") if protocol is None else protocol
     common, labels = _candidate_labels(fixed, moving, drive_labels)
@@ -265,7 +265,7 @@ def register_labels(
     t0 = time.perf_counter()
     linear_fit = fit_linear(fixed, moving, kind=protocol.linear.kind, labels=labels, progress=progress)
     linear = linear_fit.map
-    cut = {"fixed": [int(v) for v in cut_labels(fixed)], "moving": [int(v) for v in cut_labels(moving)]}
+    cut = {side: [int(v) for v in linear_fit.log["cut_labels"][side]] for side in ("fixed", "moving")}
     stages.append(dict(stage="linear", seconds=time.perf_counter() - t0))
 
     t0 = time.perf_counter()
@@ -315,7 +315,7 @@ def register_labels(
     valid = None
     if cut["fixed"] or cut["moving"]:
         margin = (protocol.surface.min_width_voxels + protocol.surface.distance_clip) * unit
-        boxes = _world_boxes(fixed, cut["fixed"]) + _world_boxes(moving, cut["moving"], linear.inverse())
+        boxes = _world_boxes(fixed, cut["fixed"]) + _world_boxes(moving, cut["moving"], back)
         valid = _field_of_view_test(fixed, moving, linear, margin, boxes)
     result = fit_warp(pairs, points, landmarks=landmarks, settings=protocol.warp, prior=prior, valid=valid,
                       progress=progress)
@@ -337,8 +337,8 @@ def landmark_errors(warp, landmarks: tuple[np.ndarray, np.ndarray], fixed) -> di
     landmarks : pair of (L, D) float ndarrays
         Fixed landmarks and their moving partners, mm.
     fixed : LabelVolume
-        The fixed volume; the diameter of the box of its label voxels' centres (mm) is the
-        scale of the percentages.
+        The fixed volume; the diameter of the box of its label voxels (mm) is the scale of
+        the percentages.
 
     Returns
     -------
@@ -349,16 +349,9 @@ def landmark_errors(warp, landmarks: tuple[np.ndarray, np.ndarray], fixed) -> di
     """
     p, q = (np.asarray(v, float) for v in landmarks)
     err = np.linalg.norm(np.asarray(warp(p)) - q, axis=1)
-    array = np.asarray(fixed.array) != 0
-    if not array.any():
-        array = np.ones_like(array)
-    bounds = []
-    for axis in range(array.ndim):
-        hit = np.flatnonzero(array.any(axis=tuple(a for a in range(array.ndim) if a != axis)))
-        bounds.append((hit[0], hit[-1]))
-    corners = fixed.index_to_world(np.array([[b[c] for b, c in zip(bounds, bits)]
-                                             for bits in np.ndindex(*([2] * array.ndim))], float))
-    diameter = float(np.linalg.norm(corners.max(axis=0) - corners.min(axis=0)))
+    boxes = _world_boxes(fixed, [int(v) for v in fixed.labels() if v != 0]) or [world_box(fixed)]
+    lo, hi = np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
+    diameter = float(np.linalg.norm(hi - lo))
     return {
         "count": int(len(p)),
         "error_mm": [float(v) for v in err],

@@ -814,7 +814,8 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
     if kind == "none":
         ident = LinearMap.identity(dim)
         return LinearFit(ident, dict(kind="none", start="identity", start_candidate="identity", candidates=[],
-                                     levels=[], labels=[], cut_labels=dict(fixed=[], moving=[]),
+                                     levels=[], labels=[],
+                                     cut_labels=dict(fixed=cut_labels(fixed), moving=cut_labels(moving)),
                                      map=ident.describe(), seconds=time.perf_counter() - t_begin))
 
     boxes_f, boxes_m = fixed.label_boxes(), moving.label_boxes()
