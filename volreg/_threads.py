@@ -21,6 +21,8 @@ from typing import Callable, Generator, Sequence, TypeVar
 import numba
 from threadpoolctl import threadpool_limits
 
+from volreg._jit import njit
+
 __all__ = ["single_blas", "thread_map"]
 
 T = TypeVar("T")
@@ -38,7 +40,7 @@ def single_blas(func):
     return wrapper
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _touch(n):  # pragma: no cover - compiled
     total = 0
     for i in numba.prange(n):

@@ -21,10 +21,12 @@ import numba
 import numpy as np
 from scipy import ndimage
 
+from volreg._jit import njit
+
 __all__ = ["VoxelDistance", "clipped_signed_distance"]
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _mirror(i: int, n: int) -> int:
     """Index ``i`` reflected into ``[0, n)`` (scipy.ndimage's ``mirror`` mode)."""
     if n == 1:
@@ -36,7 +38,7 @@ def _mirror(i: int, n: int) -> int:
     return i if i < n else period - i
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _axis(x: float, n: int, idx, w, d, s) -> None:
     """Stencil of the cubic B-spline on one axis at continuous index ``x``: the four
     indices ``idx``, weights ``w`` and their first and second derivatives ``d``, ``s``.
@@ -74,7 +76,7 @@ def _axis(x: float, n: int, idx, w, d, s) -> None:
         idx[k] = _mirror(base - 1 + k, n)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, fastmath=True)
 def _bspline3(coef, index, order, f, g, h):  # pragma: no cover - compiled
     """Cubic B-spline with coefficients ``coef`` (nx, ny, nz) at continuous indices
     ``index`` (N, 3): value ``f`` (N,), and for ``order`` >= 1 the gradient ``g``
@@ -139,7 +141,7 @@ def _bspline3(coef, index, order, f, g, h):  # pragma: no cover - compiled
             h[p, 2, 1] = hyz
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _clipped_sdf_band(mask, band, offsets, lengths, clip, out):  # pragma: no cover - compiled
     """Signed distance of each voxel of ``band`` to the nearest voxel of the other kind
     (inside/outside ``mask``), scanning ``offsets`` (K, 3) in order of their ``lengths``

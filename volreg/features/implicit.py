@@ -28,12 +28,12 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
-import numba
 import numpy as np
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 import scipy.sparse as sp
 
+from volreg._jit import njit
 from volreg.kernels import CellGrid, _check_points, kernel_matrix, kernel_sum, put_rows, spatial_order, take_rows
 
 __all__ = ["ImplicitSurface", "ImplicitLevel", "estimate_normals", "thin_points"]
@@ -161,7 +161,7 @@ def _offsurface(points, normals, delta, tree) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(pts), np.concatenate(vals)
 
 
-@numba.njit(cache=True, nogil=True)  # nogil: labels are fitted on parallel threads
+@njit(nogil=True)  # nogil: labels are fitted on parallel threads
 def _svr_coordinate_descent(indptr, indices, data, y, eps, box, beta, kbeta, max_sweeps, tol):
     """Cyclic coordinate descent on the fixed-offset SVR dual (in place).
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from volreg._jit import njit
 from volreg.kernels.wu import wu_terms
 
 #: Queries per parallel work item of the searched loops (scratch arrays are allocated per item).
@@ -35,7 +36,7 @@ _MIN_MEAN_BLOCK = 8.0
 # Cells and neighbour ranges
 
 
-@numba.njit(cache=True)
+@njit
 def _cell_sort(points, lo, cell, dims):
     """Stable counting sort of points by row-major cell index, O(M + n_cells).
 
@@ -79,7 +80,7 @@ def _cell_sort(points, lo, cell, dims):
     return order, start
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _gap2(x, lo_c, cell):
     """Squared distance (mm^2) from coordinate ``x`` to the interval ``[lo_c, lo_c + cell]``."""
     if x < lo_c:
@@ -89,7 +90,7 @@ def _gap2(x, lo_c, cell):
     return 0.0
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _axis_range(x, radius, lo, cell, n):
     """Cells ``(first, last)`` of one axis (``n`` cells from ``lo``) that can hold points
     within ``radius`` of ``x``; empty when ``first > last``."""
@@ -100,7 +101,7 @@ def _axis_range(x, radius, lo, cell, n):
     return np.int64(first), np.int64(last)
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _candidate_ranges(x, lo, cell, dims, radius, start, ranges):
     """Runs of grid points that may lie within ``radius`` of ``x`` (D = 2 or 3).
 
@@ -150,7 +151,7 @@ def _candidate_ranges(x, lo, cell, dims, radius, start, ranges):
 # Blocks of nearby queries and the centres they share
 
 
-@numba.njit(cache=True)
+@njit
 def _query_blocks(queries, width, max_size):
     """Split consecutive queries into blocks of nearby ones.
 
@@ -199,7 +200,7 @@ def _query_blocks(queries, width, max_size):
     return starts[: nb + 1]
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _block_box(queries, q0, q1, dim3):
     """Bounding box ``(l0, h0, l1, h1, l2, h2)`` (mm) of ``queries[q0:q1]`` (z = 0 in 2-D)."""
     l0 = queries[q0, 0]
@@ -219,7 +220,7 @@ def _block_box(queries, q0, q1, dim3):
     return l0, h0, l1, h1, l2, h2
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3):
     """Cell ranges ``(i0, i1, j0, j1, k0, k1)`` of the box dilated by ``sigma``.
 
@@ -237,7 +238,7 @@ def _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3):
     return i0, i1, np.int64(0), np.int64(0), j0, j1
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _gather_block(queries, q0, q1, dim3, px, py, pz, coef, start, lo, cell, dims, sigma, buf):
     """Copy the centres within ``sigma`` of the bounding box of ``queries[q0:q1]`` into ``buf``.
 
@@ -291,7 +292,7 @@ def _gather_block(queries, q0, q1, dim3, px, py, pz, coef, start, lo, cell, dims
 # as a constant argument compiled to slower loops.
 
 
-@numba.njit(cache=True, fastmath=True, inline="always")
+@njit(fastmath=True, inline="always")
 def _run_value(x0, x1, x2, px, py, pz, coef, begin, end, inv_s2):
     """``sum_p a_p k(|x - p| / sigma)`` over points ``begin:end``.
 
@@ -321,7 +322,7 @@ def _run_value(x0, x1, x2, px, py, pz, coef, begin, end, inv_s2):
     return v
 
 
-@numba.njit(cache=True, fastmath=True, inline="always")
+@njit(fastmath=True, inline="always")
 def _run_value_grad(x0, x1, x2, px, py, pz, coef, begin, end, inv_s2):
     """:func:`_run_value` and the gradient: ``v, g0, g1, g2`` (gradient in 1/mm)."""
     v = 0.0
@@ -342,7 +343,7 @@ def _run_value_grad(x0, x1, x2, px, py, pz, coef, begin, end, inv_s2):
     return v, g0, g1, g2
 
 
-@numba.njit(cache=True, fastmath=True, inline="always")
+@njit(fastmath=True, inline="always")
 def _run_value_grad_hess(x0, x1, x2, px, py, pz, coef, begin, end, inv_s2):
     """:func:`_run_value_grad` and the Hessian.
 
@@ -387,7 +388,7 @@ def _run_value_grad_hess(x0, x1, x2, px, py, pz, coef, begin, end, inv_s2):
     return v, g0, g1, g2, gs, a00, a01, a02, a11, a12, a22
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _add_value_grad(q, dim3, val, grad, v, g0, g1, g2):
     """Add one query's value and gradient sums to ``val`` (N, 1) and ``grad`` (N, 1, D)."""
     val[q, 0] += v
@@ -397,7 +398,7 @@ def _add_value_grad(q, dim3, val, grad, v, g0, g1, g2):
         grad[q, 0, 2] += g2
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def _add_value_grad_hess(q, dim3, val, grad, hess, v, g0, g1, g2, gs, a00, a01, a02, a11, a12, a22):
     """Add one query's sums (as :func:`_run_value_grad_hess` returns them) to ``val``
     (N, 1), ``grad`` (N, 1, D) and ``hess`` (N, 1, D, D)."""
@@ -421,7 +422,7 @@ def _add_value_grad_hess(q, dim3, val, grad, hess, v, g0, g1, g2, gs, a00, a01, 
 # The kernel-sum loops (which serves which case: ``volreg.kernels.sums._LOOPS``)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, fastmath=True)
 def _blocked_sum(queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigma, val, grad):
     """Kernel sums up to order 1 for scalar coefficients, one neighbour search per block of queries.
 
@@ -472,7 +473,7 @@ def _blocked_sum(queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigm
                     val[q, 0] += _run_value(x0, x1, x2, cx, cy, cz, ca, 0, c, inv_s2)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, fastmath=True)
 def _blocked_sum_hessian(queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigma, val, grad, hess):
     """:func:`_blocked_sum` at order 2: adds to ``val`` (N, 1), ``grad`` (N, 1, D) and
     ``hess`` (N, 1, D, D).
@@ -504,7 +505,7 @@ def _blocked_sum_hessian(queries, bstarts, px, py, pz, coef, start, lo, cell, di
                                      r[8], r[9], r[10])
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, fastmath=True)
 def _blocked_sum_vector(queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigma, val, grad):
     """:func:`_blocked_sum` for 2- or 3-vector coefficients (warps), order 0 or 1.
 
@@ -605,7 +606,7 @@ def _blocked_sum_vector(queries, bstarts, px, py, pz, coef, start, lo, cell, dim
                             grad[q, 2, 2] += g22
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, fastmath=True)
 def _searched_sum(queries, px, py, pz, coef, start, lo, cell, dims, max_runs, sigma, val, grad):
     """Kernel sums up to order 1 for scalar coefficients, one neighbour search per query.
 
@@ -646,7 +647,7 @@ def _searched_sum(queries, px, py, pz, coef, start, lo, cell, dims, max_runs, si
                 val[q, 0] += v
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, fastmath=True)
 def _searched_sum_hessian(queries, px, py, pz, coef, start, lo, cell, dims, max_runs, sigma, val, grad, hess):
     """:func:`_searched_sum` at order 2 (a loop of its own for the reason given at
     :func:`_blocked_sum_hessian`)."""
@@ -679,7 +680,7 @@ def _searched_sum_hessian(queries, px, py, pz, coef, start, lo, cell, dims, max_
             _add_value_grad_hess(q, dim3, val, grad, hess, v, g0, g1, g2, gs, a00, a01, a02, a11, a12, a22)
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _strict_sum(queries, gpts, gcoef, start, lo, cell, dims, max_runs, sigma, order, val, grad, hess):
     """Kernel sums for any number of coefficient columns and any order (strict arithmetic).
 
@@ -744,7 +745,7 @@ def _strict_sum(queries, gpts, gcoef, start, lo, cell, dims, max_runs, sigma, or
 # Kernel matrices and products with matrices sharing one sparsity pattern
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _grid_pairs(queries, gpts, gorder, start, lo, cell, dims, max_runs, sigma, indptr, indices, data, fill):
     """Count or write the rows of the sparse kernel matrix ``k(|queries_i - gpts_j| / sigma)``.
 
@@ -777,7 +778,7 @@ def _grid_pairs(queries, gpts, gorder, start, lo, cell, dims, max_runs, sigma, i
                 indptr[q + 1] = w
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _csr_matmul_shared(indptr, indices, data, x):
     """``out[i, a, b] = sum_e data[e, b] x[indices[e], a]`` over row i's entries.
 
@@ -816,7 +817,7 @@ def _csr_matmul_shared(indptr, indices, data, x):
     return out
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _csr_matmul_shared_sum(indptr, indices, data, y):
     """``out[i, a] = sum_e sum_b data[e, b] y[indices[e], a, b]``, i.e. ``sum_b A_b @ y[:, :, b]``.
 
@@ -850,7 +851,7 @@ def _csr_matmul_shared_sum(indptr, indices, data, y):
 # Row permutations
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True)
 def take_rows(x, perm):
     """``x[perm]`` for a 2-D array, in parallel.
 
@@ -870,7 +871,7 @@ def take_rows(x, perm):
     return out
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True)
 def put_rows(src, perm):
     """The inverse of :func:`take_rows`: ``out[perm] = src``, in parallel.
 

@@ -29,8 +29,9 @@ smoothness          C^2, for points in up to three dimensions
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from volreg._jit import njit
 
 __all__ = ["wu", "wu_derivatives", "wu_slope", "wu_terms"]
 
@@ -103,7 +104,7 @@ def wu_derivatives(d: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray,
     return value, gradient, hessian
 
 
-@numba.njit(cache=True, inline="always")
+@njit(inline="always")
 def wu_terms(a, r, t):
     """The Wu kernel (13) and its derivative profiles, scaled by a coefficient; for compiled loops.
 
