@@ -59,6 +59,9 @@ _API = {
     "InverseWarp": "volreg.warp.inverse",
     "resample_labels": "volreg.warp.resample",
     "displacement_on_grid": "volreg.warp.field",
+    "transform_points": "volreg.warp.points",
+    "transform_normals": "volreg.warp.points",
+    "DisplacementField": "volreg.warp.points",
     # evaluation
     "label_scores": "volreg.evaluation.metrics",
     "review_registration": "volreg.evaluation.review",

@@ -1,4 +1,4 @@
-"""``volreg apply``: resample an image onto a reference grid through a saved warp."""
+"""``volreg apply``: carry an image, landmarks or a mesh through a saved warp."""
 
 from __future__ import annotations
 
@@ -8,43 +8,158 @@ from pathlib import Path
 
 import numpy as np
 
-from volreg.cli._common import PROG
+from volreg.cli._common import PROG, _warn
 from volreg.errors import UsageError
 from volreg.grid import Grid
-from volreg.io import read_grid, read_image, read_labels, write_labels, write_scalar
+from volreg.io import check_writable, read_grid, read_image, read_labels, write_labels, write_scalar
 from volreg.io.fields import read_displacement, read_itk_linear
+from volreg.io.images import READ_SUFFIXES
+from volreg.io.pointsets import MESH_FORMATS, POINT_SUFFIXES, check_same_format, point_set_kind, read_point_set, write_point_set
 from volreg.progress import ProgressBars
 from volreg.warp.field import displacement_on_grid, linear_displacement_on_grid
 from volreg.warp.model import KernelWarp
+from volreg.warp.points import DisplacementField, transform_normals, transform_points
 from volreg.warp.resample import resample_image, resample_labels
 
 __all__ = ["add_parser", "run"]
+
+#: What ``--from`` says about INPUT's points, and where they go.
+_DIRECTIONS = {"fixed": "fixed -> moving space", "moving": "moving -> fixed space"}
 
 
 def add_parser(commands) -> None:
     """Add ``apply`` to the ``volreg`` subcommands."""
     apply = commands.add_parser(
         "apply",
-        help="warp an image with a saved result",
-        description="Resample IMAGE (labels or intensities) onto the grid of REF through a saved warp: "
-        "a model.npz or an ANTs/ITK displacement field (warp.nii.gz) from `volreg register`, or an ITK "
-        "linear transform (.tfm, .txt, .mat).",
+        help="carry an image, landmarks or a mesh through a saved result",
+        description="Carry INPUT through a saved warp: a model.npz or displacement field (warp.nii.gz, "
+        "inverse_warp.nii.gz) from `volreg register`, or an ITK linear transform (.tfm, .txt, .mat). "
+        "An image (in moving space) is resampled onto the grid of --reference (fixed space). Landmarks "
+        "(.csv, .fcsv, .mrk.json) and meshes (.vtk, .vtp, .ply, .stl, .obj, .gii) are moved point by point; "
+        "--from names the space they are in: fixed (carried to moving space by tau: model.npz, warp.nii.gz or "
+        "the linear transform) or moving (carried to fixed space by the inverse: model.npz, inverse_warp.nii.gz "
+        "or the linear transform). A displacement field is applied as it is, p + u(p): give the field of the "
+        "direction you want.",
     )
     apply.add_argument("warp", metavar="MODEL_OR_WARP", type=Path,
-                       help="model.npz, warp.nii.gz or an ITK linear transform (.tfm, .txt, .mat)")
-    apply.add_argument("image", metavar="IMAGE", type=Path, help="image in moving space")
-    apply.add_argument("--reference", metavar="REF", type=Path, required=True, help="image whose grid the output takes (fixed space)")
-    apply.add_argument("-o", "--output", metavar="OUT", type=Path, required=True, help="output image (.nii.gz, .nii, .nrrd, .mha)")
-    apply.add_argument("--interpolation", choices=("label", "nearest", "linear", "bspline"), default="label",
-                       help="label: label-preserving (per-label signed distances, default); nearest; linear or bspline "
-                       "for intensity images (written as float32)")
+                       help="model.npz, a displacement field (warp.nii.gz: fixed -> moving; inverse_warp.nii.gz: "
+                       "moving -> fixed) or an ITK linear transform (.tfm, .txt, .mat)")
+    apply.add_argument("image", metavar="INPUT", type=Path,
+                       help="image in moving space, or landmarks / mesh in the space --from names")
+    apply.add_argument("--from", dest="space", choices=tuple(_DIRECTIONS), default=None,
+                       help="landmarks and meshes only (required for them): the space INPUT's points are in; they are "
+                       "written in the other one")
+    apply.add_argument("--reference", metavar="REF", type=Path, default=None,
+                       help="images only (required for them): image whose grid the output takes (fixed space)")
+    apply.add_argument("-o", "--output", metavar="OUT", type=Path, required=True,
+                       help="output: an image (.nii.gz, .nii, .nrrd, .mha), or points / mesh in INPUT's format")
+    apply.add_argument("--interpolation", choices=("label", "nearest", "linear", "bspline"), default=None,
+                       help="images only: label: label-preserving (per-label signed distances, default); nearest; "
+                       "linear or bspline for intensity images (written as float32)")
     apply.add_argument("--force", action="store_true", help="overwrite an existing output")
     apply.add_argument("--quiet", action="store_true", help="no progress bars")
     apply.set_defaults(run=run)
 
 
+def _kind(path: Path) -> str:
+    """``"points"``, ``"mesh"`` or ``"image"`` by INPUT's suffix; a one-line error for any other."""
+    kind = point_set_kind(path)
+    if kind in ("csv", "fcsv", "mrk.json"):
+        return "points"
+    if kind is not None:
+        return "mesh"
+    if path.name.lower().endswith(READ_SUFFIXES):
+        return "image"
+    raise UsageError(f"INPUT `{path}` has an unsupported suffix; expected an image ({', '.join(READ_SUFFIXES)}), "
+                     f"points ({', '.join(POINT_SUFFIXES)}) or a mesh ({', '.join(MESH_FORMATS)}).")
+
+
 def run(args: argparse.Namespace) -> int:
-    """``volreg apply MODEL_OR_WARP IMAGE --reference REF -o OUT``."""
+    """``volreg apply MODEL_OR_WARP INPUT (--reference REF | --from fixed|moving) -o OUT``."""
+    kind = _kind(args.image)
+    if kind == "image":
+        if args.space is not None:
+            raise UsageError(f"--from is for landmarks and meshes; an image (`{args.image}`) is always resampled from "
+                             "moving space onto the grid of --reference (fixed space): drop --from.")
+        if args.reference is None:
+            raise UsageError(f"--reference is required for an image (`{args.image}`); expected the fixed image whose "
+                             "grid the output takes.")
+        return _run_image(args)
+    if args.space is None:
+        raise UsageError(f"--from is required for {kind} `{args.image}`; expected --from fixed (its points are in the "
+                         "fixed image's space, carried to moving space) or --from moving (carried to fixed space).")
+    if args.reference is not None:
+        raise UsageError(f"--reference is for images; {kind} `{args.image}` is carried point by point without a grid: "
+                         "drop --reference.")
+    if args.interpolation is not None:
+        raise UsageError(f"--interpolation is for images; {kind} `{args.image}` is carried point by point: "
+                         "drop --interpolation.")
+    return _run_points(args, kind)
+
+
+def _read_warp(path: Path, space: str):
+    """The map to apply and whether to invert it: (KernelWarp | LinearMap | DisplacementField, inverse)."""
+    name = path.name.lower()
+    if name.endswith(".npz"):
+        return KernelWarp.load(path), space == "moving"
+    if name.endswith((".tfm", ".txt", ".mat")):
+        return read_itk_linear(path), space == "moving"
+    if name.endswith((".nii", ".nii.gz")):
+        u, grid = read_displacement(path)
+        inverse_name = "inverse" in name
+        if space == "fixed" and inverse_name:
+            _warn("apply", f"`{path}` is applied as it is (p + u(p)); with --from fixed it must be the fixed -> moving "
+                  "field on the fixed grid (warp.nii.gz), but its name suggests the inverse field.")
+        elif space == "moving" and not inverse_name:
+            _warn("apply", f"`{path}` is applied as it is (p + u(p)); with --from moving it must be the moving -> fixed "
+                  "field on the moving grid (inverse_warp.nii.gz, ANTs' *InverseWarp.nii.gz), but its name does not "
+                  "say inverse.")
+        return DisplacementField(u, grid), False
+    raise UsageError(f"MODEL_OR_WARP `{path}` must be a model.npz, a displacement field .nii/.nii.gz "
+                     "or an ITK linear transform .tfm/.txt/.mat.")
+
+
+def _run_points(args: argparse.Namespace, kind: str) -> int:
+    """Landmarks or a mesh, carried point by point."""
+    start = time.perf_counter()
+    check_same_format(args.image, args.output)
+    check_writable([args.output], force=args.force)
+    data = read_point_set(args.image)
+    warp, inverse = _read_warp(args.warp, args.space)
+    dim = warp.dim
+    placed = np.flatnonzero(~np.all(np.isnan(data.points), axis=1))
+    at = data.points[placed][:, :dim]
+    mapped = transform_points(warp, at, inverse=inverse)
+    out = data.points.copy()
+    out[placed, :dim] = mapped.points
+    what = "points" if kind == "points" else "vertices"
+    n_out = int(np.count_nonzero(mapped.outside))
+    if n_out:
+        _warn("apply", f"{n_out} of {len(at)} {what} lie outside the grid of `{args.warp}`; they are left where they "
+              "are (zero displacement there, as ITK does).")
+    n_bad = int(np.count_nonzero(~mapped.converged))
+    if n_bad:
+        _warn("apply", f"the inverse of `{args.warp}` did not converge at {n_bad} of {len(at)} {what} (largest "
+              f"residual {float(mapped.residual.max()):.3g} mm); the warp may fold there.")
+    normals = None
+    if data.normals is not None:
+        nv = data.normals[placed]
+        moved = transform_normals(warp, at, nv[:, :dim], inverse=inverse, mapped=mapped.points, keep_length=False)
+        normals = nv.copy()
+        normals[:, :dim] = moved
+        length, new = np.linalg.norm(nv, axis=1), np.linalg.norm(normals, axis=1)
+        normals *= np.divide(length, new, out=np.zeros_like(length), where=new > 0)[:, None]
+    for item in data.dropped:
+        _warn("apply", f"{item} of `{args.image}` are not written (they would no longer fit the moved mesh).")
+    write_point_set(data, out, args.output, normals=normals, force=args.force)
+    print(f"{PROG} apply: {args.image} ({len(placed)} {what}, {_DIRECTIONS[args.space]}) -> {args.output} "
+          f"in {time.perf_counter() - start:.1f} s")
+    return 0
+
+
+def _run_image(args: argparse.Namespace) -> int:
+    """An image in moving space, resampled onto the grid of --reference."""
+    interpolation = args.interpolation or "label"
     start = time.perf_counter()
     reference = read_grid(args.reference)
     at = reference.grid_points()  # (X, Y, Z, 3) mm
@@ -71,14 +186,14 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"MODEL_OR_WARP `{args.warp}` must be a model.npz, a displacement field .nii/.nii.gz "
                              "or an ITK linear transform .tfm/.txt/.mat.")
         points = at + u
-        if args.interpolation in ("label", "nearest"):
+        if interpolation in ("label", "nearest"):
             image = read_labels(args.image)
-            out = resample_labels(image, points, method=args.interpolation, progress=progress)
+            out = resample_labels(image, points, method=interpolation, progress=progress)
             write_labels(reference.with_array(out.astype(image.array.dtype, copy=False)), args.output, force=args.force)
         else:
             array, origin, spacing, direction = read_image(args.image)
-            values = resample_image(array, Grid(array.shape, origin, spacing, direction), points, order=1 if args.interpolation == "linear" else 3)
+            values = resample_image(array, Grid(array.shape, origin, spacing, direction), points, order=1 if interpolation == "linear" else 3)
             write_scalar(values, reference, args.output, force=args.force)
-    print(f"{PROG} apply: {args.image} -> {args.output} ({args.interpolation}) in {time.perf_counter() - start:.1f} s")
+    print(f"{PROG} apply: {args.image} -> {args.output} ({interpolation}) in {time.perf_counter() - start:.1f} s")
     return 0
 

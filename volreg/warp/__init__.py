@@ -19,4 +19,6 @@ field
     A warp sampled on a voxel grid: displacement fields and Jacobian determinants.
 resample
     Label-preserving and intensity resampling of images at warped points.
+points
+    Landmarks and mesh vertices carried through a warp, a linear map or a displacement field, either way.
 """
