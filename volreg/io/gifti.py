@@ -153,7 +153,7 @@ def _intent(darray) -> str:
     return str(intent_codes.niistring[darray.intent])
 
 
-def read_gifti_surface(path: str | os.PathLike[str]):
+def read_gifti_surface(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, GiftiSurfaceMeta]:
     """Read a GIFTI surface: its POINTSET (RAS mm, converted to LPS), TRIANGLE array and metadata.
 
     Parameters
@@ -164,9 +164,10 @@ def read_gifti_surface(path: str | os.PathLike[str]):
 
     Returns
     -------
-    SurfaceData
-        ``vertices`` (N, 3) LPS mm, ``triangles`` (F, 3) int, ``normals`` None,
-        no arrays, and ``gifti`` (:class:`GiftiSurfaceMeta`).
+    vertices : (N, 3) float ndarray, mm (LPS)
+    triangles : (F, 3) int ndarray
+        F = 0 for a point cloud.
+    meta : GiftiSurfaceMeta
 
     Raises
     ------
@@ -175,8 +176,6 @@ def read_gifti_surface(path: str | os.PathLike[str]):
         surface), a POINTSET not of shape (N, 3), or faces that are not
         triangles.
     """
-    from volreg.io.meshes import SurfaceData
-
     p = Path(path)
     img = _load(p, "Surface")
     points = [d for d in img.darrays if _intent(d) == _POINTSET]
@@ -209,7 +208,7 @@ def read_gifti_surface(path: str | os.PathLike[str]):
         xformspace=int(coordsys.xformspace) if coordsys is not None else 0,
         xform=np.array(coordsys.xform, dtype=float) if coordsys is not None else np.eye(4),
     )
-    return SurfaceData(xyz * _FLIP, tri, None, {}, gifti=meta)
+    return xyz * _FLIP, tri, meta
 
 
 def read_gifti_data(path: str | os.PathLike[str], n_vertices: int, surface: str) -> tuple[str, np.ndarray, GiftiArrayMeta]:

@@ -20,7 +20,7 @@ import pyvista as pv
 
 from volreg.errors import VolregIOError, VolregWarning
 from volreg.io._atomic import atomic_output
-from volreg.io.gifti import GiftiSurfaceMeta, read_gifti_surface, write_gifti
+from volreg.io.gifti import GiftiSurfaceMeta, is_gifti, read_gifti_data, read_gifti_surface, write_gifti
 
 __all__ = ["write_mesh", "read_mesh", "read_surface", "write_gifti", "add_vertex_data", "SurfaceData"]
 
@@ -189,15 +189,15 @@ def read_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.
     if not p.is_file():
         raise VolregIOError(f"Mesh `{p}` is not a regular file.")
     if p.suffix.lower() == ".gii":
-        surface = read_gifti_surface(p)
-        if len(surface.triangles) == 0:
+        vertices, triangles, _ = read_gifti_surface(p)
+        if len(triangles) == 0:
             raise VolregIOError(f"Mesh `{p}` has no triangles (a POINTSET alone); expected a surface.")
-        if not np.all(np.isfinite(surface.vertices)):
+        if not np.all(np.isfinite(vertices)):
             raise VolregIOError(f"Mesh `{p}` has vertices with NaN/Inf coordinates; expected finite points.")
-        if surface.triangles.min() < 0 or surface.triangles.max() >= len(surface.vertices):
+        if triangles.min() < 0 or triangles.max() >= len(vertices):
             raise VolregIOError(f"Mesh `{p}` has triangles indexing missing vertices; expected indices below "
-                                f"{len(surface.vertices)}.")
-        return surface.vertices, surface.triangles, None
+                                f"{len(vertices)}.")
+        return vertices, triangles, None
     _mesh_suffix(p, "Mesh")
 
     quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else nullcontext()
@@ -294,8 +294,6 @@ def add_vertex_data(surface: SurfaceData, paths, role: str) -> None:
         A file that is not GIFTI data, has not one value per vertex, or whose
         name is already an array of ``surface``.
     """
-    from volreg.io.gifti import is_gifti, read_gifti_data
-
     for path in paths:
         p = Path(path)
         if not is_gifti(p):
@@ -338,7 +336,8 @@ def read_surface(path: str | os.PathLike[str]) -> SurfaceData:
     if suffix not in SURFACE_SUFFIXES:
         raise VolregIOError(f"Surface `{p}` has unsupported suffix {suffix!r}; expected one of {', '.join(SURFACE_SUFFIXES)}.")
     if suffix == ".gii":
-        out = read_gifti_surface(p)
+        vertices, triangles, meta = read_gifti_surface(p)
+        out = SurfaceData(vertices, triangles, None, {}, gifti=meta)
     else:
         quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else nullcontext()
         with warnings.catch_warnings(record=True) as caught:
