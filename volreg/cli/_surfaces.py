@@ -1,25 +1,48 @@
-"""What ``volreg register-surfaces``, ``morph`` and ``transfer`` share: reading surfaces, registering them, saved models."""
+"""What ``volreg register-surfaces``, ``morph`` and ``transfer`` share: reading surfaces, registering them,
+writing them (VTK in LPS, GIFTI in RAS), saved models and plausibility warnings."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
 
+from volreg.cli._common import _warn
 from volreg.errors import UsageError
+from volreg.evaluation.review import Finding
 from volreg.io import write_mesh
-from volreg.io.meshes import SurfaceData, read_surface
+from volreg.io.gifti import GiftiArrayMeta, is_gifti, write_gifti
+from volreg.io.meshes import SurfaceData, add_vertex_data, read_surface
 from volreg.morph import surface_normals
 from volreg.register import register_surfaces
 from volreg.warp.model import KernelWarp
 
+#: The frame of each kind of surface output, as the reports state it.
+FRAMES = {".vtk": "LPS mm", ".gii": "RAS mm", ".csv": "LPS mm"}
 
-def _read(path: Path, role: str) -> SurfaceData:
-    """The surface (mesh or point cloud) at ``path``, with at least 10 vertices; ``role`` names it in errors."""
-    data = read_surface(path)
-    if len(data.vertices) < 10:
-        raise UsageError(f"{role} `{path}` has {len(data.vertices)} vertices; expected at least 10 to fit a surface.")
-    return data
+
+def _add_data_options(parser, *roles: str) -> None:
+    """``--source-data`` / ``--target-data FILE ...``: GIFTI per-vertex data files of SOURCE / TARGET."""
+    for role in roles:
+        parser.add_argument(f"--{role}-data", metavar="FILE", nargs="+", action="extend", type=Path, default=[],
+                            help=f"GIFTI data files (.shape.gii .func.gii .label.gii) over the vertices of {role.upper()}; "
+                            "each is an array named after its file (lh.thickness for lh.thickness.shape.gii)")
+
+
+def _read(path: Path, role: str, data=()) -> SurfaceData:
+    """The surface (mesh or point cloud) at ``path`` with the arrays of the GIFTI ``data`` files, with at
+    least 10 vertices; ``role`` names it in errors."""
+    surface = read_surface(path)
+    if len(surface.vertices) < 10:
+        raise UsageError(f"{role} `{path}` has {len(surface.vertices)} vertices; expected at least 10 to fit a surface.")
+    add_vertex_data(surface, data, f"{role} `{path}`")
+    return surface
+
+
+def _wants_gifti(args, source_path: Path) -> bool:
+    """Whether to write GIFTI outputs: SOURCE is GIFTI, or ``--gifti`` was given."""
+    return bool(getattr(args, "gifti", False)) or is_gifti(source_path)
 
 
 def _register(source: SurfaceData, target: SurfaceData, protocol, landmarks, progress) -> KernelWarp:
@@ -30,8 +53,39 @@ def _register(source: SurfaceData, target: SurfaceData, protocol, landmarks, pro
 
 
 def _write_surface(path: Path, data: SurfaceData, vertices: np.ndarray, arrays: dict, force: bool) -> None:
-    """``data``'s faces with moved ``vertices`` and per-vertex ``arrays``, written to ``path``."""
+    """``data``'s faces with moved ``vertices`` (LPS mm) and per-vertex ``arrays``: VTK/VTP in LPS."""
     write_mesh(vertices, data.triangles, path, point_data=arrays or None, force=force, allow_points=True)
+
+
+def _write_gifti_surface(path: Path, data: SurfaceData, vertices: np.ndarray, force: bool) -> None:
+    """``data``'s faces with moved ``vertices`` (LPS mm) as a GIFTI surface in RAS, with ``data``'s metadata."""
+    write_gifti(vertices, data.triangles, path, meta=data.gifti, force=force)
+
+
+def _is_label(surface: SurfaceData, name: str) -> bool:
+    """Whether ``surface``'s array ``name`` holds labels: integers, or a GIFTI label array."""
+    meta = surface.array_meta.get(name)
+    return np.asarray(surface.arrays[name]).dtype.kind in "iub" or (meta is not None and meta.is_label)
+
+
+def _data_meta(surface: SurfaceData, name: str) -> GiftiArrayMeta:
+    """The GIFTI metadata of ``surface``'s array ``name`` (a bare one for arrays not read from GIFTI)."""
+    meta = surface.array_meta.get(name)
+    if meta is not None:
+        return meta
+    return GiftiArrayMeta(kind="label" if _is_label(surface, name) else "shape")
+
+
+def _data_file_name(stem: str, name: str, meta: GiftiArrayMeta) -> str:
+    """``<stem>.<name>.<kind>.gii``, with characters unsafe in file names replaced by ``_``."""
+    safe = re.sub(r"[^A-Za-z0-9._+-]", "_", name) or "array"
+    return f"{stem}.{safe}.{meta.kind}.gii"
+
+
+def _warn_findings(command: str, findings: list[Finding]) -> None:
+    """One warning line on stderr per finding."""
+    for finding in findings:
+        _warn(command, finding.message)
 
 
 def _load_model(result: Path) -> KernelWarp:

@@ -9,10 +9,12 @@ from pathlib import Path
 import numpy as np
 
 from volreg.cli._common import PROG
-from volreg.cli._surfaces import _load_model, _read, _register, _write_surface
+from volreg.cli._surfaces import (_add_data_options, _data_file_name, _data_meta, _is_label, _load_model, _read,
+                                  _register, _wants_gifti, _write_gifti_surface, _write_surface)
 from volreg.errors import UsageError
 from volreg.io import check_writable
 from volreg.io._atomic import output_folder
+from volreg.io.gifti import write_gifti_data
 from volreg.io.protocol import load_protocol
 from volreg.morph import morph_vertices, transfer_values
 from volreg.progress import ProgressBars
@@ -25,8 +27,10 @@ def add_parser(commands) -> None:
     morph = commands.add_parser(
         "morph",
         help="frames of the morph from SOURCE to TARGET",
-        description="Meshes along v + t (tau(v) - v) for t from 0 to 1 (frame_000.vtk ...), with per-vertex arrays "
-        "that both surfaces carry interpolated, rendered off-screen to frame_000.png ... and morph.gif.",
+        description="Meshes along v + t (tau(v) - v) for t from 0 to 1 (frame_000.vtk ..., LPS mm), with per-vertex "
+        "arrays that both surfaces carry interpolated (labels switch at t = 0.5), rendered off-screen to "
+        "frame_000.png ... and morph.gif; when SOURCE is GIFTI or with --gifti also frame_000.surf.gii ... (RAS mm) "
+        "and the arrays as frame_000.<name>.<kind>.gii.",
     )
     morph.add_argument("source", metavar="SOURCE", type=Path)
     morph.add_argument("target", metavar="TARGET", type=Path)
@@ -35,6 +39,8 @@ def add_parser(commands) -> None:
     morph.add_argument("--from-result", metavar="OUTDIR", type=Path, default=None,
                        help="use the model.npz of a `volreg register-surfaces` OUTDIR instead of registering")
     morph.add_argument("--protocol", metavar="NAME|FILE", default="default", help="protocol when registering")
+    _add_data_options(morph, "source", "target")
+    morph.add_argument("--gifti", action="store_true", help="also write GIFTI frames (RAS) when SOURCE is not GIFTI")
     morph.add_argument("--force", action="store_true", help="write into an existing OUTDIR, replacing outputs")
     morph.add_argument("--quiet", action="store_true", help="no progress bars")
     morph.set_defaults(run=run)
@@ -82,13 +88,21 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     if args.frames < 2:
         raise UsageError(f"--frames {args.frames}: expected at least 2 frames (the source and the warped source).")
-    source = _read(args.source, "SOURCE")
-    target = _read(args.target, "TARGET")
+    source = _read(args.source, "SOURCE", args.source_data)
+    target = _read(args.target, "TARGET", args.target_data)
     warp = _load_model(args.from_result) if args.from_result is not None else None
     protocol = load_protocol(args.protocol) if warp is None else None
     outdir: Path = args.output
     names = [f"frame_{k:03d}" for k in range(args.frames)]
+    gifti = _wants_gifti(args, args.source)
+    shared = sorted(set(source.arrays) & set(target.arrays))
+    shared = [name for name in shared if np.shape(source.arrays[name]) == (len(source.vertices),)
+              + np.shape(target.arrays[name])[1:]]
+    data_names = {name: {n: _data_file_name(n, name, _data_meta(source, name)) for n in names} for name in shared}
     paths = [outdir / f"{n}.vtk" for n in names] + [outdir / f"{n}.png" for n in names] + [outdir / "morph.gif"]
+    if gifti:
+        paths += [outdir / f"{n}.surf.gii" for n in names]
+        paths += [outdir / file for files in data_names.values() for file in files.values()]
     with output_folder(outdir, args.force) as folder:
         check_writable(paths, force=args.force)
         if warp is None:
@@ -96,23 +110,33 @@ def run(args: argparse.Namespace) -> int:
                 warp = _register(source, target, protocol, None, progress)
         warped = warp(source.vertices)
         frames = morph_vertices(source.vertices, warped, args.frames, linear=warp.linear)
-        shared = sorted(set(source.arrays) & set(target.arrays))
         ts = np.linspace(0.0, 1.0, args.frames)
         colours = None
         per_frame_arrays = [dict() for _ in frames]
         for name in shared:
-            a = np.asarray(source.arrays[name], float)
-            b = np.asarray(transfer_values(warped, target.vertices, target.triangles, target.arrays[name]), float)
-            if a.shape != b.shape:
-                continue
+            label = _is_label(source, name) or _is_label(target, name)
+            a = np.asarray(source.arrays[name])
+            b = np.asarray(transfer_values(warped, target.vertices, target.triangles, target.arrays[name],
+                                           method="nearest" if label else "barycentric"))
             for k, t in enumerate(ts):
-                per_frame_arrays[k][name] = (1 - t) * a + t * b
+                # labels are not blended: the source's up to half-way, the target's after
+                per_frame_arrays[k][name] = (a if t < 0.5 else b) if label else (1 - t) * a.astype(float) + t * b.astype(float)
         if shared and per_frame_arrays[0]:
             first = next(iter(per_frame_arrays[0]))
-            colours = [arr[first] if arr[first].ndim == 1 else np.linalg.norm(arr[first], axis=1) for arr in per_frame_arrays]
+            colours = [np.asarray(arr[first], float) if np.ndim(arr[first]) == 1
+                       else np.linalg.norm(np.asarray(arr[first], float), axis=1) for arr in per_frame_arrays]
+        structure = source.gifti.structure() if source.gifti is not None else None
         for k, verts in enumerate(frames):
             _write_surface(outdir / f"{names[k]}.vtk", source, verts, per_frame_arrays[k], args.force)
             folder.record(outdir / f"{names[k]}.vtk")
+            if gifti:
+                _write_gifti_surface(outdir / f"{names[k]}.surf.gii", source, verts, args.force)
+                folder.record(outdir / f"{names[k]}.surf.gii")
+                for name in shared:
+                    path = outdir / data_names[name][names[k]]
+                    write_gifti_data(per_frame_arrays[k][name], path, meta=_data_meta(source, name),
+                                     structure=structure, force=args.force)
+                    folder.record(path)
         images = _render(frames, source.triangles, colours, [outdir / f"{n}.png" for n in names], args.force,
                          folder.record)
         from PIL import Image
@@ -123,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
         with atomic_output(outdir / "morph.gif", force=args.force) as tmp:
             pil[0].save(tmp, format="GIF", save_all=True, append_images=pil[1:], duration=120, loop=0)
         folder.record(outdir / "morph.gif")
-    print(f"{PROG} morph: {args.frames} frames (.vtk, .png) and morph.gif in {outdir} "
+    kinds = ".vtk, .surf.gii, .png" if gifti else ".vtk, .png"
+    print(f"{PROG} morph: {args.frames} frames ({kinds}) and morph.gif in {outdir} "
           f"({time.perf_counter() - start:.0f} s)")
     return 0

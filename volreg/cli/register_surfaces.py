@@ -6,13 +6,17 @@ import argparse
 import csv
 import io
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from volreg import __version__
 from volreg.cli._common import PROG, _load_landmarks, _sha256
-from volreg.cli._surfaces import _read, _register, _write_surface
+from volreg.cli._surfaces import (FRAMES, _add_data_options, _read, _register, _wants_gifti, _warn_findings,
+                                  _write_gifti_surface, _write_surface)
+from volreg.evaluation.surface_review import (SurfaceReviewLimits, diameter, review_surface_distance,
+                                              review_surface_extents)
 from volreg.io import check_writable, write_json, write_text
 from volreg.io._atomic import output_folder
 from volreg.io.protocol import load_protocol
@@ -23,6 +27,8 @@ from volreg.progress import ProgressBars
 __all__ = ["add_parser", "run"]
 
 OUTPUTS = ("warped.vtk", "correspondence.csv", "model.npz", "report.json")
+#: Written besides OUTPUTS when SOURCE is GIFTI or with --gifti.
+GIFTI_OUTPUT = "warped.surf.gii"
 
 
 def add_parser(commands) -> None:
@@ -32,8 +38,9 @@ def add_parser(commands) -> None:
         help="register a surface mesh or point cloud to another",
         description="Fit kernel implicit surfaces to SOURCE and TARGET (meshes: .vtk .vtp .ply .stl .obj .gii, or point "
         "clouds with or without normals) and the kernel warp tau of SOURCE onto TARGET; write into OUTDIR "
-        "warped.vtk (every source vertex moved by tau, same order and faces), correspondence.csv, model.npz and "
-        "report.json.",
+        "warped.vtk (LPS mm: every source vertex moved by tau, same order and faces), correspondence.csv (LPS mm), "
+        "model.npz and report.json, and warped.surf.gii (RAS mm, the source's metadata) when SOURCE is GIFTI "
+        "or with --gifti.",
     )
     reg.add_argument("source", metavar="SOURCE", type=Path)
     reg.add_argument("target", metavar="TARGET", type=Path)
@@ -41,43 +48,53 @@ def add_parser(commands) -> None:
     reg.add_argument("--landmarks", metavar=("SRC_PTS", "TGT_PTS"), nargs=2, type=Path, default=None,
                      help="corresponding points (.csv x,y,z LPS mm, Slicer .fcsv or .mrk.json)")
     reg.add_argument("--protocol", metavar="NAME|FILE", default="default", help="protocol preset or TOML file")
+    _add_data_options(reg, "source")
+    reg.add_argument("--gifti", action="store_true", help="also write warped.surf.gii (RAS) when SOURCE is not GIFTI")
     reg.add_argument("--force", action="store_true", help="write into an existing OUTDIR, replacing outputs")
     reg.add_argument("--quiet", action="store_true", help="no progress bars")
     reg.set_defaults(run=run)
-
-
-def _diameter(points: np.ndarray) -> float:
-    """Diagonal of the bounding box of ``points``, mm."""
-    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
 
 
 def run(args: argparse.Namespace) -> int:
     """``volreg register-surfaces SOURCE TARGET -o OUTDIR``."""
     start = time.perf_counter()
     protocol = load_protocol(args.protocol)
-    source = _read(args.source, "SOURCE")
+    source = _read(args.source, "SOURCE", args.source_data)
     target = _read(args.target, "TARGET")
     landmarks = _load_landmarks(args)
     outdir: Path = args.output
-    paths = {name: outdir / name for name in OUTPUTS}
+    names = OUTPUTS + ((GIFTI_OUTPUT,) if _wants_gifti(args, args.source) else ())
+    paths = {name: outdir / name for name in names}
+    limits = SurfaceReviewLimits()
     with output_folder(outdir, args.force) as folder:
         check_writable(paths.values(), force=args.force)
+        findings = review_surface_extents(source.vertices, target.vertices, limits)
+        _warn_findings("register-surfaces", findings)  # before the fit: it may take a while
         with ProgressBars(quiet=args.quiet) as progress:
             warp = _register(source, target, protocol, landmarks, progress)
         warped, jac = warp.evaluate(source.vertices, order=1)
         closest, distance, _ = closest_points(warped, target.vertices, target.triangles)
-        diameter = _diameter(target.vertices)
+        target_diameter = diameter(target.vertices)
+        late = review_surface_distance(distance, target_diameter, limits,
+                                       hint="Check that SOURCE and TARGET are in the same frame and unit.")
+        _warn_findings("register-surfaces", late)
+        findings += late
         report = {
             "volreg_version": __version__,
             "command": "register-surfaces",
             "inputs": {"source": {"path": str(args.source), "sha256": _sha256(args.source), "vertices": len(source.vertices),
-                                  "triangles": len(source.triangles)},
+                                  "triangles": len(source.triangles),
+                                  "data": [{"path": str(p), "sha256": _sha256(p)} for p in args.source_data]},
                        "target": {"path": str(args.target), "sha256": _sha256(args.target), "vertices": len(target.vertices),
                                   "triangles": len(target.triangles)}},
             "direction": "source vertex v corresponds to target point tau(v) (LPS mm)",
-            "distance_to_target_mm": {"mean": float(distance.mean()), "p95": float(np.percentile(distance, 95)),
-                                      "max": float(distance.max())},
-            "target_diameter_mm": diameter,
+            "frames": {name: FRAMES[Path(name).suffix] for name in names if Path(name).suffix in FRAMES},
+            "distance_to_target_mm": {"mean": float(distance.mean()), "median": float(np.median(distance)),
+                                      "p95": float(np.percentile(distance, 95)), "max": float(distance.max())},
+            "target_diameter_mm": target_diameter,
+            "source_diameter_mm": diameter(source.vertices),
+            "review": {"plausible": not findings, "findings": [f.to_dict() for f in findings],
+                       "limits": asdict(limits)},
             "folded_fraction_at_vertices": float(np.mean(np.linalg.det(jac) <= 0)),
             "protocol": protocol.to_dict(),
             "versions": package_versions(),
@@ -85,11 +102,14 @@ def run(args: argparse.Namespace) -> int:
         if landmarks is not None:
             err = np.linalg.norm(warp(landmarks[0]) - landmarks[1], axis=1)
             report["landmark_error"] = {"mean_mm": float(err.mean()), "max_mm": float(err.max()),
-                                        "mean_percent_of_diameter": float(100 * err.mean() / diameter)}
+                                        "mean_percent_of_diameter": float(100 * err.mean() / target_diameter)}
         warp.save(paths["model.npz"], force=args.force)
         folder.record(paths["model.npz"])
         _write_surface(paths["warped.vtk"], source, warped, source.arrays, args.force)
         folder.record(paths["warped.vtk"])
+        if GIFTI_OUTPUT in paths:
+            _write_gifti_surface(paths[GIFTI_OUTPUT], source, warped, args.force)
+            folder.record(paths[GIFTI_OUTPUT])
         table = io.StringIO()
         w = csv.writer(table, lineterminator="\n")
         w.writerow(["vertex", "x", "y", "z", "tau_x", "tau_y", "tau_z", "target_x", "target_y", "target_z", "distance_mm"])

@@ -10,6 +10,7 @@ from pathlib import Path
 from volreg import __version__
 from volreg.io import check_writable, read_labels, write_json, write_mesh, write_scalar
 from volreg.io._atomic import output_folder
+from volreg.io.gifti import GiftiSurfaceMeta, write_gifti
 from volreg.progress import ProgressBars
 from volreg.features.label_surfaces import implicit_on_grid, implicit_surfaces, label_surfaces
 from volreg.grid import LabelVolume
@@ -21,6 +22,8 @@ __all__ = ["add_parser", "run"]
 
 
 _DEFAULTS = SurfaceSettings()
+#: GIFTI POINTSETs of label meshes: in the world of the label volume, which NIfTI calls scanner RAS (code 1).
+_SCANNER_RAS = GiftiSurfaceMeta(dataspace=1, xformspace=1)
 
 
 def add_parser(commands) -> None:
@@ -28,8 +31,8 @@ def add_parser(commands) -> None:
     surface = commands.add_parser(
         "surface",
         help="meshes and implicit surfaces of the labels of a label volume",
-        description="For each label: a boundary mesh with outward normals (OUTDIR/label_<id>.vtk; "
-        "line segments for a 2-D image) and the fitted kernel implicit surface sampled on the input "
+        description="For each label: a boundary mesh with outward normals (OUTDIR/label_<id>.vtk, LPS mm; "
+        "line segments for a 2-D image; with --gifti also OUTDIR/label_<id>.surf.gii, RAS mm) and the fitted kernel implicit surface sampled on the input "
         "grid as a float32 signed distance in mm, negative inside (OUTDIR/sdf_<id>.nii.gz), plus "
         "OUTDIR/surface.json summarising the run.",
     )
@@ -51,6 +54,8 @@ def add_parser(commands) -> None:
                          default=_DEFAULTS.min_width_voxels,
                          help="finest kernel width of the implicit surface, in units of the largest voxel spacing "
                          f"(default {_DEFAULTS.min_width_voxels:g})")
+    surface.add_argument("--gifti", action="store_true",
+                         help="also write each 3-D mesh as a GIFTI surface (label_<id>.surf.gii, scanner RAS mm)")
     surface.add_argument("--force", action="store_true", help="overwrite existing outputs")
     surface.add_argument("--quiet", action="store_true", help="no progress bars")
     surface.set_defaults(run=run)
@@ -81,14 +86,18 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     volume = read_labels(args.image)
     labels = _select_labels(volume, args.image, args.labels, args.skip_small)
+    if args.gifti and volume.ndim != 3:
+        raise UsageError(f"--gifti: `{args.image}` is a {volume.ndim}-D image, whose outlines are line segments; "
+                         "expected a 3-D label volume (GIFTI holds triangles).")
 
     outdir: Path = args.output
     meshes = {v: outdir / f"label_{v}.vtk" for v in labels}
+    giftis = {v: outdir / f"label_{v}.surf.gii" for v in labels} if args.gifti else {}
     sdfs = {v: outdir / f"sdf_{v}.nii.gz" for v in labels}
     summary_path = outdir / "surface.json"
     # Existing outputs are refused one by one (check_writable), not the folder as a whole.
     with output_folder(outdir, require_empty=False) as folder:
-        check_writable([*meshes.values(), *sdfs.values(), summary_path], force=args.force)
+        check_writable([*meshes.values(), *giftis.values(), *sdfs.values(), summary_path], force=args.force)
         with ProgressBars(quiet=args.quiet) as progress:
             with warnings.catch_warnings(record=True) as caught:
                 # label_surfaces warns for each label it skips (on_small="warn").
@@ -116,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
                     {
                         "label": int(label),
                         "mesh": meshes[label].name,
+                        **({"gifti": giftis[label].name} if giftis else {}),
                         "sdf": sdfs[label].name,
                         "vertices": int(len(surf.vertices)),
                         "cells": int(len(surf.cells)),
@@ -130,6 +140,9 @@ def run(args: argparse.Namespace) -> int:
             for i, (label, surf) in enumerate(surfaces.items()):
                 write_mesh(surf.vertices, surf.cells, meshes[label], normals=surf.normals, force=args.force)
                 folder.record(meshes[label])
+                if giftis:
+                    write_gifti(surf.vertices, surf.cells, giftis[label], meta=_SCANNER_RAS, force=args.force)
+                    folder.record(giftis[label])
                 sdf = implicit_on_grid(implicit[label], volume)
                 write_scalar(sdf, volume, sdfs[label], force=args.force)
                 folder.record(sdfs[label])

@@ -6,13 +6,20 @@ import argparse
 import time
 from pathlib import Path
 
+import numpy as np
+
 from volreg.cli._common import PROG
-from volreg.cli._surfaces import _load_model, _read
+from volreg.cli._surfaces import _add_data_options, _data_meta, _is_label, _load_model, _read, _warn_findings
 from volreg.errors import UsageError
-from volreg.io import write_mesh
-from volreg.morph import transfer_values
+from volreg.evaluation.surface_review import diameter, review_surface_distance, review_surface_extents
+from volreg.io import check_writable, write_mesh
+from volreg.io.gifti import is_gifti, write_gifti_data
+from volreg.morph import closest_points, transfer_values
 
 __all__ = ["add_parser", "run"]
+
+#: Suffixes OUT may have: a mesh with every array (LPS) or the transferred array alone as GIFTI data.
+OUT_SUFFIXES = (".vtk", ".vtp", ".gii")
 
 
 def add_parser(commands) -> None:
@@ -21,33 +28,70 @@ def add_parser(commands) -> None:
         "transfer",
         help="carry a per-vertex array from TARGET onto SOURCE through a registration",
         description="For every SOURCE vertex v, take the value of --array at the TARGET point nearest to tau(v) "
-        "(nearest vertex, or interpolated in the nearest triangle; integer arrays stay labels) and write SOURCE "
-        "with the array to OUT.",
+        "(interpolated in the nearest triangle, or the nearest vertex; labels always the nearest vertex) and write "
+        "it to OUT: SOURCE with the array (.vtk, .vtp; LPS mm) or the array alone as a GIFTI data file (.shape.gii, "
+        ".func.gii, .label.gii) with the metadata and label table of TARGET's data file. Warns when the warped "
+        "SOURCE lies far from TARGET (frames or units that do not match).",
     )
     tr.add_argument("source", metavar="SOURCE", type=Path)
     tr.add_argument("target", metavar="TARGET", type=Path)
     tr.add_argument("--result", metavar="OUTDIR", type=Path, required=True, help="OUTDIR of `volreg register-surfaces`")
-    tr.add_argument("--array", metavar="NAME", required=True, help="per-vertex array of TARGET")
-    tr.add_argument("-o", "--output", metavar="OUT", type=Path, required=True, help="output mesh (.vtk or .vtp)")
+    tr.add_argument("--array", metavar="NAME", default=None,
+                    help="per-vertex array of TARGET (may be left out when TARGET has exactly one)")
+    _add_data_options(tr, "source", "target")
+    tr.add_argument("-o", "--output", metavar="OUT", type=Path, required=True,
+                    help="output: mesh (.vtk, .vtp) or GIFTI data file (.shape.gii, .func.gii, .label.gii)")
     tr.add_argument("--method", choices=("nearest", "barycentric"), default="barycentric")
     tr.add_argument("--force", action="store_true", help="replace an existing OUT")
     tr.set_defaults(run=run)
 
 
+def _check_output(out: Path) -> None:
+    suffix = out.suffix.lower()
+    if suffix not in OUT_SUFFIXES:
+        raise UsageError(f"-o `{out}` has suffix {suffix!r}; expected .vtk, .vtp or a GIFTI data file "
+                         "(.shape.gii, .func.gii, .label.gii).")
+    if out.name.lower().endswith(".surf.gii"):
+        raise UsageError(f"-o `{out}` names a GIFTI surface; expected a GIFTI data file (.shape.gii, .func.gii, "
+                         ".label.gii) for the transferred values.")
+
+
 def run(args: argparse.Namespace) -> int:
-    """``volreg transfer SOURCE TARGET --result OUTDIR --array NAME -o OUT``."""
+    """``volreg transfer SOURCE TARGET --result OUTDIR [--array NAME] -o OUT``."""
     start = time.perf_counter()
-    source = _read(args.source, "SOURCE")
-    target = _read(args.target, "TARGET")
-    if args.array not in target.arrays:
-        available = ", ".join(sorted(target.arrays)) or "none"
-        raise UsageError(f"--array `{args.array}` is not a per-vertex array of TARGET `{args.target}`; it has: {available}.")
+    source = _read(args.source, "SOURCE", args.source_data)
+    target = _read(args.target, "TARGET", args.target_data)
+    available = ", ".join(sorted(target.arrays)) or "none"
+    name = args.array
+    if name is None:
+        if len(target.arrays) != 1:
+            raise UsageError(f"--array is needed: TARGET `{args.target}` has {len(target.arrays)} per-vertex arrays "
+                             f"({available}); expected exactly one without --array.")
+        name = next(iter(target.arrays))
+    elif name not in target.arrays:
+        raise UsageError(f"--array `{name}` is not a per-vertex array of TARGET `{args.target}`; it has: {available}.")
+    _check_output(args.output)
+    check_writable([args.output], force=args.force)
     warp = _load_model(args.result)
-    values = transfer_values(warp(source.vertices), target.vertices, target.triangles, target.arrays[args.array],
-                             method=args.method)
-    arrays = dict(source.arrays)
-    arrays[args.array] = values
-    write_mesh(source.vertices, source.triangles, args.output, point_data=arrays, force=args.force, allow_points=True)
-    print(f"{PROG} transfer: `{args.array}` ({args.method}) from {args.target} onto {len(values)} vertices of "
-          f"{args.source} -> {args.output} ({time.perf_counter() - start:.1f} s)")
+    findings = review_surface_extents(source.vertices, target.vertices)
+    warped = warp(source.vertices)
+    _, distance, _ = closest_points(warped, target.vertices, target.triangles)
+    findings += review_surface_distance(
+        distance, diameter(target.vertices),
+        hint="Check that SOURCE and TARGET are the surfaces registered in --result, read in the same frame.")
+    _warn_findings("transfer", findings)
+    label = _is_label(target, name)
+    method = "nearest" if label else args.method
+    values = transfer_values(warped, target.vertices, target.triangles, target.arrays[name], method=method)
+    if is_gifti(args.output):
+        structure = source.gifti.structure() if source.gifti is not None else None
+        write_gifti_data(values, args.output, meta=_data_meta(target, name), structure=structure, force=args.force)
+    else:
+        arrays = dict(source.arrays)
+        arrays[name] = values
+        write_mesh(source.vertices, source.triangles, args.output, point_data=arrays, force=args.force,
+                   allow_points=True)
+    print(f"{PROG} transfer: `{name}` ({method}) from {args.target} onto {len(values)} vertices of "
+          f"{args.source}, median {np.median(distance):.3g} mm from TARGET -> {args.output} "
+          f"({time.perf_counter() - start:.1f} s)")
     return 0

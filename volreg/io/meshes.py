@@ -1,7 +1,8 @@
-"""Surface meshes and 2-D outlines: VTK, VTP, PLY, STL and OBJ via pyvista.
+"""Surface meshes and 2-D outlines: VTK, VTP, PLY, STL and OBJ via pyvista; GIFTI via :mod:`volreg.io.gifti`.
 
 Vertices are world points in ITK physical space (LPS, mm), like everything
-else in volreg; the files carry no frame of their own.
+else in volreg; the pyvista formats carry no frame of their own and are taken
+as LPS.  GIFTI files are RAS and converted (:mod:`volreg.io.gifti`).
 """
 
 from __future__ import annotations
@@ -19,8 +20,9 @@ import pyvista as pv
 
 from volreg.errors import VolregIOError, VolregWarning
 from volreg.io._atomic import atomic_output
+from volreg.io.gifti import GiftiSurfaceMeta, is_gifti, read_gifti_data, read_gifti_surface, write_gifti
 
-__all__ = ["write_mesh", "read_mesh", "read_surface", "write_gifti", "SurfaceData"]
+__all__ = ["write_mesh", "read_mesh", "read_surface", "write_gifti", "add_vertex_data", "SurfaceData"]
 
 #: Suffixes the mesh reader and writer accept (lower case).
 MESH_SUFFIXES = (".vtk", ".vtp", ".ply", ".stl", ".obj")
@@ -163,6 +165,7 @@ def read_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.
         ``.vtk``, ``.vtp``, ``.ply``, ``.stl`` or ``.obj``.  Polygons and
         triangle strips are triangulated; non-PolyData datasets (e.g. an
         unstructured grid in a legacy ``.vtk``) are reduced to their surface.
+        A GIFTI surface ``.gii`` is read as RAS and converted to LPS.
 
     Returns
     -------
@@ -185,6 +188,16 @@ def read_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.
         raise VolregIOError(f"Mesh `{p}` does not exist.")
     if not p.is_file():
         raise VolregIOError(f"Mesh `{p}` is not a regular file.")
+    if p.suffix.lower() == ".gii":
+        vertices, triangles, _ = read_gifti_surface(p)
+        if len(triangles) == 0:
+            raise VolregIOError(f"Mesh `{p}` has no triangles (a POINTSET alone); expected a surface.")
+        if not np.all(np.isfinite(vertices)):
+            raise VolregIOError(f"Mesh `{p}` has vertices with NaN/Inf coordinates; expected finite points.")
+        if triangles.min() < 0 or triangles.max() >= len(vertices):
+            raise VolregIOError(f"Mesh `{p}` has triangles indexing missing vertices; expected indices below "
+                                f"{len(vertices)}.")
+        return vertices, triangles, None
     _mesh_suffix(p, "Mesh")
 
     quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else nullcontext()
@@ -247,29 +260,51 @@ class SurfaceData:
         Stored vertex normals, if any.
     arrays : dict of str to (N, ...) ndarray
         Other per-vertex arrays (scalars, colours, labels), by name.
+    gifti : GiftiSurfaceMeta or None
+        For a GIFTI surface, its metadata and coordinate system (to write back).
+    array_meta : dict of str to GiftiArrayMeta
+        For arrays read from GIFTI data files, their metadata, intents and label tables.
     """
 
     vertices: np.ndarray
     triangles: np.ndarray
     normals: np.ndarray | None
     arrays: dict = field(default_factory=dict)
+    gifti: GiftiSurfaceMeta | None = None
+    array_meta: dict = field(default_factory=dict)
 
 
-def _read_gifti(p: Path) -> SurfaceData:
-    """A GIFTI surface: the POINTSET (RAS mm, as FreeSurfer and Connectome Workbench write it) and TRIANGLE arrays."""
-    import nibabel as nib
+def add_vertex_data(surface: SurfaceData, paths, role: str) -> None:
+    """Read per-vertex GIFTI data files onto ``surface``, in place.
 
-    try:
-        img = nib.load(str(p))
-        points = img.agg_data("pointset")
-        triangles = img.agg_data("triangle")
-    except Exception as exc:  # nibabel raises assorted types for bad files
-        raise VolregIOError(f"Surface `{p}` is not a readable GIFTI surface: {str(exc).strip().splitlines()[0]}.") from exc
-    if points is None or np.size(points) == 0:
-        raise VolregIOError(f"Surface `{p}` has no POINTSET data array; expected a GIFTI surface (.surf.gii).")
-    vertices = np.array(points, dtype=float) * np.array([-1.0, -1.0, 1.0])  # RAS -> LPS
-    tri = np.zeros((0, 3), np.int64) if triangles is None else np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    return SurfaceData(vertices, tri, None, {})
+    Parameters
+    ----------
+    surface : SurfaceData
+        The surface the data lies on (its vertex count is checked).
+    paths : iterable of path-like
+        ``.shape.gii``, ``.func.gii`` or ``.label.gii`` files; each becomes the
+        array :func:`volreg.io.gifti.data_name` (``lh.thickness`` for
+        ``lh.thickness.shape.gii``), with its metadata in ``surface.array_meta``.
+    role : str
+        The surface as errors name it, e.g. ``"SOURCE `lh.white.surf.gii`"``.
+
+    Raises
+    ------
+    VolregIOError
+        A file that is not GIFTI data, has not one value per vertex, or whose
+        name is already an array of ``surface``.
+    """
+    for path in paths:
+        p = Path(path)
+        if not is_gifti(p):
+            raise VolregIOError(f"Data file `{p}` has suffix {p.suffix!r}; expected a GIFTI data file "
+                                "(.shape.gii, .func.gii, .label.gii).")
+        name, values, meta = read_gifti_data(p, len(surface.vertices), role)
+        if name in surface.arrays:
+            raise VolregIOError(f"Data file `{p}` gives the array `{name}`, which {role} already has; "
+                                "expected one file per array name.")
+        surface.arrays[name] = values
+        surface.array_meta[name] = meta
 
 
 def read_surface(path: str | os.PathLike[str]) -> SurfaceData:
@@ -301,7 +336,8 @@ def read_surface(path: str | os.PathLike[str]) -> SurfaceData:
     if suffix not in SURFACE_SUFFIXES:
         raise VolregIOError(f"Surface `{p}` has unsupported suffix {suffix!r}; expected one of {', '.join(SURFACE_SUFFIXES)}.")
     if suffix == ".gii":
-        out = _read_gifti(p)
+        vertices, triangles, meta = read_gifti_surface(p)
+        out = SurfaceData(vertices, triangles, None, {}, gifti=meta)
     else:
         quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else nullcontext()
         with warnings.catch_warnings(record=True) as caught:
@@ -354,28 +390,3 @@ def read_surface(path: str | os.PathLike[str]) -> SurfaceData:
                 stacklevel=2,
             )
     return out
-
-
-def write_gifti(vertices: np.ndarray, triangles: np.ndarray, path: str | os.PathLike[str], *, force: bool = False) -> None:
-    """Write a GIFTI surface (POINTSET in RAS mm, float32; TRIANGLE int32), atomically.
-
-    ``vertices`` are LPS mm like everything in volreg; they are stored as RAS,
-    the frame FreeSurfer and Connectome Workbench expect.
-    """
-    import nibabel as nib
-    from nibabel.gifti import GiftiDataArray, GiftiImage
-
-    p = Path(path)
-    pts = _points3(vertices, None, "vertices") * np.array([-1.0, -1.0, 1.0])
-    tri = np.asarray(triangles)
-    if tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0 or tri.min() < 0 or tri.max() >= len(pts):
-        raise VolregIOError(f"Expected `triangles` of shape (F, 3) indexing {len(pts)} vertices, got {tri.shape}.")
-    img = GiftiImage(darrays=[
-        GiftiDataArray(pts.astype(np.float32), intent="NIFTI_INTENT_POINTSET", datatype="NIFTI_TYPE_FLOAT32"),
-        GiftiDataArray(tri.astype(np.int32), intent="NIFTI_INTENT_TRIANGLE", datatype="NIFTI_TYPE_INT32"),
-    ])
-    with atomic_output(p, force=force) as tmp:
-        try:
-            nib.save(img, str(tmp))
-        except Exception as exc:
-            raise VolregIOError(f"Surface `{p}` could not be written: {exc}".splitlines()[0]) from exc
