@@ -19,6 +19,7 @@ import pyvista as pv
 
 from volreg.errors import VolregIOError, VolregWarning
 from volreg.io._atomic import atomic_output
+from volreg.io._guards import check_gifti_sizes, check_mesh_sizes
 
 __all__ = ["write_mesh", "read_mesh", "read_surface", "write_gifti", "SurfaceData"]
 
@@ -186,6 +187,7 @@ def read_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.
     if not p.is_file():
         raise VolregIOError(f"Mesh `{p}` is not a regular file.")
     _mesh_suffix(p, "Mesh")
+    check_mesh_sizes(p, "Mesh")
 
     quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else nullcontext()
     with warnings.catch_warnings(record=True) as caught:
@@ -301,8 +303,10 @@ def read_surface(path: str | os.PathLike[str]) -> SurfaceData:
     if suffix not in SURFACE_SUFFIXES:
         raise VolregIOError(f"Surface `{p}` has unsupported suffix {suffix!r}; expected one of {', '.join(SURFACE_SUFFIXES)}.")
     if suffix == ".gii":
+        check_gifti_sizes(p, "Surface")
         out = _read_gifti(p)
     else:
+        check_mesh_sizes(p, "Surface")
         quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else nullcontext()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
