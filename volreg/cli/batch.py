@@ -314,8 +314,8 @@ def run(args: argparse.Namespace) -> int:
         name = str(exc) or "SIGINT"
         finished = sum(1 for r in rows if r.get("status") == "done")
         print(f"{PROG} batch: interrupted by {name}; {finished} of {len(pairs)} pairs finished and are kept in "
-              f"{outdir / 'pairs'} (a rerun skips them); the {len(pairs) - finished} others are unfinished and a rerun "
-              f"redoes them; {outdir / 'batch.csv'} was not written.", file=sys.stderr)
+              f"`{outdir / 'pairs'}` (a rerun skips them); the {len(pairs) - finished} others are unfinished and a "
+              f"rerun redoes them; `{outdir / 'batch.csv'}` was not written.", file=sys.stderr)
         return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
     finally:
         client.close()
