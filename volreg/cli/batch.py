@@ -2,17 +2,21 @@
 
 Each registration is one task that reads its two label volumes from their paths (nothing large
 goes through the scheduler) and writes a complete ``volreg register`` (or ``consistency``) OUTDIR
-under ``OUTDIR/pairs/``.  A pair whose outputs are complete and whose inputs' checksums are those
-recorded in its report is skipped on a rerun; a failing pair is recorded with its error and does not
-stop the others; Dask retries the task of a worker that dies.
+under ``OUTDIR/pairs/``.  A pair whose outputs are complete and whose inputs' checksums and settings
+(protocol, mode and volreg version) are those recorded when it finished is skipped on a rerun; any
+other pair is (re)done, after removing temporary files a killed worker left in its folder.  A failing
+pair is recorded with its error and does not stop the others; Dask retries the task of a worker that dies.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import io
 import json
+import re
+import signal
 import sys
 import time
 from pathlib import Path
@@ -22,7 +26,7 @@ from volreg.errors import UsageError
 from volreg.io import write_text
 from volreg.io._atomic import make_directory
 
-__all__ = ["add_parser", "read_manifest", "plan_pairs", "run_pair", "run"]
+__all__ = ["add_parser", "read_manifest", "plan_pairs", "pair_folders", "settings_fingerprint", "run_pair", "run"]
 
 COLUMNS = ["fixed_id", "moving_id", "status", "error", "mean_dice_before", "mean_dice_after", "consistency_mean_mm",
            "consistency_p95_mm", "folded_fraction", "review", "seconds", "outdir"]
@@ -37,7 +41,8 @@ def add_parser(commands) -> None:
         "pairs (all ordered pairs, or consecutive ones), one Dask task per registration: on a LocalCluster of "
         "--workers processes, or on the cluster at --scheduler. Every pair gets a full `volreg register` (or, with "
         "--consistency, `volreg consistency`) OUTDIR under OUTDIR/pairs/FIXED__MOVING; a rerun skips pairs that are "
-        "complete with unchanged inputs. Writes OUTDIR/batch.csv (one row per pair, failures with their error) and "
+        "complete with unchanged inputs and settings (protocol, --consistency, volreg version) and redoes the others. "
+        "Writes OUTDIR/batch.csv (one row per pair, failures with their error) and "
         "OUTDIR/batch.png. Exit status 1 if any pair failed.",
     )
     batch.add_argument("manifest", metavar="MANIFEST", type=Path, help="CSV with columns id,path")
@@ -58,7 +63,12 @@ def read_manifest(path: Path) -> list[tuple[str, Path]]:
     if not path.is_file():
         raise UsageError(f"MANIFEST `{path}` does not exist or is not a file.")
     try:
-        rows = list(csv.DictReader(path.read_text(encoding="utf-8").splitlines()))
+        # utf-8-sig: a byte-order mark (as spreadsheet programs write) is not part of the first column's name
+        rows = list(csv.DictReader(path.read_text(encoding="utf-8-sig").splitlines()))
+    except PermissionError:
+        raise UsageError(f"MANIFEST `{path}` is not readable (permission denied); expected a file you can read.") from None
+    except OSError as exc:
+        raise UsageError(f"MANIFEST `{path}` cannot be read: {exc.strerror or exc}.") from None
     except (UnicodeDecodeError, csv.Error) as exc:
         raise UsageError(f"MANIFEST `{path}` is not a CSV file: {exc}.") from None
     if not rows or not {"id", "path"} <= set(rows[0]):
@@ -87,8 +97,61 @@ def plan_pairs(subjects, template: tuple[str, Path] | None, mode: str) -> list[t
     return [(a, b) for a in subjects for b in subjects if a[0] != b[0]]
 
 
-def _done(outdir: Path, sha: tuple[str, str], consistency: bool) -> dict | None:
-    """The saved row of a complete pair whose inputs still have the checksums ``sha``, else None."""
+def pair_folders(pairs, manifest: Path) -> list[str]:
+    """The folder name ``FIXED__MOVING`` of each pair; refuse two pairs that would share one.
+
+    Ids are joined with ``__``, so ``a`` + ``b__c`` and ``a__b`` + ``c`` would both give
+    ``a__b__c`` (and one pair would silently overwrite, or be skipped for, the other).
+
+    Raises
+    ------
+    UsageError
+        Naming both pairs and the folder they would share.
+    """
+    names: list[str] = []
+    owner: dict[str, tuple[str, str]] = {}
+    for (fid, _), (mid, _) in pairs:
+        name = f"{fid}__{mid}"
+        if name in owner:
+            other = owner[name]
+            raise UsageError(
+                f"MANIFEST `{manifest}`: pairs ({other[0]}, {other[1]}) and ({fid}, {mid}) would share the folder "
+                f"pairs/{name}; expected ids that stay distinct when joined with '__' (rename one, e.g. without '__')."
+            )
+        owner[name] = (fid, mid)
+        names.append(name)
+    return names
+
+
+def settings_fingerprint(protocol, consistency: bool) -> str:
+    """SHA-256 of what decides a pair's result besides its inputs: the protocol's settings, the mode
+    (``register`` or ``consistency``) and the volreg version (the protocol's name and description aside)."""
+    from volreg import __version__
+
+    settings = {k: v for k, v in protocol.to_dict().items() if k not in ("name", "description")}
+    text = json.dumps({"settings": settings, "mode": "consistency" if consistency else "register",
+                       "volreg": str(__version__)}, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+#: Temporary files of :func:`volreg.io.atomic_output` (``.tmp-1a2b3c4d-NAME``).
+_TEMPORARY = re.compile(r"^\.tmp-[0-9a-f]{8}-")
+
+
+def _remove_temporaries(outdir: Path) -> int:
+    """Remove temporary files left in a pair folder by a worker that was killed; return how many."""
+    removed = 0
+    if outdir.is_dir():
+        for p in outdir.rglob(".tmp-*"):
+            if _TEMPORARY.match(p.name) and (p.is_file() or p.is_symlink()):
+                p.unlink(missing_ok=True)
+                removed += 1
+    return removed
+
+
+def _done(outdir: Path, sha: tuple[str, str], consistency: bool, fingerprint: str | None = None) -> dict | None:
+    """The saved row of a complete pair whose inputs still have the checksums ``sha`` and whose
+    settings had the fingerprint ``fingerprint`` (see :func:`settings_fingerprint`), else None."""
     row_file = outdir / "batch_row.json"
     if not row_file.is_file():
         return None
@@ -96,7 +159,9 @@ def _done(outdir: Path, sha: tuple[str, str], consistency: bool) -> dict | None:
         row = json.loads(row_file.read_text())
     except (OSError, ValueError):
         return None
-    if row.get("status") != "done" or (row.get("fixed_sha256"), row.get("moving_sha256")) != sha:
+    if not isinstance(row, dict) or row.get("status") != "done" or (row.get("fixed_sha256"), row.get("moving_sha256")) != sha:
+        return None
+    if fingerprint is not None and row.get("settings_sha256") != fingerprint:
         return None
     needed = ["consistency.json"] if consistency else ["warp.nii.gz", "warped.nii.gz", "model.npz", "report.json"]
     return row if all((outdir / n).is_file() for n in needed) else None
@@ -123,10 +188,14 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
     try:
         a, b = read_labels(fpath), read_labels(mpath)  # validates both; a clear error for a missing file
         sha = (_sha256(fpath), _sha256(mpath))
-        saved = _done(out, sha, consistency)
+        proto = load_protocol(protocol)
+        fingerprint = settings_fingerprint(proto, consistency)
+        saved = _done(out, sha, consistency, fingerprint)
         if saved is not None:
             return dict(saved, skipped=True)
-        proto = load_protocol(protocol)
+        if (out / "batch_row.json").is_file():
+            row["redone"] = True  # finished before, with other inputs or settings
+        _remove_temporaries(out)
         check_pair(a, b, fpath, mpath, linear=proto.linear.kind)
         with ProgressBars(quiet=True) as progress:
             if consistency:
@@ -141,8 +210,9 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
                 rep = write_registration(a, b, out, protocol=proto, force=True, inputs=inputs, progress=progress)
                 row.update(mean_dice_before=rep["mean_dice"]["before"], mean_dice_after=rep["mean_dice"]["after"],
                            folded_fraction=rep["jacobian"]["folded_fraction"], review=_review_cell([rep["review"]]))
-        row.update(status="done", error="", seconds=time.perf_counter() - start, fixed_sha256=sha[0], moving_sha256=sha[1])
-        write_json(row, out / "batch_row.json", force=True)
+        row.update(status="done", error="", seconds=time.perf_counter() - start, fixed_sha256=sha[0], moving_sha256=sha[1],
+                   settings_sha256=fingerprint)
+        write_json({k: v for k, v in row.items() if k != "redone"}, out / "batch_row.json", force=True)
     except EXPECTED_ERRORS as exc:
         row.update(status="failed", error=" ".join(str(exc).split()), seconds=time.perf_counter() - start)
     return row
@@ -210,6 +280,7 @@ def run(args: argparse.Namespace) -> int:
     if not pairs:
         raise UsageError(f"MANIFEST `{args.manifest}` gives no pair to register; expected at least two subjects "
                          "(or --template).")
+    folders = pair_folders(pairs, args.manifest)
     outdir: Path = args.output
     make_directory(outdir)
     if args.scheduler:
@@ -224,10 +295,10 @@ def run(args: argparse.Namespace) -> int:
         if client.dashboard_link and not args.quiet:
             print(f"{PROG} batch: Dask dashboard {client.dashboard_link}", file=sys.stderr)
         futures = {}
-        for (fid, fpath), (mid, mpath) in pairs:
-            pair_dir = outdir / "pairs" / f"{fid}__{mid}"
+        for ((fid, fpath), (mid, mpath)), folder in zip(pairs, folders):
+            pair_dir = outdir / "pairs" / folder
             fut = client.submit(run_pair, fid, str(fpath.resolve()), mid, str(mpath.resolve()), str(pair_dir.resolve()),
-                                str(args.protocol), args.consistency, key=f"volreg-{fid}__{mid}", pure=False, retries=2)
+                                str(args.protocol), args.consistency, key=f"volreg-{folder}", pure=False, retries=2)
             futures[fut] = (fid, mid)
         with ProgressBars(quiet=args.quiet) as progress:
             for n, fut in enumerate(as_completed(futures), start=1):
@@ -238,6 +309,14 @@ def run(args: argparse.Namespace) -> int:
                     rows.append({"fixed_id": fid, "moving_id": mid, "status": "failed",
                                  "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"})
                 progress("registrations", n, len(futures))
+    except KeyboardInterrupt as exc:
+        # Finished pairs are complete results and stay; say so rather than "outputs removed".
+        name = str(exc) or "SIGINT"
+        finished = sum(1 for r in rows if r.get("status") == "done")
+        print(f"{PROG} batch: interrupted by {name}; {finished} of {len(pairs)} pairs finished and are kept in "
+              f"`{outdir / 'pairs'}` (a rerun skips them); the {len(pairs) - finished} others are unfinished and a "
+              f"rerun redoes them; `{outdir / 'batch.csv'}` was not written.", file=sys.stderr)
+        return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
     finally:
         client.close()
         if cluster is not None:
@@ -248,6 +327,8 @@ def run(args: argparse.Namespace) -> int:
     _write_plot(rows, outdir / "batch.png")
     failed = [r for r in rows if r.get("status") != "done"]
     skipped = sum(1 for r in rows if r.get("skipped"))
-    print(f"{PROG} batch: {len(rows) - len(failed)} of {len(rows)} pairs done ({skipped} already done, skipped), "
+    redone = sum(1 for r in rows if r.get("redone"))
+    again = f", {redone} redone (inputs, protocol or volreg version changed)" if redone else ""
+    print(f"{PROG} batch: {len(rows) - len(failed)} of {len(rows)} pairs done ({skipped} already done, skipped{again}), "
           f"{len(failed)} failed; {outdir / 'batch.csv'} ({time.perf_counter() - start:.0f} s)")
     return 1 if failed else 0

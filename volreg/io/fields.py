@@ -33,6 +33,7 @@ import SimpleITK as sitk
 from volreg.grid import Grid, GridLike, as_grid
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
+from volreg.io._guards import check_image_data_files
 from volreg.io.images import _check_input, _check_nifti, _sitk_reason
 from volreg.warp.linear import LinearMap
 
@@ -121,6 +122,8 @@ def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     if suffix in (".nii", ".nii.gz"):
         # SimpleITK zero-fills a truncated file: a warp that silently becomes the identity there.
         _check_nifti(p, suffix, "Displacement field")
+    elif suffix in (".mha", ".mhd", ".nrrd", ".nhdr"):
+        check_image_data_files(p, suffix, "Displacement field")  # data elsewhere, missing or short
     try:
         img = sitk.ReadImage(str(p))
     except RuntimeError as exc:

@@ -23,6 +23,7 @@ import numpy as np
 
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
+from volreg.io._guards import check_gifti_sizes
 
 __all__ = [
     "DATA_KINDS",
@@ -130,7 +131,7 @@ class GiftiArrayMeta:
         return self.kind == "label" or bool(self.label_table)
 
 
-def _load(p: Path, what: str):
+def load_gifti(p: Path, what: str):
     """The nibabel GiftiImage at ``p``; one-line errors for a missing or unreadable file."""
     import nibabel as nib
 
@@ -138,6 +139,7 @@ def _load(p: Path, what: str):
         raise VolregIOError(f"{what} `{p}` does not exist.")
     if not p.is_file():
         raise VolregIOError(f"{what} `{p}` is not a regular file.")
+    check_gifti_sizes(p, what)
     try:
         img = nib.load(str(p))
     except Exception as exc:  # nibabel raises assorted types for bad files
@@ -177,7 +179,7 @@ def read_gifti_surface(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.nda
         triangles.
     """
     p = Path(path)
-    img = _load(p, "Surface")
+    img = load_gifti(p, "Surface")
     points = [d for d in img.darrays if _intent(d) == _POINTSET]
     triangles = [d for d in img.darrays if _intent(d) == _TRIANGLE]
     if not points:
@@ -239,7 +241,7 @@ def read_gifti_data(path: str | os.PathLike[str], n_vertices: int, surface: str)
         or a data array without exactly one value per vertex.
     """
     p = Path(path)
-    img = _load(p, "Data file")
+    img = load_gifti(p, "Data file")
     if not img.darrays:
         raise VolregIOError(f"Data file `{p}` has no data arrays; expected per-vertex values.")
     intents = [_intent(d) for d in img.darrays]

@@ -32,6 +32,7 @@ import SimpleITK as sitk
 from volreg.errors import GeometryError, VolregIOError, VolregWarning
 from volreg.grid import Grid, LabelVolume, as_grid
 from volreg.io._atomic import atomic_output
+from volreg.io._guards import check_image_data_files, check_readable, check_vti_size, max_image_bytes
 from volreg.io.vti import read_vti
 
 __all__ = ["read_labels", "write_labels", "write_scalar", "read_image", "read_grid"]
@@ -47,21 +48,6 @@ _QS_TOL_MM = 1e-3
 
 # Tolerance for the direction block of a squeezed 4-D image (unitless).
 _DIR_TOL = 1e-6
-
-
-def max_image_bytes() -> int:
-    """Largest image (bytes in memory) a reader accepts: ``VOLREG_MAX_IMAGE_GB`` if set, else half the RAM."""
-    value = os.environ.get("VOLREG_MAX_IMAGE_GB")
-    if value:
-        try:
-            gb = float(value)
-        except ValueError:
-            raise VolregIOError(f"Environment variable VOLREG_MAX_IMAGE_GB={value!r} is not a number of GB.") from None
-        return int(gb * 1024**3)
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
-    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
-        return 8 * 1024**3
 
 
 def _check_size(path: Path, shape: tuple[int, ...], itemsize: int, what: str) -> None:
@@ -83,6 +69,50 @@ def _raw_pixdim(path: Path, suffix: str) -> np.ndarray:
         block = fh.read(108)
     little = int.from_bytes(block[:4], "little") == 348
     return np.frombuffer(block[76:108], dtype="<f4" if little else ">f4").astype(float)
+
+
+def _check_nifti_dims(path: Path, suffix: str, what: str) -> None:
+    """Refuse a NIfTI header whose ``dim`` field is invalid or miscounts the axes, before either library reads it.
+
+    ``dim[0]`` counts the axes (1 to 7) and ``dim[1..dim[0]]`` are their sizes (at least 1).
+    nibabel and SimpleITK read a zero or negative size differently (0 or -3 against 1), and both
+    silently drop the axes after ``dim[0]``: a ``dim[0]`` of 2 over 3-D data gives the first slice.
+    """
+    opener = gzip.open if suffix == ".nii.gz" else open
+    try:
+        with opener(path, "rb") as fh:
+            block = fh.read(540)
+    except (OSError, EOFError, zlib.error):
+        return  # nibabel reports an unreadable or corrupt file
+    if len(block) < 348:
+        return
+    for order in ("<", ">"):
+        sizeof = int(np.frombuffer(block[:4], dtype=f"{order}i4")[0])
+        if sizeof == 348:
+            dim = np.frombuffer(block[40:56], dtype=f"{order}i2").astype(np.int64)
+            break
+        if sizeof == 540 and len(block) >= 540:
+            dim = np.frombuffer(block[16:80], dtype=f"{order}i8")
+            break
+    else:
+        return  # not NIfTI: nibabel reports it
+    n = int(dim[0])
+    if not 1 <= n <= 7:
+        raise VolregIOError(
+            f"{what} `{path}` has dim[0] = {n} in its NIfTI header; expected the number of axes, 1 to 7."
+        )
+    sizes = [int(v) for v in dim[1 : n + 1]]
+    if any(v < 1 for v in sizes):
+        raise VolregIOError(
+            f"{what} `{path}` has axis sizes dim[1..{n}] = {sizes} in its NIfTI header; expected sizes of at least 1."
+        )
+    beyond = [(i, int(dim[i])) for i in range(n + 1, 8) if int(dim[i]) > 1]
+    if beyond:
+        i, v = beyond[0]
+        raise VolregIOError(
+            f"{what} `{path}` has dim[0] = {n} in its NIfTI header but dim[{i}] = {v}; expected dim[0] to count "
+            f"every axis of the data (readers would drop axis {i} and read another shape)."
+        )
 
 
 def _check_text_header_spacing(path: Path, suffix: str, what: str) -> None:
@@ -133,6 +163,7 @@ def _check_input(path: Path, what: str) -> str:
         raise VolregIOError(
             f"{what} `{path}` has unsupported suffix {suffix!r}; expected one of {', '.join(READ_SUFFIXES)}."
         )
+    check_readable(path, what)
     return suffix
 
 
@@ -194,6 +225,14 @@ def _check_nifti_length(path: Path, suffix: str, what: str, offset: int, shape: 
             f"{what} `{path}` is truncated: header needs {needed} bytes (shape {shape}, "
             f"{itemsize}-byte voxels), file holds {have}."
         )
+    # Data beyond the header's shape by a whole slice or more: the header's dim field describes
+    # fewer or smaller axes than were written (both readers would silently read another shape).
+    slice_bytes = int(np.prod(shape[:-1], dtype=np.int64)) * itemsize if len(shape) > 1 else itemsize
+    if have - needed >= max(slice_bytes, 1):
+        raise VolregIOError(
+            f"{what} `{path}` holds {have - needed} bytes of data beyond the shape {shape} its header describes "
+            f"({itemsize}-byte voxels); expected the header's dim field to describe all the data."
+        )
 
 
 def _check_nifti(path: Path, suffix: str, what: str, *, voxels: bool = True) -> nib.Nifti1Image:
@@ -203,13 +242,15 @@ def _check_nifti(path: Path, suffix: str, what: str, *, voxels: bool = True) -> 
     checked for truncation, which for ``.nii.gz`` means decompressing them.
     Returns the (lazily loaded) nibabel image for the checks after reading.
     """
+    _check_nifti_dims(path, suffix, what)
     try:
         with warnings.catch_warnings():
             # nibabel warns about odd but legal headers; we only need the fields below.
             warnings.simplefilter("ignore")
             img = nib.load(str(path))
             header = img.header
-            offset = int(header.get_data_offset())
+            # The offset the data are read from (the loaded header's own field may read 0).
+            offset = int(getattr(img.dataobj, "offset", header.get_data_offset()))
             shape = tuple(int(n) for n in header.get_data_shape())
             itemsize = np.dtype(header.get_data_dtype()).itemsize
             qform, qcode = img.get_qform(coded=True)
@@ -300,6 +341,23 @@ def _check_nifti_geometry(
             )
 
 
+def _check_nifti_shape(nimg: nib.Nifti1Image, size: tuple[int, ...], path: Path, what: str) -> None:
+    """Refuse a NIfTI file that nibabel and SimpleITK read as two different shapes (trailing 1s aside)."""
+
+    def trim(shape):
+        shape = [int(n) for n in shape]
+        while len(shape) > 1 and shape[-1] == 1:
+            shape.pop()
+        return tuple(shape)
+
+    ours, theirs = trim(size), trim(nimg.shape)
+    if ours != theirs:
+        raise VolregIOError(
+            f"{what} `{path}` reads as shape {theirs} with nibabel but {ours} with SimpleITK; expected a NIfTI "
+            "header both read alike (check its dim field)."
+        )
+
+
 def _pixel_dtype(reader: sitk.ImageFileReader) -> np.dtype:
     """The numpy dtype of one component of the pixels of the file ``reader`` has read the header of."""
     probe = sitk.Image([1] * reader.GetDimension(), reader.GetPixelID())
@@ -360,11 +418,13 @@ def _read_sitk(
     p = Path(path)
     suffix = _check_input(p, what)
     if suffix == ".vti":
+        check_vti_size(p, what)
         array, origin, spacing, direction = read_vti(p, what)
         return (array if voxels else array.shape), origin, spacing, direction
     nimg = _check_nifti(p, suffix, what, voxels=voxels) if suffix in (".nii", ".nii.gz") else None
     if suffix in (".mha", ".mhd", ".nrrd", ".nhdr"):
         _check_text_header_spacing(p, suffix, what)
+        check_image_data_files(p, suffix, what)
 
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(p))
@@ -381,6 +441,7 @@ def _read_sitk(
             reader, reader.GetNumberOfComponents(), sitk.GetPixelIDValueAsString(reader.GetPixelID()), pixel, p, what
         )
         if nimg is not None:
+            _check_nifti_shape(nimg, shape, p, what)
             _check_nifti_geometry(nimg, origin, spacing, direction, p, what)
         return shape, origin, spacing, direction
 
@@ -393,6 +454,7 @@ def _read_sitk(
     array = np.array(view.reshape(shape[::-1]).T, order="C")
     del view, img
     if nimg is not None:
+        _check_nifti_shape(nimg, shape, p, what)
         array = _nifti_float_voxels(nimg, array, p, what)
         _check_nifti_geometry(nimg, origin, spacing, direction, p, what)
     return array, origin, spacing, direction

@@ -98,7 +98,7 @@ def read_landmarks(path: str | os.PathLike[str], *, keep_unplaced: bool = False)
         raise VolregIOError(f"Landmark file `{p}` does not exist or is not a file.")
     name = p.name.lower()
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")  # a byte-order mark (Excel) is not part of the header
         if name.endswith(".fcsv"):
             points = _read_fcsv(p, text)
         elif name.endswith(".mrk.json") or name.endswith(".json"):

@@ -20,6 +20,7 @@ import pyvista as pv
 
 from volreg.errors import VolregIOError, VolregWarning
 from volreg.io._atomic import atomic_output
+from volreg.io._guards import check_mesh_sizes
 from volreg.io.gifti import GiftiSurfaceMeta, is_gifti, read_gifti_data, read_gifti_surface, write_gifti
 
 __all__ = ["write_mesh", "read_mesh", "read_surface", "write_gifti", "add_vertex_data", "SurfaceData"]
@@ -42,6 +43,47 @@ def _no_vtk_logging():
     finally:
         logging.disable(previous)
 
+
+@contextmanager
+def quiet_vtk():
+    """No VTK messages on the console or in Python logging (volreg reports one line itself)."""
+    quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else nullcontext()
+    with quiet, _no_vtk_logging():
+        yield
+
+
+def read_pyvista(p: Path, what: str):
+    """``pyvista.read(p)`` after the size guards, with VTK's messages turned into one-line errors.
+
+    Parameters
+    ----------
+    p : Path
+        A ``.vtk``, ``.vtp``, ``.ply``, ``.stl`` or ``.obj`` file.
+    what : str
+        How the error messages name the file ("Mesh", "Surface").
+
+    Returns
+    -------
+    pyvista.DataSet (or whatever ``pyvista.read`` returns; the caller checks the type)
+
+    Raises
+    ------
+    VolregIOError
+        A header declaring more data than the file holds or memory allows, or a file
+        that VTK cannot read or reads with a warning.
+    """
+    check_mesh_sizes(p, what)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            with quiet_vtk():
+                mesh = pv.read(p)
+        except Exception as exc:  # pyvista/VTK raise assorted types for bad files
+            raise VolregIOError(f"{what} `{p}` could not be read: {str(exc).strip().splitlines()[0]}") from exc
+    problems = [w for w in caught if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning))]
+    if problems:
+        raise VolregIOError(f"{what} `{p}` could not be read: {str(problems[0].message).strip().splitlines()[0]}")
+    return mesh
 
 def _mesh_suffix(path: Path, what: str) -> str:
     suffix = path.suffix.lower()
@@ -199,18 +241,7 @@ def read_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.
                                 f"{len(vertices)}.")
         return vertices, triangles, None
     _mesh_suffix(p, "Mesh")
-
-    quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else nullcontext()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            with quiet, _no_vtk_logging():
-                mesh = pv.read(p)
-        except Exception as exc:  # pyvista/VTK raise assorted types for bad files
-            raise VolregIOError(f"Mesh `{p}` could not be read: {str(exc).strip().splitlines()[0]}") from exc
-    problems = [w for w in caught if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning))]
-    if problems:
-        raise VolregIOError(f"Mesh `{p}` could not be read: {str(problems[0].message).strip().splitlines()[0]}")
+    mesh = read_pyvista(p, "Mesh")
     if mesh is None or not isinstance(mesh, pv.DataSet):
         raise VolregIOError(f"Mesh `{p}` holds {type(mesh).__name__}; expected a single surface mesh.")
     if not isinstance(mesh, pv.PolyData):
@@ -339,17 +370,7 @@ def read_surface(path: str | os.PathLike[str]) -> SurfaceData:
         vertices, triangles, meta = read_gifti_surface(p)
         out = SurfaceData(vertices, triangles, None, {}, gifti=meta)
     else:
-        quiet = pv.vtk_verbosity("off") if hasattr(pv, "vtk_verbosity") else nullcontext()
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            try:
-                with quiet, _no_vtk_logging():
-                    mesh = pv.read(p)
-            except Exception as exc:  # pyvista/VTK raise assorted types for bad files
-                raise VolregIOError(f"Surface `{p}` could not be read: {str(exc).strip().splitlines()[0]}") from exc
-        problems = [w for w in caught if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning))]
-        if problems:
-            raise VolregIOError(f"Surface `{p}` could not be read: {str(problems[0].message).strip().splitlines()[0]}")
+        mesh = read_pyvista(p, "Surface")
         if mesh is None or not isinstance(mesh, pv.DataSet):
             raise VolregIOError(f"Surface `{p}` holds {type(mesh).__name__}; expected a single surface mesh.")
         if not isinstance(mesh, pv.PolyData):

@@ -29,10 +29,7 @@ from __future__ import annotations
 import csv
 import io
 import json
-import logging
 import os
-import warnings
-from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,7 +38,9 @@ import numpy as np
 
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
+from volreg.io.gifti import load_gifti
 from volreg.io.landmarks import read_landmarks
+from volreg.io.meshes import quiet_vtk, read_pyvista
 
 __all__ = ["POINT_SUFFIXES", "MESH_FORMATS", "PointSetFile", "check_same_format", "point_set_kind", "read_point_set",
            "write_point_set"]
@@ -103,39 +102,10 @@ class PointSetFile:
     _normal_names: tuple = ()
 
 
-@contextmanager
-def _quiet_vtk():
-    """No VTK messages on the console or in Python logging (volreg reports one line itself)."""
-    previous = logging.root.manager.disable
-    logging.disable(logging.CRITICAL)
-    quiet = nullcontext()
-    try:
-        import pyvista as pv
-
-        if hasattr(pv, "vtk_verbosity"):
-            quiet = pv.vtk_verbosity("off")
-    except ImportError:  # pragma: no cover - pyvista is a dependency
-        pass
-    try:
-        with quiet:
-            yield
-    finally:
-        logging.disable(previous)
-
-
 def _read_pyvista(p: Path) -> PointSetFile:
     import pyvista as pv
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            with _quiet_vtk():
-                mesh = pv.read(p)
-        except Exception as exc:  # pyvista/VTK raise assorted types for bad files
-            raise VolregIOError(f"Mesh `{p}` could not be read: {str(exc).strip().splitlines()[0]}") from exc
-    problems = [w for w in caught if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning))]
-    if problems:
-        raise VolregIOError(f"Mesh `{p}` could not be read: {str(problems[0].message).strip().splitlines()[0]}")
+    mesh = read_pyvista(p, "Mesh")
     if not isinstance(mesh, (pv.PolyData, pv.UnstructuredGrid, pv.StructuredGrid)):
         raise VolregIOError(f"Mesh `{p}` holds {type(mesh).__name__}; expected a mesh or point cloud with explicit points.")
     if mesh.n_points == 0:
@@ -160,8 +130,8 @@ def _read_pyvista(p: Path) -> PointSetFile:
 def _read_gifti(p: Path) -> PointSetFile:
     import nibabel as nib
 
+    img = load_gifti(p, "Mesh")
     try:
-        img = nib.load(str(p))
         arrays = [a for a in img.darrays if a.intent == nib.nifti1.intent_codes["NIFTI_INTENT_POINTSET"]]
     except Exception as exc:  # nibabel raises assorted types for bad files
         raise VolregIOError(f"Mesh `{p}` is not a readable GIFTI surface: {str(exc).strip().splitlines()[0]}.") from exc
@@ -352,7 +322,7 @@ def write_point_set(data: PointSetFile, points: np.ndarray, path: str | os.PathL
         mesh.point_data.active_normals_name = data._normal_names[0]
     with atomic_output(p, force=force) as tmp:
         try:
-            with _quiet_vtk():
+            with quiet_vtk():
                 if isinstance(mesh, pv.PolyData):  # the normals as given, not recomputed (PLY, STL)
                     mesh.save(tmp, binary=True, recompute_normals=False)
                 else:

@@ -569,9 +569,14 @@ class KernelWarp(_PointMap):
         # the archive is corrupt) so that it is closed on every path.
         try:
             fh = open(name, "rb")
+        except PermissionError:
+            raise VolregIOError(f"Warp model `{name}` is not readable (permission denied); expected a file you can read.") from None
         except OSError as exc:
             raise VolregIOError(f"Warp model `{name}` cannot be opened: {_one_line(exc)}.") from None
         with fh:
+            from volreg.io._guards import check_npz
+
+            check_npz(fh, name, "Warp model")
             try:
                 data = np.load(fh, allow_pickle=False)
             except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
