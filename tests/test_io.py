@@ -28,7 +28,7 @@ from volreg.io import (
     write_mesh,
     write_scalar,
 )
-from volreg.io.fields import read_displacement, write_displacement
+from volreg.io.fields import read_displacement, write_displacement, write_itk_composite
 
 # NIfTI stores origin, spacing and the qform quaternion as float32: relative
 # error ~6e-8, i.e. well under 1e-5 mm for coordinates of a few hundred mm.
@@ -554,6 +554,54 @@ def test_thin_displacement_field_owns_its_memory(tmp_path):
         assert back.flags.owndata and back.flags.c_contiguous and _owns_memory(back)
         np.testing.assert_array_equal(back, u.astype(np.float32))
         assert isinstance(grid, Grid) and grid.same_geometry(like)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_composite_h5_holds_the_nifti_field(tmp_path, dim):
+    """warp.h5 (ITK composite transform) and warp.nii.gz of one field, on an oblique flipped grid:
+    SimpleITK maps every point alike through both (1e-4 mm: the NIfTI header keeps the geometry in
+    float32), and each voxel centre x to x + u(x) with u rounded to float32."""
+    shape = (7, 6, 5)[:dim]
+    flip = np.diag([1.0, -1.0, 1.0][:dim])
+    direction = (_rotation((0.2, 0.4, 0.9), 25.0)[:dim, :dim] if dim == 3 else
+                 np.array([[np.cos(0.4), -np.sin(0.4)], [np.sin(0.4), np.cos(0.4)]])) @ flip
+    like = Grid(shape, np.array([12.0, -30.0, 7.5][:dim]), np.array([1.5, 2.0, 2.5][:dim]), direction)
+    u = np.random.default_rng(11).normal(scale=3.0, size=(*shape, dim))
+    write_itk_composite(u, like, tmp_path / "warp.h5")
+    write_displacement(u, like, tmp_path / "warp.nii.gz")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["warp.h5", "warp.nii.gz"]  # no temporary left
+    composite = sitk.ReadTransform(str(tmp_path / "warp.h5"))
+    assert composite.GetName() == "CompositeTransform" and composite.GetNumberOfTransforms() == 1
+    assert composite.GetNthTransform(0).GetName() == "DisplacementFieldTransform"
+    field = sitk.DisplacementFieldTransform(sitk.ReadImage(str(tmp_path / "warp.nii.gz"), sitk.sitkVectorFloat64))
+    centres = like.grid_points().reshape(-1, dim)
+    inside = like.index_to_world(np.random.default_rng(12).uniform(0, np.array(shape) - 1, (300, dim)))
+    for points in (inside, centres):
+        by_h5 = np.array([composite.TransformPoint(tuple(map(float, p))) for p in points])
+        by_nifti = np.array([field.TransformPoint(tuple(map(float, p))) for p in points])
+        np.testing.assert_allclose(by_h5, by_nifti, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(by_h5, centres + u.astype(np.float32).reshape(-1, dim), rtol=0, atol=1e-9)
+
+
+def test_composite_h5_refuses_bad_input_and_keeps_existing_files(tmp_path):
+    like = Grid((4, 3, 2), np.zeros(3), np.ones(3), np.eye(3))
+    u = np.zeros((4, 3, 2, 3))
+    with pytest.raises(VolregIOError, match=r"Composite transform `.*warp.nii.gz` must be named .h5 or .hdf5"):
+        write_itk_composite(u, like, tmp_path / "warp.nii.gz")
+    with pytest.raises(VolregIOError, match=r"Expected `displacement` of shape \(4, 3, 2, 3\).*got \(4, 3, 3\)"):
+        write_itk_composite(u[..., 0, :], like, tmp_path / "warp.h5")
+    bad = u.copy()
+    bad[1, 1, 1, 0] = np.nan
+    with pytest.raises(VolregIOError, match="Expected a finite `displacement`"):
+        write_itk_composite(bad, like, tmp_path / "warp.h5")
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "warp.h5").write_bytes(b"keep")
+    with pytest.raises(VolregIOError, match=r"exists; pass --force to overwrite"):
+        write_itk_composite(u, like, tmp_path / "warp.h5")
+    assert (tmp_path / "warp.h5").read_bytes() == b"keep"
+    write_itk_composite(u + 1.0, like, tmp_path / "warp.h5", force=True)
+    moved = sitk.ReadTransform(str(tmp_path / "warp.h5")).TransformPoint((1.0, 1.0, 1.0))
+    assert moved == (2.0, 2.0, 2.0) and [p.name for p in tmp_path.iterdir()] == ["warp.h5"]
 
 
 # --------------------------------------------------------------------------- atomic output

@@ -4,23 +4,29 @@ consistency test's entry points, without the command line."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import os
 
 import numpy as np
 import pytest
 
+from volreg.cli._common import _summary_line
 from volreg.errors import RegistrationInputError, UsageError, VolregError
 from volreg.evaluation.consistency import CONSISTENCY_OUTPUTS, consistency_test, warp_pad, write_consistency_test
 from volreg.grid import LabelVolume
 from volreg.io._atomic import output_folder
 from volreg.io.protocol import load_protocol
 from volreg.register import (
+    ITK_H5_OUTPUTS,
     REGISTRATION_OUTPUTS,
     LabelRegistration,
     check_pair,
     register_both_ways,
+    registration_outputs,
     write_registration,
 )
+from volreg.settings import OutputSettings
 from volreg.synthetic import GaussianBumps, deform_labels
 from volreg.warp.model import KernelWarp
 
@@ -146,6 +152,19 @@ def test_write_registration_writes_every_output_and_prints_nothing(small_pair, t
     assert len(fitted) == 1 and isinstance(fitted[0], LabelRegistration)
     assert report["levels"] == fitted[0].log
     assert capsys.readouterr() == ("", "")
+
+
+def test_itk_h5_outputs_follow_the_protocol(small_pair, tmp_path):
+    """`[outputs] itk_h5 = false`: the NIfTI fields only, and the summary line counts what was written."""
+    a, b, protocol = small_pair
+    assert set(ITK_H5_OUTPUTS) <= set(registration_outputs(protocol)) == set(REGISTRATION_OUTPUTS)
+    no_h5 = dataclasses.replace(protocol, outputs=OutputSettings(itk_h5=False))
+    report = write_registration(a, b, tmp_path / "out", protocol=no_h5)
+    names = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert names == sorted(registration_outputs(no_h5)) == sorted(set(REGISTRATION_OUTPUTS) - set(ITK_H5_OUTPUTS))
+    assert report["protocol"]["outputs"] == {"itk_h5": False}
+    assert _summary_line("register", report, tmp_path / "out").endswith(f"; {len(names)} files in "
+                                                                       f"{tmp_path / 'out'}{os.sep} ({report['seconds']:.0f} s)")
 
 
 def test_write_registration_leaves_nothing_when_a_write_fails(small_pair, tmp_path, monkeypatch):

@@ -5,7 +5,7 @@ import pytest
 from volreg.errors import ProtocolError
 from volreg.io.protocol import PROTOCOL_DIR, load_protocol
 from volreg.io.protocol import protocol_to_toml
-from volreg.settings import LinearSettings, Protocol, ReviewSettings, SurfaceSettings, WarpSettings
+from volreg.settings import LinearSettings, OutputSettings, Protocol, ReviewSettings, SurfaceSettings, WarpSettings
 
 
 def test_default_preset_names_every_default():
@@ -13,9 +13,10 @@ def test_default_preset_names_every_default():
     assert p.name == "default"
     assert p.warp == WarpSettings() and p.surface == SurfaceSettings()
     assert p.linear == LinearSettings("affine") and p.review == ReviewSettings(strict=False)
+    assert p.outputs == OutputSettings(itk_h5=True)
     assert p == Protocol(name="default", description=p.description)
     text = (PROTOCOL_DIR / "default.toml").read_text()
-    for section in (p.warp, p.surface, p.linear, p.review):  # every setting is named in the file (some commented: optional)
+    for section in (p.warp, p.surface, p.linear, p.review, p.outputs):  # every setting is named in the file (some commented: optional)
         for name in section.__dataclass_fields__:
             assert f"{name} =" in text, name
 
@@ -43,6 +44,8 @@ def test_a_file_overrides_and_keeps_the_rest(tmp_path):
         ("[linear]\nkind = 2\n", "`linear.kind` to be str"),
         ("[review]\nstrict = 'yes'\n", "`review.strict` to be bool"),
         ("[review]\nstrict = 1\n", "`review.strict` to be bool"),
+        ("[outputs]\nitk_h5 = 'no'\n", "`outputs.itk_h5` to be bool"),
+        ("[outputs]\nnifti = false\n", "Unknown setting `outputs.nifti`"),
     ],
 )
 def test_bad_files_are_refused_by_name(tmp_path, body, message):
@@ -57,10 +60,11 @@ def test_unknown_preset():
         load_protocol("nope")
 
 
-def test_linear_and_review_sections_round_trip(tmp_path):
+def test_linear_review_and_outputs_sections_round_trip(tmp_path):
     f = tmp_path / "mine.toml"
-    f.write_text('[linear]\nkind = "rigid"\n[review]\nstrict = true\n')
+    f.write_text('[linear]\nkind = "rigid"\n[review]\nstrict = true\n[outputs]\nitk_h5 = false\n')
     p = load_protocol(f)
     assert p.linear.kind == "rigid" and p.review.strict is True and p.warp == WarpSettings()
+    assert p.outputs.itk_h5 is False
     (tmp_path / "again.toml").write_text(protocol_to_toml(p))
     assert load_protocol(tmp_path / "again.toml") == p

@@ -87,7 +87,7 @@ def test_readme_python_example_runs_and_registers(tmp_path, monkeypatch):
     assert np.abs(namespace["back"](tau(x)) - x).max() < 1e-3
     # write_registration wrote every output of `volreg register` and reports an improvement.
     for name in ("warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz", "model.npz", "jacobian.nii.gz",
-                 "report.json", "report.png"):
+                 "report.json", "report.png", "warp.h5", "inverse_warp.h5"):
         assert (tmp_path / "out" / name).is_file(), name
     assert report["mean_dice"]["after"] > report["mean_dice"]["before"]
 

@@ -78,7 +78,7 @@ def test_outputs_written(known_pair):
     d, *_ = known_pair
     names = sorted(p.name for p in (d / "out").iterdir())
     assert names == sorted(["warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz", "model.npz", "linear.tfm",
-                            "jacobian.nii.gz", "report.json", "report.png"])
+                            "jacobian.nii.gz", "report.json", "report.png", "warp.h5", "inverse_warp.h5"])
 
 
 def test_inverse_warp_file(known_pair):
@@ -329,6 +329,7 @@ def test_demo_command(tmp_path, monkeypatch, capsys):
     assert "endpoint error mean" in capsys.readouterr().out
     names = {p.name for p in (tmp_path / "demo").iterdir()}
     assert names == {"fixed.nii.gz", "moving.nii.gz", "warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz",
-                     "model.npz", "linear.tfm", "jacobian.nii.gz", "report.json", "report.png"}
+                     "model.npz", "linear.tfm", "jacobian.nii.gz", "report.json", "report.png", "warp.h5",
+                     "inverse_warp.h5"}
     report = json.loads((tmp_path / "demo" / "report.json").read_text())
     assert report["endpoint_error_mm"]["mean"] < report["endpoint_error_mm"]["identity_mean"] / 3

@@ -45,6 +45,7 @@ _API = {
     "write_displacement": "volreg.io.fields",
     "read_itk_linear": "volreg.io.fields",
     "write_itk_linear": "volreg.io.fields",
+    "write_itk_composite": "volreg.io.fields",
     # settings
     "load_protocol": "volreg.io.protocol",
     "Protocol": "volreg.settings",
@@ -52,6 +53,7 @@ _API = {
     "WarpSettings": "volreg.settings",
     "LinearSettings": "volreg.settings",
     "ReviewSettings": "volreg.settings",
+    "OutputSettings": "volreg.settings",
     # the warp
     "KernelWarp": "volreg.warp.model",
     "LinearMap": "volreg.warp.linear",

@@ -34,6 +34,7 @@ from volreg.warp.fit import RegistrationResult, check_folding, fit_warp
 
 __all__ = [
     "LabelRegistration",
+    "ITK_H5_OUTPUTS",
     "REGISTRATION_OUTPUTS",
     "TwoWayRegistration",
     "check_pair",
@@ -44,6 +45,7 @@ __all__ = [
     "register_labels",
     "register_surfaces",
     "world_box",
+    "registration_outputs",
     "write_registration",
 ]
 
@@ -715,11 +717,27 @@ def check_pair(fixed, moving, fixed_name: object = "fixed", moving_name: object 
 # ----------------------------------------------------------------------------- every output of a registration
 
 
-#: The files :func:`write_registration` writes into its output folder.
+#: The files :func:`write_registration` writes into its output folder with the default protocol.
 REGISTRATION_OUTPUTS = (
     "warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz", "model.npz", "jacobian.nii.gz", "linear.tfm", "report.json",
-    "report.png",
+    "report.png", "warp.h5", "inverse_warp.h5",
 )
+
+#: The outputs left out when the protocol's ``[outputs] itk_h5`` is false.
+ITK_H5_OUTPUTS = ("warp.h5", "inverse_warp.h5")
+
+
+def registration_outputs(protocol: Protocol | None = None) -> tuple[str, ...]:
+    """The files :func:`write_registration` writes with ``protocol`` (default: the default protocol's).
+
+    Returns
+    -------
+    tuple of str
+        :data:`REGISTRATION_OUTPUTS`, less :data:`ITK_H5_OUTPUTS` when ``protocol.outputs.itk_h5`` is false.
+    """
+    if protocol is None or protocol.outputs.itk_h5:
+        return REGISTRATION_OUTPUTS
+    return tuple(name for name in REGISTRATION_OUTPUTS if name not in ITK_H5_OUTPUTS)
 
 
 def _peak_rss_gb() -> float:
@@ -842,11 +860,12 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
 
 
 def _write_fields(folder, fixed, moving, warp, fields: _FixedGridFields, u_inverse: np.ndarray, report: dict,
-                  force: bool) -> None:
-    """Write the model, both displacement fields, the warped labels, the Jacobian map and the
-    report figure into ``folder`` (an :class:`~volreg.io._atomic.OutputFolder`), recording each."""
+                  force: bool, itk_h5: bool) -> None:
+    """Write the model, both displacement fields (also as ITK composite transforms with ``itk_h5``),
+    the warped labels, the Jacobian map and the report figure into ``folder`` (an
+    :class:`~volreg.io._atomic.OutputFolder`), recording each."""
     from volreg.io import write_labels, write_scalar
-    from volreg.io.fields import write_displacement, write_itk_linear
+    from volreg.io.fields import write_displacement, write_itk_composite, write_itk_linear
     from volreg.io.report_figure import write_report_figure
 
     paths = {name: folder.path / name for name in REGISTRATION_OUTPUTS}
@@ -858,6 +877,11 @@ def _write_fields(folder, fixed, moving, warp, fields: _FixedGridFields, u_inver
     folder.record(paths["warp.nii.gz"])
     write_displacement(u_inverse, moving, paths["inverse_warp.nii.gz"], force=force)
     folder.record(paths["inverse_warp.nii.gz"])
+    if itk_h5:
+        write_itk_composite(fields.displacement, fixed, paths["warp.h5"], force=force)
+        folder.record(paths["warp.h5"])
+        write_itk_composite(u_inverse, moving, paths["inverse_warp.h5"], force=force)
+        folder.record(paths["inverse_warp.h5"])
     warped = fields.warped.astype(moving.array.dtype, copy=False)
     write_labels(fixed.with_array(warped), paths["warped.nii.gz"], force=force)
     folder.record(paths["warped.nii.gz"])
@@ -881,7 +905,7 @@ def _register_and_write(fixed, moving, outdir, *, protocol, drive_labels, landma
 
     protocol = load_protocol("default") if protocol is None else protocol
     with output_folder(outdir, force) as folder:
-        check_writable([folder.path / name for name in REGISTRATION_OUTPUTS], force=force)
+        check_writable([folder.path / name for name in registration_outputs(protocol)], force=force)
         t_all = time.perf_counter()
         result = register_labels(fixed, moving, drive_labels=drive_labels, landmarks=landmarks,
                                  protocol=protocol, prior=prior, progress=progress)
@@ -904,7 +928,7 @@ def _register_and_write(fixed, moving, outdir, *, protocol, drive_labels, landma
         stages.append(_stage("metrics", t0))
 
         t0 = time.perf_counter()
-        _write_fields(folder, fixed, moving, result.warp, fields, u_inverse, report, force)
+        _write_fields(folder, fixed, moving, result.warp, fields, u_inverse, report, force, protocol.outputs.itk_h5)
         stages.append(_stage("write", t0))
         report["stages"] = stages
         report["seconds"] = time.perf_counter() - t_all
@@ -932,9 +956,11 @@ def write_registration(
 ) -> dict:
     """Register ``moving`` to ``fixed`` (:func:`register_labels`) and write every output into ``outdir``.
 
-    The outputs (:data:`REGISTRATION_OUTPUTS`): ``warp.nii.gz`` (the displacement
+    The outputs (:func:`registration_outputs`): ``warp.nii.gz`` (the displacement
     u(x) = tau(x) - x on the fixed grid, LPS mm, as ANTs/ITK read it),
     ``inverse_warp.nii.gz`` (the inverse's displacement on the moving grid),
+    ``warp.h5`` and ``inverse_warp.h5`` (the same two fields as ITK composite
+    transforms, unless the protocol's ``outputs.itk_h5`` is false),
     ``warped.nii.gz`` (the moving labels on the fixed grid), ``model.npz`` (the
     warp, paper eq. 9 with its linear part), ``linear.tfm`` (the linear part alone,
     an ITK transform), ``jacobian.nii.gz`` (det d tau / dx on the fixed grid),

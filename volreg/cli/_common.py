@@ -15,7 +15,7 @@ import numpy as np
 from volreg.errors import UsageError, VolregError
 from volreg.grid import LabelVolume
 from volreg.io.landmarks import read_landmarks
-from volreg.register import REGISTRATION_OUTPUTS, LabelRegistration, world_box
+from volreg.register import ITK_H5_OUTPUTS, REGISTRATION_OUTPUTS, LabelRegistration, world_box
 
 PROG = "volreg"
 
@@ -136,7 +136,8 @@ def _summary_line(command: str, report: dict, outdir: Path) -> str:
     if report.get("landmarks"):
         m = report["landmarks"]
         line += f", landmark error mean {m['mean_mm']:.2f} mm / max {m['max_mm']:.2f} mm (identity {m['identity_mean_mm']:.2f})"
-    return line + f"; {len(REGISTRATION_OUTPUTS)} files in {outdir}{os.sep} ({report['seconds']:.0f} s)"
+    files = len(REGISTRATION_OUTPUTS) - (0 if report["protocol"]["outputs"]["itk_h5"] else len(ITK_H5_OUTPUTS))
+    return line + f"; {files} files in {outdir}{os.sep} ({report['seconds']:.0f} s)"
 
 
 def _load_landmarks(args, fixed: LabelVolume | None = None, moving: LabelVolume | None = None):

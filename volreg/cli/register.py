@@ -31,7 +31,9 @@ def add_parser(commands) -> None:
         help="register two label volumes (the main job)",
         description="Register the MOVING label volume to the FIXED one with a kernel warp driven by the "
         "labels' surfaces, after a linear stage (affine by default), and write into OUTDIR: warp.nii.gz "
-        "(ANTs/ITK displacement field on the fixed grid, LPS mm, pull-back, the whole map), warped.nii.gz "
+        "(ANTs/ITK displacement field on the fixed grid, LPS mm, pull-back, the whole map), inverse_warp.nii.gz "
+        "(its inverse on the moving grid), warp.h5 and inverse_warp.h5 (the same fields as ITK composite "
+        "transforms, unless the protocol says [outputs] itk_h5 = false), warped.nii.gz "
         "(moving labels on the fixed grid), model.npz (the warp), "
         "jacobian.nii.gz (det of its analytic Jacobian), linear.tfm (the linear part alone, ITK transform), "
         "report.json and report.png. Implausible results are named in one warning line each on stderr.",

@@ -3,8 +3,9 @@
 A protocol file has the sections ``[protocol]`` (``name``, ``description``),
 ``[surface]`` (:class:`~volreg.settings.SurfaceSettings`), ``[warp]``
 (:class:`~volreg.settings.WarpSettings`), ``[linear]``
-(:class:`~volreg.settings.LinearSettings`) and ``[review]``
-(:class:`~volreg.settings.ReviewSettings`).  Keys left out take their defaults;
+(:class:`~volreg.settings.LinearSettings`), ``[review]``
+(:class:`~volreg.settings.ReviewSettings`) and ``[outputs]``
+(:class:`~volreg.settings.OutputSettings`).  Keys left out take their defaults;
 an unknown section or key, or a value of the wrong type, is an error naming it.
 Presets ship in the repository's ``protocols/`` folder; TOML is parsed with the
 standard library's safe parser (``tomllib``; ``tomli`` before Python 3.11).
@@ -25,6 +26,7 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 
 from volreg.settings import (
     LinearSettings,
+    OutputSettings,
     Protocol,
     ReviewSettings,
     SurfaceSettings,
@@ -48,6 +50,9 @@ def _protocol_dir() -> Path:
 #: Where the shipped presets live.
 PROTOCOL_DIR = _protocol_dir()
 
+#: The settings sections of a protocol file, after ``[protocol]``: fields of :class:`~volreg.settings.Protocol`.
+_SECTIONS = ("surface", "warp", "linear", "review", "outputs")
+
 
 def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
     """Read a protocol: a preset name (``protocols/<name>.toml``) or a path to a TOML file.
@@ -66,10 +71,10 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ProtocolError(f"Protocol `{path}` is not valid TOML: {exc}.") from None
-    unknown = set(data) - {"protocol", "surface", "warp", "linear", "review"}
+    unknown = set(data) - {"protocol", *_SECTIONS}
     if unknown:
         raise ProtocolError(f"Unknown section [{sorted(unknown)[0]}] in `{path}`; "
-                            "expected [protocol], [surface], [warp], [linear], [review].")
+                            f"expected [protocol], {', '.join(f'[{s}]' for s in _SECTIONS)}.")
     head = data.get("protocol", {})
     if not isinstance(head, Mapping) or set(head) - {"name", "description"}:
         extra = sorted(set(head) - {"name", "description"}) if isinstance(head, Mapping) else ["?"]
@@ -82,6 +87,7 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
             warp=settings_from_mapping(WarpSettings, data.get("warp", {}), "warp"),
             linear=settings_from_mapping(LinearSettings, data.get("linear", {}), "linear"),
             review=settings_from_mapping(ReviewSettings, data.get("review", {}), "review"),
+            outputs=settings_from_mapping(OutputSettings, data.get("outputs", {}), "outputs"),
         )
     except ProtocolError as exc:
         raise ProtocolError(f"{exc} (in `{path}`)") from None
@@ -102,7 +108,7 @@ def protocol_to_toml(protocol: Protocol, *, comment: str = "") -> str:
     """
     lines = [f"# {line}" for line in comment.splitlines()] if comment else []
     lines += ["[protocol]", f"name = {_toml_value(protocol.name)}", f"description = {_toml_value(protocol.description)}"]
-    for section in ("surface", "warp", "linear", "review"):
+    for section in _SECTIONS:
         lines += ["", f"[{section}]"]
         for key, value in dataclasses.asdict(getattr(protocol, section)).items():
             lines.append(f"# {key}: default (derived from the data)" if value is None else f"{key} = {_toml_value(value)}")
