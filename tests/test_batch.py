@@ -8,7 +8,6 @@ import csv
 import os
 import signal
 import threading
-import time
 
 import nibabel as nib
 import numpy as np
