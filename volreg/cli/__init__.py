@@ -26,6 +26,7 @@ from volreg import __version__
 from volreg.cli import apply, batch, consistency, demo, morph, protocols, register, register_surfaces, surface, transfer, tune
 from volreg.cli._common import EXPECTED_ERRORS, PROG, UsageError, _warn
 from volreg.errors import VolregWarning
+from volreg.io._atomic import kept_results
 from volreg.progress import clear_interrupt, note_interrupt
 
 __all__ = ["main", "build_parser", "UsageError"]
@@ -90,7 +91,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     int
         Exit status: 0 on success, 2 for a usage error or invalid input
         (reported as one line on stderr), 130 after Ctrl-C (SIGINT) and 143
-        after SIGTERM (the run's outputs removed).  ``--help`` and
+        after SIGTERM (the run's outputs removed; an output folder keeps
+        its previous complete result).  ``--help`` and
         ``--version`` return 0.
 
     Raises
@@ -110,6 +112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     unraisable = sys.unraisablehook
     if previous is not None:  # the main thread: signals are delivered here
         clear_interrupt()
+        kept_results().clear()
         sys.unraisablehook = _unraisable_hook(unraisable)
     show = warnings.showwarning
 
@@ -142,7 +145,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 128 + int(signal.SIGPIPE)
     except KeyboardInterrupt as exc:
         name = str(exc) or "SIGINT"
-        print(f"{PROG} {args.command}: interrupted by {name}; the outputs of this run were removed.", file=sys.stderr)
+        kept = "".join(f" (the previous result in `{p}` was kept)" for p in kept_results()[:1])
+        print(f"{PROG} {args.command}: interrupted by {name}; the outputs of this run were removed{kept}.", file=sys.stderr)
         return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
     finally:
         filters.__exit__(None, None, None)

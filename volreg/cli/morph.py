@@ -11,7 +11,6 @@ import numpy as np
 from volreg.cli._common import PROG
 from volreg.cli._surfaces import _load_model, _read, _register, _write_surface
 from volreg.errors import UsageError
-from volreg.io import check_writable
 from volreg.io._atomic import output_folder
 from volreg.io.protocol import load_protocol
 from volreg.morph import morph_vertices, transfer_values
@@ -90,10 +89,12 @@ def run(args: argparse.Namespace) -> int:
     names = [f"frame_{k:03d}" for k in range(args.frames)]
     paths = [outdir / f"{n}.vtk" for n in names] + [outdir / f"{n}.png" for n in names] + [outdir / "morph.gif"]
     with output_folder(outdir, args.force) as folder:
-        check_writable(paths, force=args.force)
+        folder.check_writable([p.name for p in paths], force=args.force)
+        final, outdir = outdir, folder.path  # written into the run's staging folder, swapped in at the end
         if warp is None:
             with ProgressBars(quiet=args.quiet) as progress:
-                warp = _register(source, target, protocol, None, progress)
+                warp = _register(source, target, protocol, None, progress,
+                                     names=(f"SOURCE `{args.source}`", f"TARGET `{args.target}`"))
         warped = warp(source.vertices)
         frames = morph_vertices(source.vertices, warped, args.frames, linear=warp.linear)
         shared = sorted(set(source.arrays) & set(target.arrays))
@@ -123,6 +124,6 @@ def run(args: argparse.Namespace) -> int:
         with atomic_output(outdir / "morph.gif", force=args.force) as tmp:
             pil[0].save(tmp, format="GIF", save_all=True, append_images=pil[1:], duration=120, loop=0)
         folder.record(outdir / "morph.gif")
-    print(f"{PROG} morph: {args.frames} frames (.vtk, .png) and morph.gif in {outdir} "
+    print(f"{PROG} morph: {args.frames} frames (.vtk, .png) and morph.gif in {final} "
           f"({time.perf_counter() - start:.0f} s)")
     return 0

@@ -13,7 +13,7 @@ import numpy as np
 from volreg import __version__
 from volreg.cli._common import PROG, _load_landmarks, _sha256
 from volreg.cli._surfaces import _read, _register, _write_surface
-from volreg.io import check_writable, write_json, write_text
+from volreg.io import write_json, write_text
 from volreg.io._atomic import output_folder
 from volreg.io.protocol import load_protocol
 from volreg.io.summary import json_safe, package_versions
@@ -61,9 +61,10 @@ def run(args: argparse.Namespace) -> int:
     outdir: Path = args.output
     paths = {name: outdir / name for name in OUTPUTS}
     with output_folder(outdir, args.force) as folder:
-        check_writable(paths.values(), force=args.force)
+        paths = folder.check_writable(OUTPUTS, force=args.force)  # in staging, swapped into outdir at the end
         with ProgressBars(quiet=args.quiet) as progress:
-            warp = _register(source, target, protocol, landmarks, progress)
+            warp = _register(source, target, protocol, landmarks, progress,
+                            names=(f"SOURCE `{args.source}`", f"TARGET `{args.target}`"))
         warped, jac = warp.evaluate(source.vertices, order=1)
         closest, distance, _ = closest_points(warped, target.vertices, target.triangles)
         diameter = _diameter(target.vertices)
