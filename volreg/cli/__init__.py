@@ -14,6 +14,7 @@ with its traceback.
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import signal
 import sys
@@ -143,6 +144,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         os.close(devnull)
         return 128 + int(signal.SIGPIPE)
+    except OSError as exc:
+        if exc.errno not in (errno.ENAMETOOLONG, errno.ELOOP):
+            raise
+        # a path over the system's limits (NAME_MAX per component, PATH_MAX in all), wherever it is met
+        name = exc.filename if exc.filename is not None else "a path"
+        print(f"{PROG} {args.command}: error: `{name}`: {exc.strerror}; expected a path within the system's limits "
+              f"({os.pathconf('/', 'PC_NAME_MAX')} bytes per name, {os.pathconf('/', 'PC_PATH_MAX')} in all).",
+              file=sys.stderr)
+        return 2
     except KeyboardInterrupt as exc:
         name = str(exc) or "SIGINT"
         kept = "".join(f" (the previous result in `{p}` was kept)" for p in kept_results()[:1])

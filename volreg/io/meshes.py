@@ -267,8 +267,17 @@ def _read_gifti(p: Path) -> SurfaceData:
         raise VolregIOError(f"Surface `{p}` is not a readable GIFTI surface: {str(exc).strip().splitlines()[0]}.") from exc
     if points is None or np.size(points) == 0:
         raise VolregIOError(f"Surface `{p}` has no POINTSET data array; expected a GIFTI surface (.surf.gii).")
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise VolregIOError(f"Surface `{p}` has a POINTSET of shape {points.shape}; expected (N, 3) x, y, z coordinates.")
     vertices = np.array(points, dtype=float) * np.array([-1.0, -1.0, 1.0])  # RAS -> LPS
-    tri = np.zeros((0, 3), np.int64) if triangles is None else np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    tri = np.zeros((0, 3), np.int64) if triangles is None else np.asarray(triangles, dtype=np.int64)
+    if tri.ndim == 2 and tri.shape[1] == 4:  # quads: two triangles each, (a, b, c) and (a, c, d)
+        tri = np.concatenate([tri[:, [0, 1, 2]], tri[:, [0, 2, 3]]])
+    elif tri.size and (tri.ndim != 2 or tri.shape[1] != 3):
+        raise VolregIOError(f"Surface `{p}` has a TRIANGLE array of shape {tri.shape}; expected (M, 3) vertex indices "
+                            "(or (M, 4) quads).")
+    tri = tri.reshape(-1, 3)
     return SurfaceData(vertices, tri, None, {})
 
 
