@@ -454,7 +454,9 @@ def output_folder(
     ------
     OutputFolder
         Write each output under :attr:`OutputFolder.path` (not under ``path``) and call
-        :meth:`OutputFolder.record` with it once written.
+        :meth:`OutputFolder.record` with it once written.  Write a file by replacing it
+        (:func:`atomic_output`, as every volreg writer does), never in place: until
+        replaced, the files there are hard links to the previous result's.
 
     Raises
     ------
