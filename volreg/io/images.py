@@ -421,7 +421,7 @@ def _read_sitk(
     flat = _single_slice_as_2d(array.shape, origin, spacing, direction, p, what)
     if flat is not None:
         shape, origin, spacing, direction = flat
-        array = np.ascontiguousarray(array[:, :, 0])  # a copy of an array that owns its memory
+        array = array[:, :, 0].copy(order="C")  # a new array that owns its memory
     return array, origin, spacing, direction
 
 
