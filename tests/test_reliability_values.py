@@ -405,3 +405,25 @@ def test_an_interrupted_force_rerun_says_the_previous_result_was_kept(tmp_path, 
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     assert sorted(p.name for p in tmp_path.iterdir() if "volreg" in p.name) == []
     assert load_protocol(tmp_path / "p.toml").warp.min_width == 8.0
+
+
+def test_an_interrupt_that_a_library_turns_into_another_error_is_still_an_interrupt(tmp_path, capsys, monkeypatch):
+    """SIGTERM while matplotlib draws: its renderer turns the KeyboardInterrupt into a ValueError."""
+    import signal
+    import time
+
+    _disc_slices(tmp_path)
+    out = tmp_path / "out"
+
+    def drawing(*a, **k):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+        except KeyboardInterrupt:
+            raise ValueError("Invalid affine transformation matrix") from None
+
+    monkeypatch.setattr("volreg.io.report_figure.write_report_figure", drawing)
+    assert main(["register", str(tmp_path / "a.nii.gz"), str(tmp_path / "b.nii.gz"), "-o", str(out), "--protocol",
+                 str(tmp_path / "p.toml"), "--quiet"]) == 143
+    assert _error(capsys) == "volreg register: interrupted by SIGTERM; the outputs of this run were removed."
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.nii.gz", "b.nii.gz", "p.toml"]
