@@ -50,11 +50,11 @@ def labels(p_lps: np.ndarray) -> np.ndarray:
     return np.where(p_lps[:, 0] > CENTRE_LPS[0], 3, 10).astype(np.int32)
 
 
-def write_surface(path: Path, v_lps: np.ndarray, faces: np.ndarray, *, quads: bool = False) -> None:
+def write_surface(path: Path, v_lps: np.ndarray, faces: np.ndarray) -> None:
     coordsys = nib.gifti.GiftiCoordSystem(1, 3, XFORM)
     darrays = [GiftiDataArray((v_lps * RAS).astype(np.float32), intent="NIFTI_INTENT_POINTSET",
                               datatype="NIFTI_TYPE_FLOAT32", coordsys=coordsys, meta=GiftiMetaData(POINTSET_META)),
-               GiftiDataArray(np.column_stack([faces, faces[:, :1]]).astype(np.int32) if quads else faces.astype(np.int32),
+               GiftiDataArray(faces.astype(np.int32),
                               intent="NIFTI_INTENT_TRIANGLE", datatype="NIFTI_TYPE_INT32",
                               meta=GiftiMetaData({"TopologicalType": "Closed"}))]
     nib.save(GiftiImage(meta=GiftiMetaData(FILE_META), darrays=darrays), str(path))
@@ -257,7 +257,6 @@ def test_surface_command_gifti(tmp_path):
 def test_refusals(pair, tmp_path, capsys):
     d, v, _, faces = pair
     write_shape(tmp_path / "short.shape.gii", np.zeros(len(v) - 5))
-    write_surface(tmp_path / "quads.surf.gii", v, faces, quads=True)
 
     def refused(args, *words):
         out = tmp_path / "out"
@@ -269,8 +268,6 @@ def test_refusals(pair, tmp_path, capsys):
     refused(["register-surfaces", d / "src.surf.gii", d / "tgt.surf.gii", "--source-data", tmp_path / "short.shape.gii"],
             "short.shape.gii", f"expected {len(v)} values")
     refused(["register-surfaces", d / "tgt.thick.shape.gii", d / "tgt.surf.gii"], "tgt.thick.shape.gii", "no POINTSET")
-    refused(["register-surfaces", tmp_path / "quads.surf.gii", d / "tgt.surf.gii"], "quads.surf.gii",
-            "faces of 4 vertices")
     refused(["morph", d / "src.surf.gii", d / "tgt.surf.gii", "--target-data", d / "tgt.surf.gii"],
             "tgt.surf.gii", "is a GIFTI surface")
     refused(["transfer", d / "src.surf.gii", d / "tgt.surf.gii", "--result", d / "out", "--target-data",

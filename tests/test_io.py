@@ -520,10 +520,9 @@ def test_thin_image_read_twice_owns_its_memory(tmp_path, suffix):
     path = tmp_path / f"thin{suffix}"
     if suffix == ".vti":
         _vti(path, values, dims=(64, 1, 1), spacing=(1, 1, 1), origin=(0, 0, 0), direction=np.eye(3))
-        shape = (64, 1)  # a single z slice is read as 2-D
     else:
-        write_labels(LabelVolume(values.reshape(64, 1, 1), (1, 2, 3), (1, 1, 1), np.eye(3)), path)
-        shape = (64, 1, 1)
+        write_labels(LabelVolume(values.reshape(64, 1, 1), (1, 2, 0), (1, 1, 1), np.eye(3)), path)
+    shape = (64, 1)  # a single z slice is read as 2-D, whatever the format
     first = read_labels(path).array
     second = read_labels(path).array
     for array in (first, second):

@@ -52,10 +52,11 @@ def small_pair(tmp_path_factory):
 def test_output_folder_creates_parents_and_keeps_what_completes(tmp_path):
     out = tmp_path / "a" / "b"
     with output_folder(out) as folder:
-        (out / "x.txt").write_text("x")
-        folder.record(out / "x.txt")
-    assert (out / "x.txt").read_text() == "x"
-    assert folder.created == [tmp_path / "a", out] and folder.written == [out / "x.txt"]
+        assert not out.exists() and folder.path.parent == tmp_path / "a"  # written beside, swapped in at the end
+        (folder.path / "x.txt").write_text("x")
+        folder.record(folder.path / "x.txt")
+    assert (out / "x.txt").read_text() == "x" and folder.final == out
+    assert [p.name for p in (tmp_path / "a").iterdir()] == ["b"] and folder.created == [tmp_path / "a"]
 
 
 @pytest.mark.parametrize("error", [RuntimeError("a bug"), KeyboardInterrupt("SIGINT")], ids=["error", "interrupt"])
@@ -63,8 +64,8 @@ def test_output_folder_removes_what_the_run_wrote_and_created(tmp_path, error):
     out = tmp_path / "a" / "b"
     with pytest.raises(type(error)):
         with output_folder(out) as folder:
-            (out / "x.txt").write_text("x")
-            folder.record(out / "x.txt")
+            (folder.path / "x.txt").write_text("x")
+            folder.record(folder.path / "x.txt")
             raise error
     assert list(tmp_path.iterdir()) == []
 
@@ -79,8 +80,8 @@ def test_output_folder_refuses_a_non_empty_folder_without_force(tmp_path):
     # with force: a failure removes what the run wrote, never what was there before
     with pytest.raises(ValueError):
         with output_folder(tmp_path, force=True) as folder:
-            (tmp_path / "new.txt").write_text("new")
-            folder.record(tmp_path / "new.txt")
+            (folder.path / "new.txt").write_text("new")
+            folder.record(folder.path / "new.txt")
             raise ValueError("late failure")
     assert [p.name for p in tmp_path.iterdir()] == ["keep.txt"]
 
@@ -92,27 +93,28 @@ def test_output_folder_refuses_a_file(tmp_path):
             pass
 
 
-def test_inner_transaction_hands_its_records_to_the_outer_one(tmp_path):
+def test_inner_transaction_writes_into_the_outer_one_and_completes_with_it(tmp_path):
     out = tmp_path / "out"
     with pytest.raises(RuntimeError):
         with output_folder(out) as outer:
             with output_folder(out / "forward") as inner:
-                (out / "forward" / "model.npz").write_text("m")
-                inner.record(out / "forward" / "model.npz")
-            assert (out / "forward" / "model.npz").is_file()  # the inner one completed
-            assert outer.written == [out / "forward" / "model.npz"] and outer.created == [out, out / "forward"]
+                assert inner.path == outer.path / "forward" and inner.final == out / "forward"
+                (inner.path / "model.npz").write_text("m")
+                inner.record(inner.path / "model.npz")
+            assert (outer.path / "forward" / "model.npz").is_file() and not out.exists()
+            assert outer.written == [outer.path / "forward" / "model.npz"]
             raise RuntimeError("a later step fails")
-    assert not out.exists()
+    assert list(tmp_path.iterdir()) == []
     # an inner failure removes the inner run's files only; the outer run decides about its own
     with output_folder(out) as outer:
-        (out / "a.txt").write_text("a")
-        outer.record(out / "a.txt")
+        (outer.path / "a.txt").write_text("a")
+        outer.record(outer.path / "a.txt")
         with pytest.raises(RuntimeError):
             with output_folder(out / "backward") as inner:
-                (out / "backward" / "b.txt").write_text("b")
-                inner.record(out / "backward" / "b.txt")
+                (inner.path / "b.txt").write_text("b")
+                inner.record(inner.path / "b.txt")
                 raise RuntimeError("inner failure")
-    assert [p.name for p in out.iterdir()] == ["a.txt"] and outer.written == [out / "a.txt"]
+    assert [p.name for p in out.iterdir()] == ["a.txt"] and outer.written == [outer.path / "a.txt"]
 
 
 # ----------------------------------------------------------------------------- pair checks

@@ -345,7 +345,8 @@ def test_interrupted_registration_leaves_nothing(tmp_path, sig):
                    tmp_path / "p.toml", "-v"], tmp_path)
     # wait until the warp fit has started (stderr logs stages once they finish; poll for the directory)
     deadline = time.time() + 120
-    while not out.exists() and time.time() < deadline and proc.poll() is None:
+    # (the run writes into a hidden sibling of `out`, renamed to `out` once complete)
+    while not list(tmp_path.glob(".out.volreg-new-*")) and time.time() < deadline and proc.poll() is None:
         time.sleep(0.05)
     # The directory appears about 1 s into a run of about 2 s; waiting 1 s here can let the run
     # finish (restoring the default SIGTERM action) before the signal is sent.
@@ -356,7 +357,7 @@ def test_interrupted_registration_leaves_nothing(tmp_path, sig):
     assert proc.returncode == (130 if sig == signal.SIGINT else 143), err
     lines = [ln for ln in err.strip().splitlines() if not ln.startswith("volreg register: ") or "interrupted" in ln]
     assert lines == [f"volreg register: interrupted by {sig.name}; the outputs of this run were removed."], err
-    assert not out.exists() and not list(tmp_path.glob("**/*.tmp*"))
+    assert not out.exists() and not list(tmp_path.glob("**/*.tmp*")) and not list(tmp_path.glob(".out.volreg-*"))
 
 
 def test_interrupt_lost_in_a_ctypes_callback_still_stops_the_run(tmp_path, monkeypatch, capsys):

@@ -898,14 +898,14 @@ def _write_fields(folder, fixed, moving, warp, fields: _FixedGridFields, u_inver
 def _register_and_write(fixed, moving, outdir, *, protocol, drive_labels, landmarks, force, inputs, truth, prior,
                         progress, on_fit) -> tuple[LabelRegistration, dict]:
     """:func:`write_registration`, also returning the registration itself."""
-    from volreg.io import check_writable, write_json
+    from volreg.io import write_json
     from volreg.io._atomic import output_folder
     from volreg.io.protocol import load_protocol
     from volreg.io.summary import json_safe
 
     protocol = load_protocol("default") if protocol is None else protocol
     with output_folder(outdir, force) as folder:
-        check_writable([folder.path / name for name in registration_outputs(protocol)], force=force)
+        folder.check_writable(registration_outputs(protocol), force=force)
         t_all = time.perf_counter()
         result = register_labels(fixed, moving, drive_labels=drive_labels, landmarks=landmarks,
                                  protocol=protocol, prior=prior, progress=progress)

@@ -14,6 +14,7 @@ with its traceback.
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import signal
 import sys
@@ -26,6 +27,7 @@ from volreg import __version__
 from volreg.cli import apply, batch, consistency, demo, morph, protocols, register, register_surfaces, surface, transfer, tune
 from volreg.cli._common import EXPECTED_ERRORS, PROG, UsageError, _warn
 from volreg.errors import VolregWarning
+from volreg.io._atomic import kept_results
 from volreg.progress import clear_interrupt, note_interrupt
 
 __all__ = ["main", "build_parser", "UsageError"]
@@ -49,8 +51,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: The signals this run's handler turned into KeyboardInterrupt: a library that calls back into
+#: Python (matplotlib's renderer) may turn the KeyboardInterrupt into an error of its own.
+_signalled: list[str] = []
+
+
 def _raise_interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt(signal.Signals(signum).name)
+    name = signal.Signals(signum).name
+    _signalled.append(name)
+    raise KeyboardInterrupt(name)
+
+
+def _interrupted(command: str, name: str) -> int:
+    """Report an interrupt in one line; return the exit status (130 for SIGINT, 143 for SIGTERM)."""
+    kept = "".join(f" (the previous result in `{p}` was kept)" for p in kept_results()[:1])
+    print(f"{PROG} {command}: interrupted by {name}; the outputs of this run were removed{kept}.", file=sys.stderr)
+    return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
 
 
 def _install_sigterm():
@@ -90,7 +106,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     int
         Exit status: 0 on success, 2 for a usage error or invalid input
         (reported as one line on stderr), 130 after Ctrl-C (SIGINT) and 143
-        after SIGTERM (the run's outputs removed).  ``--help`` and
+        after SIGTERM (the run's outputs removed; an output folder keeps
+        its previous complete result).  ``--help`` and
         ``--version`` return 0.
 
     Raises
@@ -110,6 +127,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     unraisable = sys.unraisablehook
     if previous is not None:  # the main thread: signals are delivered here
         clear_interrupt()
+        kept_results().clear()
+        _signalled.clear()
         sys.unraisablehook = _unraisable_hook(unraisable)
     show = warnings.showwarning
 
@@ -129,6 +148,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
         return args.run(args)
     except EXPECTED_ERRORS as exc:
+        if _signalled:  # the interrupt, turned into another error on its way up
+            return _interrupted(args.command, _signalled[0])
         message = " ".join(str(exc).split("\n")).strip() or type(exc).__name__
         print(f"{PROG} {args.command}: error: {message}", file=sys.stderr)
         return 2
@@ -140,10 +161,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         os.close(devnull)
         return 128 + int(signal.SIGPIPE)
+    except OSError as exc:
+        if _signalled:
+            return _interrupted(args.command, _signalled[0])
+        if exc.errno not in (errno.ENAMETOOLONG, errno.ELOOP):
+            raise
+        # a path over the system's limits (NAME_MAX per component, PATH_MAX in all), wherever it is met
+        name = exc.filename if exc.filename is not None else "a path"
+        print(f"{PROG} {args.command}: error: `{name}`: {exc.strerror}; expected a path within the system's limits "
+              f"({os.pathconf('/', 'PC_NAME_MAX')} bytes per name, {os.pathconf('/', 'PC_PATH_MAX')} in all).",
+              file=sys.stderr)
+        return 2
     except KeyboardInterrupt as exc:
-        name = str(exc) or "SIGINT"
-        print(f"{PROG} {args.command}: interrupted by {name}; the outputs of this run were removed.", file=sys.stderr)
-        return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
+        return _interrupted(args.command, str(exc) or "SIGINT")
+    except Exception:
+        if _signalled:  # the interrupt, turned into another error on its way up (outputs already removed)
+            return _interrupted(args.command, _signalled[0])
+        raise
     finally:
         filters.__exit__(None, None, None)
         warnings.showwarning = show

@@ -4,12 +4,13 @@ writing them (VTK in LPS, GIFTI in RAS), saved models and plausibility warnings.
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from volreg.cli._common import _warn
-from volreg.errors import UsageError
+from volreg.errors import UsageError, VolregWarning
 from volreg.evaluation.review import Finding
 from volreg.io import write_mesh
 from volreg.io.gifti import GiftiArrayMeta, is_gifti, write_gifti
@@ -45,10 +46,58 @@ def _wants_gifti(args, source_path: Path) -> bool:
     return bool(getattr(args, "gifti", False)) or is_gifti(source_path)
 
 
-def _register(source: SurfaceData, target: SurfaceData, protocol, landmarks, progress) -> KernelWarp:
-    """The kernel warp of ``source`` onto ``target`` (:func:`volreg.register.register_surfaces`)."""
-    src = (source.vertices, surface_normals(source.vertices, source.triangles, source.normals))
-    tgt = (target.vertices, surface_normals(target.vertices, target.triangles, target.normals))
+#: Relative size (of the largest) below which a principal extent of a surface's vertices counts as none.
+_FLAT = 1e-6
+
+#: Largest ratio of the two surfaces' sizes taken as one unit (mm); beyond it they are refused.
+MAX_SIZE_RATIO = 5.0
+
+
+def _fitting_points(data: SurfaceData, name: object) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices of ``data`` that can train an implicit surface, with their outward unit normals.
+
+    Vertices on no triangle (or on degenerate ones only) have no normal: they are warped
+    like every vertex but not fitted (with a warning).  Refuses vertices that span no volume
+    a surface could bound: all at one point, on a line, or a point cloud in a plane.
+    """
+    normals = surface_normals(data.vertices, data.triangles, data.normals)
+    ok = np.linalg.norm(normals, axis=1) > 0.5
+    if len(data.triangles) and not ok.all():
+        if not ok.any():
+            raise UsageError(f"{name} has no triangle of non-zero area; expected a surface mesh.")
+        warnings.warn(f"{name} has {int((~ok).sum())} of {len(ok)} vertices on no triangle of non-zero area "
+                      "(unreferenced or duplicated); they are warped but not used to fit.", VolregWarning, stacklevel=3)
+    points, normals = data.vertices[ok], normals[ok]
+    sizes = np.linalg.svd(points - points.mean(axis=0), compute_uv=False) if len(points) > 1 else np.zeros(3)
+    sizes = np.concatenate([sizes, np.zeros(3 - len(sizes))])
+    if sizes[0] == 0:
+        raise UsageError(f"{name} has all its {len(points)} vertices at one point; expected a surface.")
+    if sizes[1] <= _FLAT * sizes[0]:
+        raise UsageError(f"{name} has all its vertices on a line; expected a surface.")
+    if sizes[2] <= _FLAT * sizes[0] and not len(data.triangles):
+        raise UsageError(f"{name} is a point cloud lying in a plane: its inside and outside are undefined; "
+                         "expected points around a closed surface, or a mesh with triangles.")
+    return points, normals
+
+
+def _register(source: SurfaceData, target: SurfaceData, protocol, landmarks, progress,
+              names: tuple[object, object] = ("SOURCE", "TARGET")) -> KernelWarp:
+    """The kernel warp of ``source`` onto ``target`` (:func:`volreg.register.register_surfaces`).
+
+    ``names`` name the two surfaces in errors (e.g. ``SOURCE `a.vtk```).  Surfaces whose
+    sizes differ by more than :data:`MAX_SIZE_RATIO` are refused: one is most likely in
+    other units (metres, centimetres) and the fit would end far off.
+    """
+    src = _fitting_points(source, names[0])
+    tgt = _fitting_points(target, names[1])
+    size = [float(np.linalg.norm(np.ptp(p, axis=0))) for p in (src[0], tgt[0])]
+    ratio = max(size) / min(size)
+    if ratio > MAX_SIZE_RATIO:
+        raise UsageError(
+            f"{names[0]} is {size[0]:.4g} mm across and {names[1]} {size[1]:.4g} mm ({ratio:.3g} times the size); "
+            f"expected two surfaces in one unit, millimetres, within {MAX_SIZE_RATIO:g} times each other's size "
+            "(check whether one is in metres or centimetres)."
+        )
     return register_surfaces(src, tgt, landmarks=landmarks, settings=protocol.warp, progress=progress).warp
 
 

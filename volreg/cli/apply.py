@@ -74,6 +74,21 @@ def _kind(path: Path) -> str:
                      f"points ({', '.join(POINT_SUFFIXES)}) or a mesh ({', '.join(MESH_FORMATS)}).")
 
 
+def _check_overlap(field, reference, warp_path, reference_path) -> None:
+    """Refuse a displacement field whose grid misses the reference grid: it would act as the identity there."""
+    from volreg.register import world_box
+
+    lo1, hi1 = world_box(field)
+    lo2, hi2 = world_box(reference)
+    if np.any(hi1 < lo2) or np.any(hi2 < lo1):
+        raise UsageError(
+            f"Warp `{warp_path}` covers {np.round(lo1, 1).tolist()}..{np.round(hi1, 1).tolist()} mm (LPS) and "
+            f"--reference `{reference_path}` {np.round(lo2, 1).tolist()}..{np.round(hi2, 1).tolist()} mm: they do not "
+            "overlap, so the warp would leave every reference voxel where it is; expected a warp on (or around) the "
+            "reference's grid (check the origins, or the pairing of the warp and the reference)."
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     """``volreg apply MODEL_OR_WARP INPUT (--reference REF | --from fixed|moving) -o OUT``."""
     kind = _kind(args.image)
@@ -180,7 +195,8 @@ def _run_image(args: argparse.Namespace) -> int:
                 raise UsageError(f"Warp `{args.warp}` is {grid.ndim}-D but --reference `{args.reference}` is {reference.ndim}-D.")
             if grid.same_geometry(reference):
                 u = u_field
-            else:  # as ITK: the field is interpolated linearly at the reference voxels, zero outside it
+            else:
+                _check_overlap(grid, reference, args.warp, args.reference)  # as ITK: the field is interpolated linearly at the reference voxels, zero outside it
                 u = np.stack([resample_image(u_field[..., d], grid, at, order=1) for d in range(grid.ndim)], axis=-1)
         else:
             raise UsageError(f"MODEL_OR_WARP `{args.warp}` must be a model.npz, a displacement field .nii/.nii.gz "

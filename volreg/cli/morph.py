@@ -12,7 +12,6 @@ from volreg.cli._common import PROG
 from volreg.cli._surfaces import (_add_data_options, _data_file_name, _data_meta, _is_label, _load_model, _read,
                                   _register, _wants_gifti, _write_gifti_surface, _write_surface)
 from volreg.errors import UsageError
-from volreg.io import check_writable
 from volreg.io._atomic import output_folder
 from volreg.io.gifti import write_gifti_data
 from volreg.io.protocol import load_protocol
@@ -104,10 +103,12 @@ def run(args: argparse.Namespace) -> int:
         paths += [outdir / f"{n}.surf.gii" for n in names]
         paths += [outdir / file for files in data_names.values() for file in files.values()]
     with output_folder(outdir, args.force) as folder:
-        check_writable(paths, force=args.force)
+        folder.check_writable([p.name for p in paths], force=args.force)
+        final, outdir = outdir, folder.path  # written into the run's staging folder, swapped in at the end
         if warp is None:
             with ProgressBars(quiet=args.quiet) as progress:
-                warp = _register(source, target, protocol, None, progress)
+                warp = _register(source, target, protocol, None, progress,
+                                 names=(f"SOURCE `{args.source}`", f"TARGET `{args.target}`"))
         warped = warp(source.vertices)
         frames = morph_vertices(source.vertices, warped, args.frames, linear=warp.linear)
         ts = np.linspace(0.0, 1.0, args.frames)
@@ -148,6 +149,6 @@ def run(args: argparse.Namespace) -> int:
             pil[0].save(tmp, format="GIF", save_all=True, append_images=pil[1:], duration=120, loop=0)
         folder.record(outdir / "morph.gif")
     kinds = ".vtk, .surf.gii, .png" if gifti else ".vtk, .png"
-    print(f"{PROG} morph: {args.frames} frames ({kinds}) and morph.gif in {outdir} "
+    print(f"{PROG} morph: {args.frames} frames ({kinds}) and morph.gif in {final} "
           f"({time.perf_counter() - start:.0f} s)")
     return 0

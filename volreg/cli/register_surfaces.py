@@ -15,9 +15,8 @@ from volreg import __version__
 from volreg.cli._common import PROG, _load_landmarks, _sha256
 from volreg.cli._surfaces import (FRAMES, _add_data_options, _read, _register, _wants_gifti, _warn_findings,
                                   _write_gifti_surface, _write_surface)
-from volreg.evaluation.surface_review import (SurfaceReviewLimits, diameter, review_surface_distance,
-                                              review_surface_extents)
-from volreg.io import check_writable, write_json, write_text
+from volreg.evaluation.surface_review import SurfaceReviewLimits, diameter, review_surface_distance
+from volreg.io import write_json, write_text
 from volreg.io._atomic import output_folder
 from volreg.io.protocol import load_protocol
 from volreg.io.summary import json_safe, package_versions
@@ -64,14 +63,13 @@ def run(args: argparse.Namespace) -> int:
     landmarks = _load_landmarks(args)
     outdir: Path = args.output
     names = OUTPUTS + ((GIFTI_OUTPUT,) if _wants_gifti(args, args.source) else ())
-    paths = {name: outdir / name for name in names}
     limits = SurfaceReviewLimits()
     with output_folder(outdir, args.force) as folder:
-        check_writable(paths.values(), force=args.force)
-        findings = review_surface_extents(source.vertices, target.vertices, limits)
-        _warn_findings("register-surfaces", findings)  # before the fit: it may take a while
+        paths = folder.check_writable(names, force=args.force)  # in staging, swapped into outdir at the end
+        findings = []  # surfaces of other sizes (units) were refused by _register
         with ProgressBars(quiet=args.quiet) as progress:
-            warp = _register(source, target, protocol, landmarks, progress)
+            warp = _register(source, target, protocol, landmarks, progress,
+                             names=(f"SOURCE `{args.source}`", f"TARGET `{args.target}`"))
         warped, jac = warp.evaluate(source.vertices, order=1)
         closest, distance, _ = closest_points(warped, target.vertices, target.triangles)
         target_diameter = diameter(target.vertices)

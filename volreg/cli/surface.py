@@ -8,7 +8,7 @@ import time
 import warnings
 from pathlib import Path
 from volreg import __version__
-from volreg.io import check_writable, read_labels, write_json, write_mesh, write_scalar
+from volreg.io import read_labels, write_json, write_mesh, write_scalar
 from volreg.io._atomic import output_folder
 from volreg.io.gifti import GiftiSurfaceMeta, write_gifti
 from volreg.progress import ProgressBars
@@ -97,7 +97,13 @@ def run(args: argparse.Namespace) -> int:
     summary_path = outdir / "surface.json"
     # Existing outputs are refused one by one (check_writable), not the folder as a whole.
     with output_folder(outdir, require_empty=False) as folder:
-        check_writable([*meshes.values(), *giftis.values(), *sdfs.values(), summary_path], force=args.force)
+        # written into the run's staging folder, swapped into outdir at the end
+        folder.check_writable([p.name for p in (*meshes.values(), *giftis.values(), *sdfs.values(), summary_path)],
+                              force=args.force)
+        meshes = {v: folder.path / p.name for v, p in meshes.items()}
+        giftis = {v: folder.path / p.name for v, p in giftis.items()}
+        sdfs = {v: folder.path / p.name for v, p in sdfs.items()}
+        summary_path = folder.path / summary_path.name
         with ProgressBars(quiet=args.quiet) as progress:
             with warnings.catch_warnings(record=True) as caught:
                 # label_surfaces warns for each label it skips (on_small="warn").

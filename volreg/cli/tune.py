@@ -13,7 +13,7 @@ from pathlib import Path
 from volreg.cli._common import PROG, _label_list, _load_landmarks
 from volreg.errors import ProtocolError, UsageError
 from volreg.evaluation.tune import grid_settings, tune_settings
-from volreg.io import check_writable, read_labels, write_text
+from volreg.io import read_labels, write_text
 from volreg.io._atomic import output_folder
 from volreg.io.protocol import load_protocol, protocol_to_toml
 from volreg.register import check_pair
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     outdir: Path = args.output
     paths = {name: outdir / name for name in OUTPUTS}
     with output_folder(outdir, args.force) as folder:
-        check_writable(paths.values(), force=args.force)
+        paths = folder.check_writable(OUTPUTS, force=args.force)  # in staging, swapped into outdir at the end
         rows, best = tune_settings(a, b, protocol, grid, drive_labels=args.drive_labels, landmarks=landmarks,
                                    on_score=None if args.quiet else _print_score)
         table = io.StringIO()

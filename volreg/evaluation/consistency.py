@@ -333,7 +333,7 @@ def write_consistency_test(
         As :func:`volreg.register.write_registration`.  On any error (and on an interrupt)
         every file written so far, the registrations' too, and the folders created are removed.
     """
-    from volreg.io import check_writable, write_json, write_scalar
+    from volreg.io import write_json, write_scalar
     from volreg.io._atomic import output_folder
     from volreg.io.report_figure import write_error_figure
     from volreg.io.summary import json_safe, package_versions
@@ -344,8 +344,7 @@ def write_consistency_test(
     start = time.perf_counter()
     outdir = Path(outdir)
     with output_folder(outdir, force) as folder:
-        paths = {name: outdir / name for name in CONSISTENCY_OUTPUTS}
-        check_writable(paths.values(), force=force)
+        paths = folder.check_writable(CONSISTENCY_OUTPUTS, force=force)  # in staging, swapped in at the end
         if forward is None:
             both = register_both_ways(a, b, protocol=protocol, drive_labels=drive_labels, outdir=outdir, force=force,
                                       inputs=inputs, progress=progress, on_fit=on_fit)

@@ -3,21 +3,30 @@
 Every writer in :mod:`volreg.io` writes into a temporary file next to the
 final one and renames it into place only when the write has succeeded, so an
 interrupted or failed command never leaves a half-written output behind.
-:func:`output_folder` extends that to a folder of outputs: on any failure the
-files a run wrote and the folders it created are removed again.
+:func:`output_folder` extends that to a folder of outputs: a run writes its
+whole result into a hidden sibling folder, which replaces the output folder
+only once every output is written, so the output folder holds either the
+previous complete result or the new complete one, whenever the run stops.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import secrets
+import shutil
+import signal
+import threading
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
 from volreg.errors import UsageError, VolregIOError
 
-__all__ = ["VolregIOError", "OutputFolder", "atomic_output", "check_writable", "make_directory", "output_folder"]
+__all__ = [
+    "VolregIOError", "OutputFolder", "atomic_output", "check_writable", "make_directory", "output_folder",
+    "recover_folder",
+]
 
 
 def _exists_message(path: Path) -> str:
@@ -183,23 +192,29 @@ def _remove_directories(created: list[Path]) -> None:
 
 
 class OutputFolder:
-    """The record of one run's outputs in a folder: the files it wrote and the folders it created.
+    """The record of one run's outputs in a folder: where to write them, the files written, the folders created.
 
-    Made by :func:`output_folder`, which removes what is recorded here if the run fails.
+    Made by :func:`output_folder`, which puts the files in place when the run completes
+    and removes them if it fails.
 
     Attributes
     ----------
     path : pathlib.Path
-        The folder.
+        Where the run writes its outputs: a hidden sibling of ``final`` (the staging
+        folder, which replaces ``final`` when the run completes), or ``final`` itself
+        when the folder cannot be replaced as a whole (see :func:`output_folder`).
+    final : pathlib.Path
+        The output folder as named by the user.
     created : list of pathlib.Path
-        Folders this run created (``path`` and missing parents, and those of inner
-        transactions that completed), outermost first.
+        Folders this run created (``final``'s missing parents, and ``final`` or inner
+        folders when written in place), outermost first.
     written : list of pathlib.Path
         Files this run wrote, in order (also those of inner transactions that completed).
     """
 
-    def __init__(self, path: Path, created: list[Path]) -> None:
+    def __init__(self, path: Path, created: list[Path], final: Path | None = None) -> None:
         self.path = path
+        self.final = path if final is None else final
         self.created = list(created)
         self.written: list[Path] = []
 
@@ -208,6 +223,22 @@ class OutputFolder:
         path = Path(path)
         self.written.append(path)
         return path
+
+    def check_writable(self, names: Iterable[str], force: bool = False) -> dict[str, Path]:
+        """Check up front that the outputs ``names`` (relative to the folder) can be written
+        (:func:`check_writable`); return where to write each, under :attr:`path`.
+
+        Raises
+        ------
+        VolregIOError
+            As :func:`check_writable`; the message names the output folder, not the staging one.
+        """
+        paths = {name: self.path / name for name in names}
+        try:
+            check_writable(paths.values(), force=force)
+        except VolregIOError as exc:
+            raise VolregIOError(str(exc).replace(str(self.path), str(self.final))) from None
+        return paths
 
     def _adopt(self, inner: "OutputFolder") -> None:
         """Take over the records of a completed inner transaction."""
@@ -224,12 +255,190 @@ class OutputFolder:
 #: The innermost open :func:`output_folder` of this thread (or task), if any.
 _open_folder: ContextVar[OutputFolder | None] = ContextVar("volreg_output_folder", default=None)
 
+#: Staging folders of this process that are open now (recovery leaves them alone).
+_staging_open: set[Path] = set()
+
+#: Output folders whose previous complete result a failed or interrupted run left in place.
+_kept: list[Path] = []
+
+
+def kept_results() -> list[Path]:
+    """The output folders whose previous complete result a failed or interrupted run of this
+    process left in place, oldest first (the command line names them; clear it to reuse)."""
+    return _kept
+
+
+#: The three kinds of hidden siblings of an output folder: a result being written, a complete
+#: result about to be swapped in, and the previous result being swapped out.
+_KINDS = ("new", "ready", "old")
+
+
+def _stage_prefix(final: Path) -> str:
+    """The start of the names of ``final``'s hidden siblings (the name, or its hash when long)."""
+    name = final.name
+    if len(os.fsencode(name)) > 160:  # keep the sibling's name under NAME_MAX
+        name = hashlib.sha256(os.fsencode(name)).hexdigest()[:16]
+    return f".{name}.volreg-"
+
+
+def _stage_path(final: Path, kind: str) -> Path:
+    return final.with_name(f"{_stage_prefix(final)}{kind}-{os.getpid()}-{secrets.token_hex(4)}")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
+def _leftovers(final: Path) -> dict[str, list[Path]]:
+    """The hidden siblings of ``final`` that runs no longer alive left behind, by kind."""
+    found: dict[str, list[Path]] = {kind: [] for kind in _KINDS}
+    prefix = _stage_prefix(final)
+    try:
+        entries = list(final.parent.iterdir())
+    except OSError:
+        return found
+    for entry in entries:
+        if not entry.name.startswith(prefix) or entry in _staging_open:
+            continue
+        kind, _, rest = entry.name[len(prefix):].partition("-")
+        pid = rest.partition("-")[0]
+        if kind not in found or not pid.isdigit():
+            continue
+        if int(pid) != os.getpid() and _pid_alive(int(pid)):
+            continue  # a run in progress (another process)
+        found[kind].append(entry)
+    return found
+
+
+def _remove_tree(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def recover_folder(path: str | os.PathLike[str]) -> str | None:
+    """Finish or undo what a run killed while writing output folder ``path`` left behind.
+
+    A run killed (SIGKILL, power loss) in the middle of :func:`output_folder` can
+    leave hidden siblings of ``path``: a staging folder with part of a result, and,
+    if it was killed while swapping a complete result in, the previous result set
+    aside.  This puts a complete result back at ``path`` if there is none and
+    removes the rest.  :func:`output_folder` calls it before every run.
+
+    Parameters
+    ----------
+    path : path-like
+        The output folder.
+
+    Returns
+    -------
+    str or None
+        What was restored (``"new"``: the killed run's complete result, ``"old"``: the
+        result before it), or None.
+    """
+    final = Path(path)
+    found = _leftovers(final)
+    restored = None
+    if not final.exists() and not final.is_symlink():
+        for kind in ("ready", "old"):  # a complete new result first, else the previous one
+            if found[kind]:
+                entry = found[kind].pop()
+                try:
+                    os.rename(entry, final)
+                    restored = "new" if kind == "ready" else "old"
+                except OSError:
+                    found[kind].append(entry)
+                break
+    for entries in found.values():
+        for entry in entries:
+            _remove_tree(entry)
+    return restored
+
+
+def _replaceable(final: Path) -> bool:
+    """Whether ``final`` can be replaced as a whole by renaming a sibling onto it."""
+    if final.is_symlink():
+        return False
+    parent = final.parent
+    if parent.is_dir() and not os.access(parent, os.W_OK | os.X_OK):
+        return False
+    if final.exists():
+        if os.path.ismount(final):
+            return False
+        try:  # never swap away the working directory or a folder above it
+            here = Path.cwd().resolve()
+            target = final.resolve()
+        except OSError:
+            return False
+        if here == target or target in here.parents:
+            return False
+    return True
+
+
+def _link_tree(source: Path, target: Path) -> None:
+    """Fill ``target`` with ``source``'s contents: hard links to its files (copies where links fail)."""
+    def link(src: str, dst: str) -> None:
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copy2(src, dst)
+
+    shutil.copytree(source, target, symlinks=True, copy_function=link, dirs_exist_ok=True)
+
+
+class _SignalsHeld:
+    """Hold SIGINT and SIGTERM back (main thread) for the few renames of a swap."""
+
+    def __enter__(self):
+        self.held = threading.current_thread() is threading.main_thread() and hasattr(signal, "pthread_sigmask")
+        if self.held:
+            self.mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.held:
+            signal.pthread_sigmask(signal.SIG_SETMASK, self.mask)
+
+
+def _swap_in(staging: Path, final: Path) -> None:
+    """Replace ``final`` (if any) by the complete result in ``staging``; see :func:`recover_folder`."""
+    ready = _stage_path(final, "ready")
+    old = _stage_path(final, "old")
+    with _SignalsHeld():
+        os.rename(staging, ready)
+        _staging_open.discard(staging)
+        try:
+            if final.exists():
+                os.rename(final, old)
+            os.rename(ready, final)
+        except OSError as exc:
+            if old.exists() and not final.exists():
+                os.rename(old, final)
+            _remove_tree(ready)
+            raise VolregIOError(f"Output directory `{final}` could not be replaced: {exc.strerror}.") from exc
+        _remove_tree(old)
+
+
+def _inside(path: Path, folder: Path) -> Path | None:
+    """``path`` relative to ``folder`` if it lies inside it (or is it), else None."""
+    try:
+        return Path(os.path.abspath(path)).relative_to(os.path.abspath(folder))
+    except ValueError:
+        return None
+
 
 @contextmanager
 def output_folder(
     path: str | os.PathLike[str], force: bool = False, *, require_empty: bool = True
 ) -> Iterator[OutputFolder]:
-    """An all-or-nothing output folder: create it, yield the record of what the run writes there.
+    """An all-or-nothing output folder: yield where to write the run's outputs, put them in place at the end.
 
     Parameters
     ----------
@@ -244,7 +453,10 @@ def output_folder(
     Yields
     ------
     OutputFolder
-        Call :meth:`OutputFolder.record` with each file once it is written.
+        Write each output under :attr:`OutputFolder.path` (not under ``path``) and call
+        :meth:`OutputFolder.record` with it once written.  Write a file by replacing it
+        (:func:`atomic_output`, as every volreg writer does), never in place: until
+        replaced, the files there are hard links to the previous result's.
 
     Raises
     ------
@@ -252,28 +464,81 @@ def output_folder(
         If ``path`` is a non-empty folder (with ``require_empty`` and without
         ``force``) or exists and is not a folder.
     VolregIOError
-        If the folder cannot be created.
+        If the folder cannot be created or replaced.
 
     Notes
     -----
-    On any exception in the ``with`` block (``BaseException``: a ``KeyboardInterrupt``
-    too) the recorded files are removed, then the folders this run created while
-    they are empty, and the exception propagates.  A transaction opened inside
-    another one (in the same thread) hands its records to the outer one when it
-    completes, so that a failure later in the outer one removes them as well.
+    The run writes into a hidden sibling folder of ``path`` (named
+    ``.<name>.volreg-new-<pid>-<hex>``), which starts as a copy of ``path``'s current
+    contents made of hard links, so files of ``path`` that the run does not write
+    are kept.  When the ``with`` block completes the sibling replaces ``path`` by
+    two renames (SIGINT and SIGTERM are held back meanwhile), and the previous
+    folder is removed.  On any exception (``BaseException``: an interrupt too) the
+    sibling is removed and ``path`` is left as it was.  A run killed outright
+    (SIGKILL) leaves ``path`` holding the previous complete result, or, killed
+    between the two renames, a sibling that the next run on ``path`` puts back
+    (:func:`recover_folder`).
+
+    Where ``path`` cannot be replaced as a whole (a symbolic link, a mount point, the
+    working directory or a folder above it, or a parent folder that is not writable)
+    the run writes into ``path`` itself, and a failure removes the files the run
+    wrote and the folders it created.
+
+    A transaction opened inside another one's folder (in the same thread) writes into
+    the outer one's staging folder and completes with it; other nested ones hand
+    their records to the outer one when they complete.
     """
-    path = Path(path)
-    if require_empty and path.is_dir() and any(path.iterdir()) and not force:
-        raise UsageError(f"Output directory `{path}` exists and is not empty; pass --force to write into it.")
-    folder = OutputFolder(path, make_directory(path))
+    final = Path(path)
     outer = _open_folder.get()
+    relative = None if outer is None or outer.path == outer.final else _inside(final, outer.final)
+    # inside an outer staged run: write into its staging folder, swapped in with it
+    where = final if relative is None else outer.path / relative
+    if where.exists() and not where.is_dir():
+        raise UsageError(f"Output directory `{final}` exists and is not a directory; expected a directory for -o.")
+    if relative is None:
+        recover_folder(final)
+    if require_empty and where.is_dir() and any(where.iterdir()) and not force:
+        raise UsageError(f"Output directory `{final}` exists and is not empty; pass --force to write into it.")
+    if relative is not None:
+        folder = OutputFolder(where, make_directory(where), final=final)
+        staging = None
+    elif _replaceable(final):
+        created = make_directory(final.parent)
+        staging = _stage_path(final, "new")
+        try:
+            staging.mkdir()
+            _staging_open.add(staging)
+            if final.is_dir():
+                _link_tree(final, staging)
+        except OSError as exc:
+            _remove_tree(staging)
+            _staging_open.discard(staging)
+            _remove_directories(created)
+            raise VolregIOError(f"Output directory `{final}` could not be prepared: {exc.strerror}.") from exc
+        folder = OutputFolder(staging, created, final=final)
+    else:
+        folder = OutputFolder(final, make_directory(final))
+        staging = None
     token = _open_folder.set(folder)
     try:
         yield folder
     except BaseException:
-        folder._remove()
+        if staging is not None:
+            _remove_tree(staging)
+            _staging_open.discard(staging)
+            _remove_directories(folder.created)
+            if final.is_dir() and any(final.iterdir()):
+                _kept.append(final)
+        else:
+            folder._remove()
         raise
     finally:
         _open_folder.reset(token)
-    if outer is not None:
+    if staging is not None:
+        try:
+            _swap_in(staging, final)
+        except BaseException:
+            _remove_directories(folder.created)
+            raise
+    elif outer is not None:
         outer._adopt(folder)

@@ -195,9 +195,11 @@ def read_gifti_surface(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.nda
         raise VolregIOError(f"Surface `{p}` has a POINTSET of shape {xyz.shape}; expected (N, 3) coordinates.")
     if triangles:
         tri = np.asarray(triangles[0].data)
+        if tri.ndim == 2 and tri.shape[1] == 4 and np.issubdtype(tri.dtype, np.integer):
+            tri = np.concatenate([tri[:, [0, 1, 2]], tri[:, [0, 2, 3]]])  # quads: (a, b, c) and (a, c, d)
         if tri.ndim != 2 or tri.shape[1] != 3 or not np.issubdtype(tri.dtype, np.integer):
             faces = f"faces of {tri.shape[1]} vertices" if tri.ndim == 2 else f"a TRIANGLE array of shape {tri.shape}"
-            raise VolregIOError(f"Surface `{p}` has {faces}; expected triangles (an (F, 3) integer array).")
+            raise VolregIOError(f"Surface `{p}` has {faces}; expected triangles or quads (an (F, 3) or (F, 4) integer array).")
         tri = tri.astype(np.int64)
     else:
         tri = np.zeros((0, 3), np.int64)

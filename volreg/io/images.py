@@ -404,6 +404,28 @@ def _spatial_geometry(
     return size[:3], origin, spacing, direction
 
 
+def _single_slice_as_2d(shape: tuple[int, ...], origin: np.ndarray, spacing: np.ndarray, direction: np.ndarray,
+                        path: Path, what: str) -> tuple[tuple[int, ...], np.ndarray, np.ndarray, np.ndarray] | None:
+    """The 2-D geometry of a 3-D grid of one slice (``(n_i, n_j, 1)``), or None.
+
+    A slice stored as 3-D is a 2-D image: registered in 3-D its labels have no
+    thickness to fit, and ITK reads a displacement field of shape ``(n_i, n_j, 1)``
+    back as 2-D.  It is read as 2-D when its direction keeps the third axis apart
+    from the first two (the slice lies in a plane of constant LPS ``z``); its
+    position along ``z`` is then dropped, with a warning when it is not 0.
+    """
+    if len(shape) != 3 or shape[2] != 1 or (shape[0] == 1 and shape[1] == 1):
+        return None
+    if np.any(np.abs(direction[:2, 2]) > _DIR_TOL) or np.any(np.abs(direction[2, :2]) > _DIR_TOL):
+        return None  # an oblique slice: no 2-D frame in LPS space
+    if origin[2] != 0:
+        warnings.warn(
+            f"{what} `{path}` is a single slice ({shape[0]}x{shape[1]}x1) and is read as 2-D; its position "
+            f"z = {origin[2]:g} mm is not kept in 2-D outputs.", VolregWarning, stacklevel=4,
+        )
+    return shape[:2], origin[:2].copy(), spacing[:2].copy(), direction[:2, :2].copy()
+
+
 def _read_sitk(
     path: str | os.PathLike[str], what: str, *, voxels: bool = True
 ) -> tuple[np.ndarray | tuple[int, ...], np.ndarray, np.ndarray, np.ndarray]:
@@ -443,7 +465,8 @@ def _read_sitk(
         if nimg is not None:
             _check_nifti_shape(nimg, shape, p, what)
             _check_nifti_geometry(nimg, origin, spacing, direction, p, what)
-        return shape, origin, spacing, direction
+        flat = _single_slice_as_2d(shape, origin, spacing, direction, p, what)
+        return (shape, origin, spacing, direction) if flat is None else flat
 
     view = sitk.GetArrayViewFromImage(img)  # (..., k, j, i): valid only while `img` lives
     shape, origin, spacing, direction = _spatial_geometry(
@@ -457,6 +480,10 @@ def _read_sitk(
         _check_nifti_shape(nimg, shape, p, what)
         array = _nifti_float_voxels(nimg, array, p, what)
         _check_nifti_geometry(nimg, origin, spacing, direction, p, what)
+    flat = _single_slice_as_2d(array.shape, origin, spacing, direction, p, what)
+    if flat is not None:
+        shape, origin, spacing, direction = flat
+        array = array[:, :, 0].copy(order="C")  # a new array that owns its memory
     return array, origin, spacing, direction
 
 

@@ -6,6 +6,8 @@ space).  Slicer files say their frame: ``.fcsv`` in its ``# CoordinateSystem``
 line (``LPS``/``RAS`` or 0 = RAS, 1 = LPS; RAS when absent, as older Slicer),
 ``.mrk.json`` in each markup's ``coordinateSystem`` (default LPS, as Slicer
 writes it since 4.11); RAS points are converted to LPS by negating x and y.
+A ``.mrk.json`` markup's ``coordinateUnits`` (default ``mm``) is honoured:
+``um``, ``cm`` and ``m`` are converted to mm, other units refused.
 """
 
 from __future__ import annotations
@@ -52,6 +54,18 @@ def _read_fcsv(path: Path, text: str) -> np.ndarray:
 _UNPLACED = ("undefined",)
 
 
+#: Millimetres per unit of a ``.mrk.json`` markup's ``coordinateUnits``.
+_UNITS_MM = {"mm": 1.0, "um": 1e-3, "\u00b5m": 1e-3, "cm": 10.0, "m": 1000.0}
+
+
+def _units_mm(value: object, path: Path) -> float:
+    """Millimetres per unit of a markup's ``coordinateUnits``."""
+    key = str(value).strip().lower()
+    if key not in _UNITS_MM:
+        raise VolregIOError(f"Landmark file `{path}` has coordinateUnits {value!r}; expected one of mm, um, cm, m.")
+    return _UNITS_MM[key]
+
+
 def _read_mrk_json(path: Path, text: str) -> np.ndarray:
     """The control points, with a row of NaN for each one not placed (``positionStatus``
     ``"undefined"``): their order pairs them with another file's."""
@@ -59,11 +73,12 @@ def _read_mrk_json(path: Path, text: str) -> np.ndarray:
     points = []
     for markup in data.get("markups", []):
         ras = _frame(markup.get("coordinateSystem", "LPS"), path)
+        scale = _units_mm(markup.get("coordinateUnits", "mm"), path)
         for cp in markup.get("controlPoints", []):
             if str(cp.get("positionStatus", "defined")).lower() in _UNPLACED:
                 points.append(np.full(3, np.nan))
                 continue
-            p = np.asarray(cp["position"], dtype=float)
+            p = np.asarray(cp["position"], dtype=float) * scale
             points.append(p * _FLIP if ras else p)
     return np.array(points).reshape(-1, 3)
 
@@ -99,6 +114,11 @@ def read_landmarks(path: str | os.PathLike[str], *, keep_unplaced: bool = False)
     name = p.name.lower()
     try:
         text = p.read_text(encoding="utf-8-sig")  # a byte-order mark (Excel) is not part of the header
+    except OSError as exc:
+        raise VolregIOError(f"Landmark file `{p}` could not be read: {exc.strerror or exc}.") from None
+    except UnicodeDecodeError:
+        raise VolregIOError(f"Landmark file `{p}` is not UTF-8 text; expected .csv, .fcsv or .mrk.json text.") from None
+    try:
         if name.endswith(".fcsv"):
             points = _read_fcsv(p, text)
         elif name.endswith(".mrk.json") or name.endswith(".json"):

@@ -64,12 +64,24 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
     """
     text = str(name_or_path)
     path = Path(text) if (text.endswith(".toml") or os.sep in text) else PROTOCOL_DIR / f"{text}.toml"
-    if not path.is_file():
+    try:
+        is_file, exists = path.is_file(), path.exists()
+    except OSError as exc:  # e.g. a name longer than the system allows
+        raise ProtocolError(f"Protocol `{text}` cannot be looked up: {exc.strerror or exc}.") from None
+    if exists and not is_file:
+        raise ProtocolError(f"Protocol `{path}` is a directory; expected a .toml file.")
+    if not is_file:
         presets = sorted(p.stem for p in PROTOCOL_DIR.glob("*.toml"))
         raise ProtocolError(f"Protocol `{text}` not found: expected a .toml file or a preset ({', '.join(presets)}).")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raw = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ProtocolError(f"Protocol `{path}` could not be read: {exc.strerror or exc}.") from None
+    except UnicodeDecodeError:
+        raise ProtocolError(f"Protocol `{path}` is not UTF-8 text; expected a TOML file.") from None
+    try:
+        data = tomllib.loads(raw)
+    except tomllib.TOMLDecodeError as exc:
         raise ProtocolError(f"Protocol `{path}` is not valid TOML: {exc}.") from None
     unknown = set(data) - {"protocol", *_SECTIONS}
     if unknown:

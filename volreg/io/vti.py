@@ -13,6 +13,8 @@ own VTK image IO does: no axis is flipped.
 
 from __future__ import annotations
 
+import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -95,6 +97,26 @@ def _scalar_array(image: pv.ImageData, path: Path, what: str) -> np.ndarray:
     return values
 
 
+def _check_header_numbers(path: Path, what: str) -> None:
+    """Refuse an ``ImageData`` element whose Origin, Spacing or Direction is not finite numbers
+    (VTK's parser reads ``nan`` or ``inf`` there as 0 without a word)."""
+    with open(path, "rb") as fh:
+        head = fh.read(65536).decode("latin-1")
+    element = re.search(r"<ImageData\b[^>]*>", head)
+    if element is None:
+        return
+    for name in ("Origin", "Spacing", "Direction"):
+        found = re.search(rf'\b{name}\s*=\s*"([^"]*)"', element.group(0))
+        if found is None:
+            continue
+        try:
+            values = [float(v) for v in found.group(1).split()]
+        except ValueError:
+            values = [float("nan")]
+        if not all(math.isfinite(v) for v in values):
+            raise VolregIOError(f"{what} `{path}` has {name}=\"{found.group(1)}\"; expected finite numbers.")
+
+
 def read_vti(path: Path, what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Read a scalar ``.vti`` image; return ``(array[i, j, k], origin, spacing, direction)``.
 
@@ -125,6 +147,7 @@ def read_vti(path: Path, what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray,
         is empty, holds no point array, several arrays none of them active,
         or a vector array.
     """
+    _check_header_numbers(path, what)
     image = _run_reader(path, what)
     dims = tuple(int(n) for n in image.dimensions)
     if image.n_points == 0 or min(dims) < 1:

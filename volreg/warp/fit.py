@@ -41,7 +41,7 @@ from volreg.kernels import CellGrid, SharedPatternCSR, _check_points, kernel_gra
 from volreg.warp.objective import FeaturePair, LevelObjective, simplex_vertices
 from volreg.warp.sampling import octree_sample
 from volreg.warp.model import KernelWarp, WarpLevel, jacobian_det
-from volreg.errors import RegistrationDiverged
+from volreg.errors import ProtocolError, RegistrationDiverged
 from volreg.settings import WarpSettings
 
 __all__ = ["RegistrationResult", "check_folding", "fit_warp"]
@@ -266,6 +266,69 @@ def _check_inputs(features, source_points, landmarks, settings: WarpSettings, pr
         landmarks = (src_l, dst_l)
     neighbourhood = simplex_vertices(dim, settings.neighbourhood) if settings.neighbourhood > 0 else None
     return _Inputs(features, pts, diameter, landmarks, settings.resolved(diameter), neighbourhood, prior, valid)
+
+
+#: Bytes of memory per locational-cost sample of a level's fit (features, neighbour lists,
+#: gradients): an order of magnitude, for refusing impossible settings up front.
+BYTES_PER_SAMPLE = 2048
+
+
+def _available_bytes() -> int | None:
+    """MemAvailable from /proc/meminfo (Linux), else None."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:  # pragma: no cover - not Linux
+        return None
+    return None
+
+
+def estimated_samples(points: np.ndarray, settings: WarpSettings, step: float) -> float:
+    """About how many locational-cost samples the finest sample spacing ``step`` gives.
+
+    The octree boxes (side ``settings.fraction * step``) fill the warp volume X, the
+    points' neighbourhood of radius ``settings.pad``; its volume is taken as that of the
+    points' padded bounding box (an overestimate for thin or sparse objects).
+
+    Parameters
+    ----------
+    points : (N, D) float ndarray, mm
+    settings : WarpSettings
+        With ``pad`` resolved.
+    step : float, mm
+
+    Returns
+    -------
+    float
+    """
+    ext = np.ptp(np.asarray(points, float), axis=0)
+    pad = float(settings.pad)
+    box = float(settings.fraction) * float(step)
+    return float(np.prod((ext + 2 * pad) / box))
+
+
+def check_sample_memory(points: np.ndarray, settings: WarpSettings, step: float) -> None:
+    """Refuse, before any work, settings whose samples (:func:`estimated_samples`) would not fit in memory.
+
+    Raises
+    ------
+    ProtocolError
+        Naming the settings (``min_width``, ``fraction``, ``sample_spacing``, ``pad``) and
+        the estimate, when it exceeds the memory available now.
+    """
+    n = estimated_samples(points, settings, step)
+    available = _available_bytes()
+    if available is None or n * BYTES_PER_SAMPLE <= available:
+        return
+    raise ProtocolError(
+        f"The warp settings min_width {settings.min_width:g} mm, fraction {settings.fraction:g}, sample_spacing "
+        f"{step:g} mm and pad {settings.pad:g} mm would sample about {n:.2g} points at the finest level "
+        f"(about {n * BYTES_PER_SAMPLE / 1024**3:.3g} GB) and {available / 1024**3:.3g} GB is available; expected a "
+        f"larger `min_width`, `fraction` or `sample_spacing`, or a smaller `pad` (the objects are "
+        f"{np.round(np.ptp(points, axis=0), 1).tolist()} mm across)."
+    )
 
 
 def _level_schedule(diameter: float, settings: WarpSettings) -> tuple[list[float], list[float]]:
@@ -653,6 +716,7 @@ def fit_warp(
     """
     inputs = _check_inputs(features, source_points, landmarks, settings, prior, valid)
     widths, steps = _level_schedule(inputs.diameter, inputs.settings)
+    check_sample_memory(inputs.points, inputs.settings, min(steps))
     warp = KernelWarp(dim=inputs.points.shape[1], settings=asdict(inputs.settings))
     log = []
     samples = None

@@ -164,6 +164,9 @@ def resample_image(
     Returns
     -------
     float64 ndarray of ``points.shape[:-1]``
+        NaN and Inf voxels reach only the points within one voxel of them (as with
+        linear interpolation), also with ``order=3``, whose prefilter would otherwise
+        spread them over the whole image.
     """
     if order not in (0, 1, 3):
         raise ValueError(f"Expected `order` 0, 1 or 3, got {order!r}.")
@@ -175,6 +178,21 @@ def resample_image(
     index = _indices(geometry, points)
     if order == 0:
         index = np.floor(index + 0.5)
-    values = ndimage.map_coordinates(array.astype(np.float64, copy=False), index.T, order=max(order, 1) if order else 0,
+    array = array.astype(np.float64, copy=False)
+    missing = ~np.isfinite(array)
+    if order == 3 and missing.any():
+        # The B-spline prefilter is global: one NaN would spread over the whole image.  Fill
+        # non-finite voxels from their nearest finite neighbour, interpolate, and give the
+        # points next to a non-finite voxel what linear interpolation gives (NaN or Inf there).
+        if missing.all():
+            filled = np.zeros_like(array)
+        else:
+            nearest = ndimage.distance_transform_edt(missing, return_distances=False, return_indices=True)
+            filled = array[tuple(nearest)]
+        values = ndimage.map_coordinates(filled, index.T, order=3, mode="constant", cval=fill, prefilter=True)
+        touched = ndimage.map_coordinates(missing.astype(np.float64), index.T, order=1, mode="constant", cval=0.0) > 0
+        values[touched] = ndimage.map_coordinates(array, index.T[:, touched], order=1, mode="constant", cval=fill)
+        return values.reshape(shape)
+    values = ndimage.map_coordinates(array, index.T, order=max(order, 1) if order else 0,
                                      mode="constant", cval=fill, prefilter=order == 3)
     return values.reshape(shape)

@@ -1,0 +1,149 @@
+"""Kill commands at random moments: every output folder holds a complete result or none, and a rerun completes.
+
+``register``, ``register --force`` over an existing result, ``consistency`` and ``batch`` are
+killed with SIGKILL and SIGTERM at moments drawn uniformly over a whole run's duration, on a
+tiny 2-D pair.  "Complete" means every output of the command is there and reads back.  The
+default run draws 1 moment per command and signal; ``VOLREG_CRASH_MOMENTS=20`` draws 20.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from volreg.evaluation.consistency import CONSISTENCY_OUTPUTS
+from volreg.grid import LabelVolume
+from volreg.io import read_image, read_labels, write_labels
+from volreg.io.fields import read_displacement, read_itk_linear
+from volreg.register import REGISTRATION_OUTPUTS
+from volreg.warp.model import KernelWarp
+
+REPO = Path(__file__).resolve().parents[1]
+MOMENTS = int(os.environ.get("VOLREG_CRASH_MOMENTS", "1"))
+PROTOCOL = '[protocol]\nname = "crash"\n[warp]\nmin_width = 8.0\npad = 6.0\nmax_iter = 30\n'
+
+
+def _disc_pair(d: Path) -> None:
+    ii, jj = np.meshgrid(np.arange(48), np.arange(48), indexing="ij")
+    for name, cx in (("a", 22), ("b", 25)):
+        arr = np.zeros((48, 48), np.uint8)
+        arr[((ii - cx) / 12.0) ** 2 + ((jj - 24) / 9.0) ** 2 < 1] = 1
+        arr[(ii - cx - 3) ** 2 + (jj - 22) ** 2 < 16] = 2
+        write_labels(LabelVolume(arr, (0.0, 0.0), (1.0, 1.0), np.eye(2)), d / f"{name}.nii.gz")
+    (d / "p.toml").write_text(PROTOCOL)
+    (d / "manifest.csv").write_text("id,path\na,a.nii.gz\nb,b.nii.gz\n")
+
+
+def _registration_complete(folder: Path) -> bool:
+    """Every output of `register` is in ``folder`` and reads back."""
+    if not all((folder / name).is_file() for name in REGISTRATION_OUTPUTS):
+        return False
+    u, grid = read_displacement(folder / "warp.nii.gz")
+    assert u.shape == (*grid.shape, 2)
+    read_displacement(folder / "inverse_warp.nii.gz")
+    assert read_labels(folder / "warped.nii.gz").shape == grid.shape
+    assert read_image(folder / "jacobian.nii.gz")[0].shape == grid.shape
+    assert KernelWarp.load(folder / "model.npz").dim == 2
+    read_itk_linear(folder / "linear.tfm", dim=2)
+    assert json.loads((folder / "report.json").read_text())["mean_dice"]["after"] is not None
+    assert (folder / "report.png").stat().st_size > 0
+    return True
+
+
+def _complete(command: str, folder: Path) -> bool:
+    if command == "consistency":
+        if not all((folder / name).is_file() for name in CONSISTENCY_OUTPUTS):
+            return False
+        json.loads((folder / "consistency.json").read_text())
+        return _registration_complete(folder / "forward") and _registration_complete(folder / "backward")
+    if command == "batch":
+        pairs = folder / "pairs"
+        done = [p for p in pairs.iterdir() if not p.name.startswith(".")] if pairs.is_dir() else []
+        return all(_registration_complete(p) for p in done)  # each pair folder: complete or absent
+    return _registration_complete(folder)
+
+
+def _args(command: str, d: Path, out: Path) -> list[str]:
+    if command == "batch":
+        return ["batch", str(d / "manifest.csv"), "-o", str(out), "--protocol", str(d / "p.toml"), "--pairs",
+                "consecutive", "--workers", "1", "--quiet"]
+    force = ["--force"] if command == "register-force" else []
+    name = "consistency" if command == "consistency" else "register"
+    return [name, str(d / "a.nii.gz"), str(d / "b.nii.gz"), "-o", str(out), "--protocol", str(d / "p.toml"),
+            "--quiet", *force]
+
+
+def _run(args: list[str], d: Path, kill_after: float | None = None, sig: int = signal.SIGKILL):
+    """Run ``volreg ARGS`` in its own process group; with ``kill_after``, send ``sig`` then."""
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.Popen([sys.executable, "-m", "volreg", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env, cwd=d, start_new_session=True)
+    if kill_after is not None:
+        try:
+            proc.wait(timeout=kill_after)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(sig)
+    try:
+        out, err = proc.communicate(timeout=300)
+    finally:
+        try:  # what the command started (Dask workers) goes with it, as under a job scheduler
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    return proc.returncode, err
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("crash")
+    _disc_pair(d)
+    return d
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
+@pytest.mark.parametrize("command", ["register", "register-force", "consistency", "batch"])
+def test_killed_runs_leave_complete_results_and_a_rerun_completes(inputs, tmp_path, command, sig):
+    rng = np.random.default_rng(abs(hash((command, int(sig)))) % 2**32)
+    d = inputs
+    # one whole run: its duration bounds the moments, and it is the previous result for --force
+    out = tmp_path / "out"
+    t0 = time.perf_counter()
+    rc, err = _run(_args(command, d, out), d)
+    duration = time.perf_counter() - t0
+    assert rc == 0, err
+    assert _complete(command, out)
+    previous = (out / "report.json").read_text() if command == "register-force" else None
+    outcomes = {"killed": 0, "finished": 0}
+    for k in range(MOMENTS):
+        target = out if command in ("register-force", "batch") else tmp_path / f"out{k}"
+        moment = float(rng.uniform(0.0, duration))
+        rc, err = _run(_args(command, d, target), d, kill_after=moment, sig=sig)
+        outcomes["finished" if rc == 0 else "killed"] += 1
+        assert rc in (0, 143, -signal.SIGTERM, -signal.SIGKILL), err
+        if sig == signal.SIGTERM and rc == 143:  # (-15: the signal came before Python had started volreg)
+            assert err.strip().splitlines()[-1].startswith(f"volreg {_args(command, d, target)[0]}: interrupted by SIGTERM")
+        # complete old or complete new, or (a fresh folder) nothing
+        if command in ("register", "consistency") and not target.exists():
+            pass
+        else:
+            assert _complete(command, target), (command, moment, err)
+        if command == "register-force":
+            now = (target / "report.json").read_text()
+            assert now == previous or json.loads(now)["mean_dice"]["after"] is not None
+        # a rerun completes and leaves no hidden sibling behind
+        rc, err = _run([*_args(command, d, target), *(["--force"] if command == "consistency" else [])], d)
+        if command == "register":
+            rc, err = (rc, err) if rc == 0 else _run([*_args(command, d, target), "--force"], d)
+        assert rc == 0, err
+        assert _complete(command, target)
+        assert not [p for p in target.parent.iterdir() if ".volreg-" in p.name]
+    assert sum(outcomes.values()) == MOMENTS
+    print(f"{command} {sig.name}: {outcomes}")

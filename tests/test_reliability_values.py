@@ -1,0 +1,429 @@
+"""Hostile inputs, second round: shapes, limits, values and interrupted runs.
+
+Each ends in a correct result (checked against a known answer) or a one-line error
+naming the file or setting and what was expected.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import nibabel as nib
+import numpy as np
+import pytest
+import pyvista as pv
+import SimpleITK as sitk
+
+from volreg.cli import main
+from volreg.errors import VolregIOError
+from volreg.grid import Grid, LabelVolume
+from volreg.io import read_grid, read_image, read_labels, write_labels
+from volreg.io._atomic import output_folder, recover_folder
+from volreg.io.landmarks import read_landmarks
+from volreg.io.meshes import read_surface
+from volreg.io.protocol import load_protocol
+from volreg.settings import WarpSettings
+from volreg.warp.fit import check_sample_memory, estimated_samples
+from volreg.warp.resample import resample_image
+
+SMALL = '[protocol]\nname = "t"\n[warp]\nmin_width = 8.0\npad = 6.0\nmax_iter = 30\n'
+
+
+def _error(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+def _disc_slices(d, shape=(48, 48, 1), shift=3):
+    """Two single-slice volumes stored as 3-D: an ellipse and a disc, the second shifted by ``shift`` voxels in i."""
+    ii, jj = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    for name, cx in (("a", 22), ("b", 22 + shift)):
+        arr = np.zeros(shape, np.uint8)
+        arr[..., 0][((ii - cx) / 12.0) ** 2 + ((jj - 24) / 9.0) ** 2 < 1] = 1
+        arr[..., 0][(ii - cx - 3) ** 2 + (jj - 22) ** 2 < 16] = 2
+        nib.save(nib.Nifti1Image(arr, np.eye(4)), d / f"{name}.nii.gz")
+    (d / "p.toml").write_text(SMALL)
+
+
+# ----------------------------------------------------------------------------- 2-D stored as 3-D
+
+
+@pytest.mark.parametrize("suffix", [".nii.gz", ".nrrd"])
+def test_a_single_slice_stored_as_3d_is_read_as_2d(tmp_path, suffix):
+    arr = np.zeros((20, 16, 1), np.uint8)
+    arr[3:9, 4:7, 0] = 5
+    img = sitk.GetImageFromArray(arr.transpose(2, 1, 0))
+    img.SetSpacing((0.5, 0.75, 2.0))
+    sitk.WriteImage(img, str(tmp_path / f"s{suffix}"))
+    vol = read_labels(tmp_path / f"s{suffix}")
+    assert vol.shape == (20, 16) and np.array_equal(vol.array, arr[..., 0])
+    assert np.allclose(vol.spacing, [0.5, 0.75])
+    assert read_grid(tmp_path / f"s{suffix}").shape == (20, 16) and read_image(tmp_path / f"s{suffix}")[0].shape == (20, 16)
+
+
+def test_an_oblique_single_slice_stays_3d(tmp_path):
+    img = sitk.GetImageFromArray(np.ones((1, 8, 8), np.uint8))
+    c, s = np.cos(0.3), np.sin(0.3)
+    img.SetDirection((1, 0, 0, 0, c, -s, 0, s, c))
+    sitk.WriteImage(img, str(tmp_path / "o.nii.gz"))
+    assert read_labels(tmp_path / "o.nii.gz").shape == (8, 8, 1)
+
+
+def test_a_single_slice_off_z0_warns_that_its_position_is_dropped(tmp_path):
+    img = sitk.GetImageFromArray(np.ones((1, 8, 8), np.uint8))
+    img.SetOrigin((0.0, 0.0, 37.5))
+    sitk.WriteImage(img, str(tmp_path / "z.nii.gz"))
+    with pytest.warns(UserWarning, match=r"single slice \(8x8x1\) and is read as 2-D; its position z = 37.5 mm"):
+        assert read_labels(tmp_path / "z.nii.gz").shape == (8, 8)
+
+
+def test_a_shift_between_single_slices_is_recovered_and_the_warp_reads_back_as_2d(tmp_path, capsys):
+    _disc_slices(tmp_path)
+    out = tmp_path / "out"
+    assert main(["register", str(tmp_path / "a.nii.gz"), str(tmp_path / "b.nii.gz"), "-o", str(out),
+                 "--protocol", str(tmp_path / "p.toml"), "--quiet"]) == 0
+    warp = sitk.ReadImage(str(out / "warp.nii.gz"))
+    assert warp.GetDimension() == 2 and warp.GetNumberOfComponentsPerPixel() == 2
+    u = sitk.GetArrayFromImage(warp).transpose(1, 0, 2)  # (i, j, 2), LPS mm
+    inside = read_labels(tmp_path / "a.nii.gz").array > 0
+    # a shift of 3 voxels (1 mm each) along +i, which is -x in LPS for this RAS-identity affine
+    assert np.allclose(u[inside].mean(axis=0), [-3.0, 0.0], atol=0.25)
+    assert json.loads((out / "report.json").read_text())["mean_dice"]["after"] > 0.95
+    # `apply` takes the single slice and the 2-D warp together
+    assert main(["apply", str(out / "warp.nii.gz"), str(tmp_path / "b.nii.gz"), "--reference", str(tmp_path / "a.nii.gz"),
+                 "-o", str(tmp_path / "w.nii.gz"), "--interpolation", "label"]) == 0
+    warped = read_labels(tmp_path / "w.nii.gz").array
+    assert np.mean(warped[inside] == read_labels(tmp_path / "a.nii.gz").array[inside]) > 0.95
+
+
+# ----------------------------------------------------------------------------- unreadable files, long paths
+
+
+def _unreadable(path):
+    path.write_text("x,y,z\n1,2,3\n")
+    path.chmod(0)
+    if os.access(path, os.R_OK):  # root reads anything
+        pytest.skip("the test runs as a user who can read any file")
+
+
+@pytest.mark.parametrize("variant", ["no permission", "binary"])
+def test_landmark_file_that_cannot_be_read(tmp_path, variant):
+    path = tmp_path / "l.csv"
+    if variant == "no permission":
+        _unreadable(path)
+        match = r"Landmark file `.*l\.csv` could not be read: Permission denied\."
+    else:
+        path.write_bytes(b"\xff\xfe\x00\x81" * 50)
+        match = r"Landmark file `.*l\.csv` is not UTF-8 text"
+    with pytest.raises(VolregIOError, match=match):
+        read_landmarks(path)
+
+
+@pytest.mark.parametrize("variant", ["no permission", "a directory", "binary"])
+def test_protocol_file_that_cannot_be_read(tmp_path, capsys, variant):
+    path = tmp_path / "p.toml"
+    if variant == "no permission":
+        _unreadable(path)
+        match = "could not be read: Permission denied."
+    elif variant == "a directory":
+        path.mkdir()
+        match = "is a directory; expected a .toml file."
+    else:
+        path.write_bytes(b"\x00\xff\xfe" * 40)
+        match = "is not UTF-8 text; expected a TOML file."
+    assert main(["register", "a.nii.gz", "b.nii.gz", "-o", str(tmp_path / "o"), "--protocol", str(path)]) == 2
+    assert _error(capsys).endswith(match)
+
+
+@pytest.mark.parametrize("where", ["input", "output"])
+def test_a_path_over_the_name_limit_is_one_line(tmp_path, capsys, where):
+    long = "n" * 300
+    write_labels(LabelVolume(np.ones((4, 4), np.uint8), (0, 0), (1, 1), np.eye(2)), tmp_path / "a.nii.gz")
+    args = (["register", str(tmp_path / f"{long}.nii.gz"), str(tmp_path / "a.nii.gz"), "-o", str(tmp_path / "o")]
+            if where == "input" else
+            ["register", str(tmp_path / "a.nii.gz"), str(tmp_path / "a.nii.gz"), "-o", str(tmp_path / long / "o")])
+    assert main(args) == 2
+    line = _error(capsys)
+    assert long in line and "File name too long" in line and "expected a path within the system's limits" in line
+
+
+# ----------------------------------------------------------------------------- settings that cannot fit in memory
+
+
+@pytest.mark.parametrize("setting", [{"min_width": 0.05}, {"pad": 1e5}, {"fraction": 1e-6}])
+def test_warp_settings_that_cannot_fit_are_refused_up_front(tmp_path, capsys, setting):
+    write_labels(read_labels_like_blob(), tmp_path / "a.nii.gz")
+    key, value = next(iter(setting.items()))
+    (tmp_path / "p.toml").write_text(f'[protocol]\nname = "big"\n[warp]\n{key} = {value}\n')
+    assert main(["register", str(tmp_path / "a.nii.gz"), str(tmp_path / "a.nii.gz"), "-o", str(tmp_path / "o"),
+                 "--protocol", str(tmp_path / "p.toml"), "--quiet"]) == 2
+    line = _error(capsys)
+    assert f"{key} {value:g}" in line and "would sample about" in line and "GB is available" in line
+    assert not (tmp_path / "o").exists()
+
+
+def read_labels_like_blob() -> LabelVolume:
+    """An ellipsoid of 40 x 30 x 24 mm on a 1.5 mm grid."""
+    g = LabelVolume(np.zeros((36, 30, 24), np.uint8), (0, 0, 0), (1.5, 1.5, 1.5), np.eye(3))
+    d = g.grid_points() - g.index_to_world((np.array(g.shape)[None] - 1) / 2)[0]
+    return g.with_array((((d / [20.0, 15.0, 12.0]) ** 2).sum(-1) < 1).astype(np.uint8))
+
+
+def test_sample_estimate_is_the_padded_box_over_the_box_size():
+    pts = np.array([[0.0, 0.0, 0.0], [10.0, 20.0, 30.0]])
+    s = WarpSettings(pad=5.0, min_width=4.0, fraction=0.5)
+    # (10 + 10) * (20 + 10) * (30 + 10) mm^3 / (0.5 * 4 mm)^3
+    assert estimated_samples(pts, s, 4.0) == pytest.approx(20 * 30 * 40 / 8.0)
+    check_sample_memory(pts, s, 4.0)  # 3,000 samples: fine
+
+
+# ----------------------------------------------------------------------------- meshes and point clouds
+
+
+def _sphere(d, scale=1.0, name="target.vtk"):
+    s = pv.Sphere(radius=20, theta_resolution=14, phi_resolution=14)
+    s.points = s.points * scale
+    s.save(d / name)
+    return d / name
+
+
+def _surfaces(tmp_path, source, capsys):
+    target = _sphere(tmp_path)
+    (tmp_path / "p.toml").write_text('[protocol]\nname = "s"\n[warp]\nmin_width = 10.0\npad = 6.0\nmax_iter = 20\n')
+    rc = main(["register-surfaces", str(source), str(target), "-o", str(tmp_path / "out"), "--protocol",
+               str(tmp_path / "p.toml"), "--quiet"])
+    return rc, capsys.readouterr()
+
+
+@pytest.mark.parametrize("kind,match", [
+    ("coincident", "has all its 20 vertices at one point; expected a surface."),
+    ("collinear", "has all its vertices on a line; expected a surface."),
+    ("planar", "is a point cloud lying in a plane: its inside and outside are undefined"),
+    ("metres", "times the size); expected two surfaces in one unit, millimetres"),
+    ("centimetres", "times the size); expected two surfaces in one unit, millimetres"),
+])
+def test_degenerate_or_mis_scaled_surfaces_are_refused(tmp_path, capsys, kind, match):
+    path = tmp_path / f"{kind}.vtk"
+    if kind == "coincident":
+        pv.PolyData(np.full((20, 3), 3.0)).save(path)
+    elif kind == "collinear":
+        pv.PolyData(np.c_[np.linspace(0, 40, 30), np.zeros(30), np.zeros(30)]).save(path)
+    elif kind == "planar":
+        g = np.mgrid[0:40:5, 0:40:5].reshape(2, -1).T.astype(float)
+        pv.PolyData(np.c_[g, np.zeros(len(g))]).save(path)
+    else:
+        _sphere(tmp_path, 1e-3 if kind == "metres" else 0.1, path.name)
+    rc, cap = _surfaces(tmp_path, path, capsys)
+    assert rc == 2
+    lines = cap.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"volreg register-surfaces: error: SOURCE `{path}`") and match in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("extra", ["unreferenced", "duplicated"])
+def test_vertices_on_no_triangle_are_warped_but_not_fitted(tmp_path, capsys, extra):
+    s = pv.Sphere(radius=20, theta_resolution=14, phi_resolution=14)
+    more = np.array([[60.0, 0.0, 0.0]]) if extra == "unreferenced" else s.points[:5]
+    pv.PolyData(np.vstack([s.points, more]), s.faces).save(tmp_path / "src.vtk")
+    rc, cap = _surfaces(tmp_path, tmp_path / "src.vtk", capsys)
+    assert rc == 0, cap.err
+    assert f"has {len(more)} of {s.n_points + len(more)} vertices on no triangle" in cap.err
+    warped = pv.read(tmp_path / "out" / "warped.vtk")
+    assert warped.n_points == s.n_points + len(more)
+    # the source is the target: every vertex stays within a millimetre
+    assert np.abs(np.asarray(warped.points) - np.vstack([s.points, more])).max() < 1.0
+
+
+def test_gifti_quads_are_split_into_triangles(tmp_path):
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
+    quads = np.array([[0, 1, 2, 3]], np.int32)
+    img = nib.gifti.GiftiImage(darrays=[
+        nib.gifti.GiftiDataArray(v, intent="NIFTI_INTENT_POINTSET", datatype="NIFTI_TYPE_FLOAT32"),
+        nib.gifti.GiftiDataArray(quads, intent="NIFTI_INTENT_TRIANGLE", datatype="NIFTI_TYPE_INT32")])
+    nib.save(img, tmp_path / "q.surf.gii")
+    surf = read_surface(tmp_path / "q.surf.gii")
+    assert surf.triangles.tolist() == [[0, 1, 2], [0, 2, 3]]
+
+
+@pytest.mark.parametrize("shape", [(30, 2), (30, 4)])
+def test_gifti_point_set_without_three_columns_is_refused(tmp_path, shape):
+    pts = np.random.default_rng(0).random(shape).astype(np.float32)
+    img = nib.gifti.GiftiImage(darrays=[
+        nib.gifti.GiftiDataArray(pts, intent="NIFTI_INTENT_POINTSET", datatype="NIFTI_TYPE_FLOAT32")])
+    nib.save(img, tmp_path / "p.surf.gii")
+    with pytest.raises(VolregIOError, match=rf"has a POINTSET of shape \({shape[0]}, {shape[1]}\); expected \(N, 3\)"):
+        read_surface(tmp_path / "p.surf.gii")
+
+
+# ----------------------------------------------------------------------------- values
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_bspline_keeps_a_non_finite_voxel_where_it_was(bad):
+    i, j, k = np.meshgrid(*[np.arange(16.0)] * 3, indexing="ij")
+    array = np.sin(i / 4) + j / 8 + 0.1 * k
+    array[8, 8, 8] = bad
+    grid = Grid(array.shape, np.zeros(3), np.ones(3), np.eye(3))
+    points = grid.grid_points() + 0.25
+    cubic = resample_image(array, grid, points, order=3)
+    linear = resample_image(array, grid, points, order=1)
+    assert np.array_equal(~np.isfinite(cubic), ~np.isfinite(linear))
+    assert (~np.isfinite(cubic)).sum() == 8  # the 8 sample points next to the voxel, not 91 % of the image
+    far = np.linalg.norm(points - 8.0, axis=-1) > 4  # away from it: the smooth image's values
+    exact = np.sin((i + 0.25) / 4) + (j + 0.25) / 8 + 0.1 * (k + 0.25)
+    inner = far & (points.min(axis=-1) > 2) & (points.max(axis=-1) < 13)
+    assert np.abs(cubic - exact)[inner].max() < 0.01
+
+
+@pytest.mark.parametrize("offset", [1000.0, -500.0])
+def test_apply_refuses_a_warp_whose_grid_misses_the_reference(tmp_path, capsys, offset):
+    ref = LabelVolume(np.ones((8, 8, 8), np.uint8), (0, 0, 0), (1, 1, 1), np.eye(3))
+    write_labels(ref, tmp_path / "ref.nii.gz")
+    img = sitk.Image([8, 8, 8], sitk.sitkVectorFloat32, 3)
+    img.SetOrigin((offset, 0.0, 0.0))
+    sitk.WriteImage(img, str(tmp_path / "w.nii.gz"))
+    assert main(["apply", str(tmp_path / "w.nii.gz"), str(tmp_path / "ref.nii.gz"), "--reference",
+                 str(tmp_path / "ref.nii.gz"), "-o", str(tmp_path / "o.nii.gz")]) == 2
+    line = _error(capsys)
+    assert "do not overlap, so the warp would leave every reference voxel where it is" in line
+    assert not (tmp_path / "o.nii.gz").exists()
+
+
+@pytest.mark.parametrize("units,scale", [("mm", 1.0), ("um", 1e-3), ("m", 1e3), ("cm", 10.0)])
+def test_mrk_json_coordinate_units_are_honoured(tmp_path, units, scale):
+    doc = {"markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "coordinateUnits": units,
+                        "controlPoints": [{"position": [1.0, 2.0, 3.0]}]}]}
+    (tmp_path / "l.mrk.json").write_text(json.dumps(doc))
+    assert np.allclose(read_landmarks(tmp_path / "l.mrk.json"), [[1.0 * scale, 2.0 * scale, 3.0 * scale]])
+
+
+def test_mrk_json_unknown_units_are_refused(tmp_path):
+    doc = {"markups": [{"coordinateUnits": "inch", "controlPoints": [{"position": [1.0, 2.0, 3.0]}]}]}
+    (tmp_path / "l.mrk.json").write_text(json.dumps(doc))
+    with pytest.raises(VolregIOError, match=r"coordinateUnits 'inch'; expected one of mm, um, cm, m"):
+        read_landmarks(tmp_path / "l.mrk.json")
+
+
+@pytest.mark.parametrize("attribute,value", [("Origin", "nan 0 0"), ("Spacing", "1 inf 1"), ("Origin", "0 zero 0")])
+def test_vti_geometry_must_be_finite(tmp_path, attribute, value):
+    import re
+
+    g = pv.ImageData(dimensions=(5, 5, 5))
+    g.point_data["labels"] = np.ones(125, np.uint8)
+    g.save(tmp_path / "v.vti", binary=False)
+    text = (tmp_path / "v.vti").read_text()
+    (tmp_path / "v.vti").write_text(re.sub(rf'{attribute}="[^"]*"', f'{attribute}="{value}"', text, count=1))
+    with pytest.raises(VolregIOError, match=rf'has {attribute}="{value}"; expected finite numbers'):
+        read_labels(tmp_path / "v.vti")
+
+
+# ----------------------------------------------------------------------------- all-or-nothing output folders
+
+
+def _write(path, text):
+    """Write as volreg's writers do: a new file renamed onto the name (the staging folder's
+    files are hard links to the previous result's until replaced)."""
+    tmp = path.with_name(f".tmp-{path.name}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _result(folder, text):
+    for name in ("a.txt", "b.txt"):
+        _write(folder / name, text)
+
+
+@pytest.mark.parametrize("error", [KeyboardInterrupt("SIGTERM"), RuntimeError("disk full")], ids=["interrupt", "error"])
+def test_a_failed_force_rerun_keeps_the_whole_previous_result(tmp_path, error):
+    out = tmp_path / "out"
+    with output_folder(out) as folder:
+        _result(folder.path, "old")
+        (folder.path / "mine.txt").write_text("kept")
+    with pytest.raises(type(error)):
+        with output_folder(out, force=True) as folder:
+            assert (folder.path / "mine.txt").read_text() == "kept"  # the folder's other files come along
+            _write(folder.path / "a.txt", "new")  # one output replaced, the other not yet
+            raise error
+    assert sorted(p.name for p in out.iterdir()) == ["a.txt", "b.txt", "mine.txt"]
+    assert (out / "a.txt").read_text() == (out / "b.txt").read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_a_completed_force_rerun_replaces_the_result_and_keeps_other_files(tmp_path):
+    out = tmp_path / "out"
+    with output_folder(out) as folder:
+        _result(folder.path, "old")
+        (folder.path / "mine.txt").write_text("kept")
+    with output_folder(out, force=True) as folder:
+        _result(folder.path, "new")
+    assert (out / "a.txt").read_text() == (out / "b.txt").read_text() == "new"
+    assert (out / "mine.txt").read_text() == "kept" and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+@pytest.mark.parametrize("left", ["ready", "old"])
+def test_a_swap_killed_between_its_renames_is_recovered(tmp_path, left):
+    """SIGKILL after the old result was set aside and before the new one was renamed in."""
+    out = tmp_path / "out"
+    aside = tmp_path / f".out.volreg-{left}-999999999-0badc0de"  # a pid that is not running
+    aside.mkdir()
+    _result(aside, left)
+    stale = tmp_path / ".out.volreg-new-999999999-00000000"
+    stale.mkdir()
+    (stale / "a.txt").write_text("partial")
+    assert recover_folder(out) == ("new" if left == "ready" else "old")
+    assert (out / "a.txt").read_text() == (out / "b.txt").read_text() == left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_the_working_directory_is_written_in_place(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with output_folder(tmp_path, require_empty=False) as folder:
+        assert folder.path == tmp_path  # never renamed away under the user's shell
+        (folder.path / "a.txt").write_text("x")
+    assert (tmp_path / "a.txt").read_text() == "x"
+
+
+def test_an_interrupted_force_rerun_says_the_previous_result_was_kept(tmp_path, capsys, monkeypatch):
+    _disc_slices(tmp_path)
+    out = tmp_path / "out"
+    args = ["register", str(tmp_path / "a.nii.gz"), str(tmp_path / "b.nii.gz"), "-o", str(out), "--protocol",
+            str(tmp_path / "p.toml"), "--quiet"]
+    assert main(args) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    capsys.readouterr()
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt("SIGTERM")
+
+    # after six of the eight outputs are written
+    monkeypatch.setattr("volreg.io.report_figure.write_report_figure", interrupted)
+    assert main([*args, "--force"]) == 143
+    assert _error(capsys) == (f"volreg register: interrupted by SIGTERM; the outputs of this run were removed "
+                              f"(the previous result in `{out}` was kept).")
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir() if "volreg" in p.name) == []
+    assert load_protocol(tmp_path / "p.toml").warp.min_width == 8.0
+
+
+def test_an_interrupt_that_a_library_turns_into_another_error_is_still_an_interrupt(tmp_path, capsys, monkeypatch):
+    """SIGTERM while matplotlib draws: its renderer turns the KeyboardInterrupt into a ValueError."""
+    import signal
+    import time
+
+    _disc_slices(tmp_path)
+    out = tmp_path / "out"
+
+    def drawing(*a, **k):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+        except KeyboardInterrupt:
+            raise ValueError("Invalid affine transformation matrix") from None
+
+    monkeypatch.setattr("volreg.io.report_figure.write_report_figure", drawing)
+    assert main(["register", str(tmp_path / "a.nii.gz"), str(tmp_path / "b.nii.gz"), "-o", str(out), "--protocol",
+                 str(tmp_path / "p.toml"), "--quiet"]) == 143
+    assert _error(capsys) == "volreg register: interrupted by SIGTERM; the outputs of this run were removed."
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.nii.gz", "b.nii.gz", "p.toml"]
