@@ -391,7 +391,8 @@ def test_nifti_dims_both_readers_agree_on_valid_files(tmp_path):
     """The dim checks pass 2-D, 3-D, 4-D with a size-1 axis, and big-endian files."""
     cube = _cube().array
     assert read_labels(_nifti(tmp_path / "a.nii", cube)).shape == (16, 16, 16)
-    assert read_labels(_nifti(tmp_path / "b.nii.gz", cube[:, :, 4:5])).shape == (16, 16, 1)
+    single = read_labels(_nifti(tmp_path / "b.nii.gz", cube[:, :, 4:5]))  # one axial slice: read as 2-D
+    assert single.shape == (16, 16) and np.array_equal(single.array, cube[:, :, 4])
     assert read_labels(_nifti(tmp_path / "b2.nii", cube[:, :, 4])).shape == (16, 16)
     assert read_labels(_nifti(tmp_path / "c.nii.gz", cube[..., None])).shape == (16, 16, 16)
     big = nib.Nifti1Image(cube.astype(">i2"), np.eye(4))
