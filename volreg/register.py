@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Callable, NamedTuple, Sequence
 import numpy as np
 from volreg import __version__
+from volreg._memory import available_bytes
 from volreg._threads import single_blas, thread_map
 from volreg.features.implicit import ImplicitSurface
 from volreg.warp.objective import FeaturePair
@@ -647,18 +648,6 @@ _BASE_GB = 0.4
 _BYTES_PER_VOXEL = 400
 
 
-def _available_bytes() -> int | None:
-    """MemAvailable from /proc/meminfo (Linux), else None."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:  # pragma: no cover - not Linux
-        return None
-    return None
-
-
 def estimated_peak_gb(fixed, moving) -> float:
     """Rough peak memory of registering ``moving`` to ``fixed`` (:func:`write_registration`), GB."""
     voxels = int(np.prod(fixed.shape)) + int(np.prod(moving.shape))
@@ -668,7 +657,7 @@ def estimated_peak_gb(fixed, moving) -> float:
 def _check_memory(fixed, moving, fixed_name, moving_name) -> None:
     """Refuse a job that would not fit in the memory available now, before it starts."""
     need = estimated_peak_gb(fixed, moving)
-    available = _available_bytes()
+    available = available_bytes()
     if available is not None and need * 1024**3 > available:
         raise RegistrationInputError(
             f"Registering `{moving_name}` ({moving.shape}) to `{fixed_name}` ({fixed.shape}) would need about "

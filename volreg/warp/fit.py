@@ -36,6 +36,7 @@ import scipy.optimize
 import scipy.sparse as sp
 import scipy.sparse.linalg
 from scipy.spatial import cKDTree
+from volreg._memory import available_bytes
 from volreg._threads import single_blas
 from volreg.kernels import CellGrid, SharedPatternCSR, _check_points, kernel_gradient_matrices, kernel_matrix, kernel_sum
 from volreg.warp.objective import FeaturePair, LevelObjective, simplex_vertices
@@ -273,18 +274,6 @@ def _check_inputs(features, source_points, landmarks, settings: WarpSettings, pr
 BYTES_PER_SAMPLE = 2048
 
 
-def _available_bytes() -> int | None:
-    """MemAvailable from /proc/meminfo (Linux), else None."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:  # pragma: no cover - not Linux
-        return None
-    return None
-
-
 def estimated_samples(points: np.ndarray, settings: WarpSettings, step: float) -> float:
     """About how many locational-cost samples the finest sample spacing ``step`` gives.
 
@@ -319,7 +308,7 @@ def check_sample_memory(points: np.ndarray, settings: WarpSettings, step: float)
         the estimate, when it exceeds the memory available now.
     """
     n = estimated_samples(points, settings, step)
-    available = _available_bytes()
+    available = available_bytes()
     if available is None or n * BYTES_PER_SAMPLE <= available:
         return
     raise ProtocolError(
