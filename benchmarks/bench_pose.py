@@ -73,7 +73,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shlex
 import shutil
 import sys
@@ -88,7 +87,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 
-from common import CHUNK, LARGE, PEERS, THREADS, grid_text, last_line, run_peer, score_field, smooth_bumps, timed
+from common import (
+    CHUNK, LARGE, PEERS, add_run_options, grid_text, last_line, print_header, run_peer, score_field,
+    smooth_bumps, timed,
+)
 from shapes import bumpy_ellipsoid, rotation
 
 REFERENCES = ("identity", "truth")
@@ -364,12 +366,7 @@ def main() -> None:
     parser.add_argument("--cases", default="1,2,3,4,5", help="comma-separated subset of 1-5")
     parser.add_argument("--methods", default=DEFAULT_METHODS,
                         help=f"comma-separated subset of {','.join(REFERENCES + ('volreg',) + PEERS)}")
-    parser.add_argument("--volreg-command", default=str(REPO / ".venv" / "bin" / "volreg"),
-                        help="the volreg command line (default: the repository's .venv/bin/volreg)")
-    parser.add_argument("--peer-python", default=sys.executable, help="Python with the bench extra (default: this one)")
-    parser.add_argument("--timeout", type=float, default=1800.0, help="seconds before a run is stopped")
-    parser.add_argument("--workdir", type=Path, default=None, help="keep the volumes and outputs in this new folder")
-    parser.add_argument("--peer", nargs=4, metavar=("METHOD", "FIXED", "MOVING", "OUT"), help=argparse.SUPPRESS)
+    add_run_options(parser)
     args = parser.parse_args()
     if args.peer:
         run_peer(*args.peer)
@@ -380,10 +377,7 @@ def main() -> None:
         if m not in REFERENCES + ("volreg",) + PEERS:
             parser.error(f"unknown method {m!r}")
 
-    print("```\nPYTHON benchmarks/bench_pose.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]) + "\n```\n")
-    load = os.getloadavg()
-    print(f"{os.cpu_count()} CPU cores; load average {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} at the start "
-          f"(1 / 5 / 15 min); peers with {THREADS} threads.\n", flush=True)
+    print_header("bench_pose.py")
 
     work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_pose_"))
     work.mkdir(parents=True, exist_ok=args.workdir is None)

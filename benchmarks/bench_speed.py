@@ -68,9 +68,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import CHUNK, LARGE, PEERS, THREADS, grid_text, last_line, run_env, run_peer, score_field, smooth_bumps, timed
+from common import (
+    CHUNK, LARGE, PEERS, add_run_options, grid_text, last_line, print_header, run_env, run_peer, score_field,
+    smooth_bumps, timed,
+)
 
-REPO = Path(__file__).resolve().parents[1]
 CASES = ("frog", "parcels", "phantom", "frog-full")
 GROWTH = ("labels2", "labels500")
 DEFAULT_METHODS = "volreg,greedy,ants"
@@ -269,13 +271,8 @@ def main() -> None:
     parser.add_argument("--growth", action="store_true",
                         help=f"also volreg on {' and '.join(GROWTH)}, and the table of how cost grows")
     parser.add_argument("--first-run", action="store_true", help="volreg on `frog` with an empty numba cache vs warm")
-    parser.add_argument("--volreg-command", default=str(REPO / ".venv" / "bin" / "volreg"),
-                        help="the volreg command line (default: the repository's .venv/bin/volreg)")
-    parser.add_argument("--peer-python", default=sys.executable, help="Python with the bench extra (default: this one)")
-    parser.add_argument("--timeout", type=float, default=1800.0, help="seconds before a run is stopped")
-    parser.add_argument("--workdir", type=Path, default=None, help="keep the volumes and outputs in this new folder")
+    add_run_options(parser)
     parser.add_argument("--json", type=Path, default=None, help="also write every run's figures to this file")
-    parser.add_argument("--peer", nargs=4, metavar=("METHOD", "FIXED", "MOVING", "OUT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.peer:
         run_peer(*args.peer)
@@ -295,10 +292,7 @@ def main() -> None:
     if args.workdir is not None and args.workdir.exists():
         parser.error(f"argument --workdir: expected a new folder, got an existing one: {args.workdir}")
 
-    print("```\nPYTHON benchmarks/bench_speed.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]) + "\n```\n")
-    load = os.getloadavg()
-    print(f"{os.cpu_count()} CPU cores; load average {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} at the start "
-          f"(1 / 5 / 15 min); every method with {THREADS} threads.\n", flush=True)
+    print_header("bench_speed.py")
 
     work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_speed_"))
     work.mkdir(parents=True, exist_ok=args.workdir is None)

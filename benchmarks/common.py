@@ -11,8 +11,10 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -201,6 +203,26 @@ def score_field(fixed, moving, truth, field_path: Path, *, folding: bool = False
     if folding:
         out["folded"] = folded_fraction_of_field(u, grid)
     return out
+
+
+def add_run_options(parser: argparse.ArgumentParser) -> None:
+    """The options of every whole-command benchmark: ``--volreg-command``, ``--peer-python``,
+    ``--timeout``, ``--workdir`` and the hidden ``--peer METHOD FIXED MOVING OUT`` (one peer run)."""
+    repo = Path(__file__).resolve().parents[1]
+    parser.add_argument("--volreg-command", default=str(repo / ".venv" / "bin" / "volreg"),
+                        help="the volreg command line (default: the repository's .venv/bin/volreg)")
+    parser.add_argument("--peer-python", default=sys.executable, help="Python with the bench extra (default: this one)")
+    parser.add_argument("--timeout", type=float, default=1800.0, help="seconds before a run is stopped")
+    parser.add_argument("--workdir", type=Path, default=None, help="keep the volumes and outputs in this new folder")
+    parser.add_argument("--peer", nargs=4, metavar=("METHOD", "FIXED", "MOVING", "OUT"), help=argparse.SUPPRESS)
+
+
+def print_header(script: str) -> None:
+    """The command line that runs ``script`` (``PYTHON`` for the interpreter) and the machine's load."""
+    print(f"```\nPYTHON benchmarks/{script} " + " ".join(shlex.quote(a) for a in sys.argv[1:]) + "\n```\n")
+    load = os.getloadavg()
+    print(f"{os.cpu_count()} CPU cores; load average {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} at the start "
+          f"(1 / 5 / 15 min); every method with {THREADS} threads.\n", flush=True)
 
 
 def grid_text(v) -> str:
