@@ -73,10 +73,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shlex
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -89,14 +87,14 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 
+from common import (
+    CHUNK, LARGE, PEERS, add_run_options, grid_text, last_line, print_header, run_peer, score_field,
+    smooth_bumps, timed,
+)
 from shapes import bumpy_ellipsoid, rotation
 
-LARGE = 100  # voxels: Dice over the labels of at least this size
-THREADS = 2
-PEERS = ("ants", "ants-SyNRA", "greedy", "greedy-moments")
 REFERENCES = ("identity", "truth")
 DEFAULT_METHODS = "identity,truth,volreg,ants,greedy"
-CHUNK = 1 << 18  # points per block when mapping grids
 
 
 # ----------------------------------------------------------------------------- geometry of the cases
@@ -198,16 +196,6 @@ def _frog_source():
     return (lambda p: resample_labels(native, p, method="nearest")), fixed
 
 
-def _bumps(fixed, max_displacement: float, seed: int):
-    """Ten Gaussian bumps over the fixed labels' box, scale 0.15 x its diagonal (as `volreg demo`)."""
-    from volreg.synthetic import GaussianBumps
-
-    points = fixed.grid_points()[fixed.array > 0]
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    return GaussianBumps.random(lo, hi, max_displacement=max_displacement, scale=0.15 * float(np.linalg.norm(hi - lo)),
-                                count=10, rng=np.random.default_rng(seed))
-
-
 def _centroid(volume) -> np.ndarray:
     """Mean of the labelled voxel centres, (3,) mm."""
     return volume.grid_points()[volume.array > 0].mean(axis=0)
@@ -255,7 +243,7 @@ def make_case(number: int) -> Case:
     if number in (1, 2):
         source, fixed = _frog_source()
         c = _centroid(fixed)
-        bumps = _bumps(fixed, 8.0, seed=0)
+        bumps = smooth_bumps(fixed, 8.0, seed=0)
         if number == 1:
             pose = Pose(rotation(15, (0.2, 0.3, 1.0)), c, 20.0 * unit((1.0, -0.5, 0.3)))
             moving = _posed_moving(fixed, Truth(pose, bumps), source, (2.0, 2.0, 2.0))
@@ -282,7 +270,7 @@ def make_case(number: int) -> Case:
     fixed = _organ_fixed(labels, 1.0)
     if number == 4:
         pose = Pose(rotation(25, (0.7, -0.3, 0.6)), _centroid(fixed), 30.0 * unit((-0.5, -0.6, 0.6)))
-        truth = Truth(pose, _bumps(fixed, 6.0, seed=4))
+        truth = Truth(pose, smooth_bumps(fixed, 6.0, seed=4))
         moving = _posed_moving(fixed, truth, labels, (0.8, 0.8, 2.5), direction=rotation(20, (1.0, 0.3, 0.2)))
         return Case(4, "30 labels 1 mm vs 0.8 x 0.8 x 2.5 mm oblique", fixed, moving, truth,
                     "25 deg about (0.7, -0.3, 0.6), 30 mm, bumps up to 6 mm; moving direction 20 deg oblique")
@@ -296,71 +284,6 @@ def make_case(number: int) -> Case:
 # ----------------------------------------------------------------------------- running the methods
 
 
-def _env() -> dict:
-    """The environment of every run: two threads, ANTs seeded."""
-    return dict(os.environ, ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS=str(THREADS), ANTS_RANDOM_SEED="1",
-                NUMBA_NUM_THREADS=str(THREADS), OMP_NUM_THREADS=str(THREADS))
-
-
-# A process started by this (large) one would report this one's peak RSS as its own: Linux counts
-# the memory of the process that called exec into the peak of the program it starts. So every run is
-# started, timed and measured by this small launcher (a bare Python), itself started by this process.
-_LAUNCHER = """
-import json, os, subprocess, sys, threading, time
-command, log, cwd, timeout = json.loads(sys.argv[1])
-with open(log, "w") as out:
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, cwd=cwd)
-    timer = threading.Timer(timeout, proc.kill)
-    timer.start()
-    _, status, usage = os.wait4(proc.pid, 0)
-    seconds = time.perf_counter() - t0
-    timer.cancel()
-print(json.dumps([os.waitstatus_to_exitcode(status), seconds, usage.ru_maxrss / 1024**2]))
-"""
-
-
-def _timed(command: list[str], log: Path, cwd: Path, timeout: float) -> tuple[int, float, float]:
-    """Run ``command`` in ``cwd`` as a fresh process: exit status, wall seconds (start to exit) and
-    peak RSS (GB; Linux reports kB), measured by the launcher."""
-    job = json.dumps([command, str(log), str(cwd), timeout])
-    res = subprocess.run([sys.executable, "-c", _LAUNCHER, job], capture_output=True, text=True, env=_env(),
-                         check=True)
-    rc, seconds, rss = json.loads(res.stdout)
-    return int(rc), float(seconds), float(rss)
-
-
-def run_peer(method: str, fixed: str, moving: str, out: str) -> None:
-    """Register ``moving`` to ``fixed`` (NIfTI label images, read as float) with a peer and write
-    its displacement field on the fixed grid to ``out``/warp.nii.gz (LPS mm, pull-back)."""
-    out_dir = Path(out)
-    if method in ("ants", "ants-SyNRA"):
-        import ants
-
-        f = ants.image_read(fixed, pixeltype="float")
-        m = ants.image_read(moving, pixeltype="float")
-        reg = ants.registration(f, m, type_of_transform="SyN" if method == "ants" else "SyNRA")
-        # the forward transforms (warp, then affine) composed into one field on the fixed grid
-        composed = ants.apply_transforms(f, m, reg["fwdtransforms"], compose=str(out_dir / "composed"))
-        shutil.move(composed, out_dir / "warp.nii.gz")
-    elif method in ("greedy", "greedy-moments"):
-        from picsl_greedy import Greedy3D
-
-        g = Greedy3D()
-        start = "-ia-image-centers"
-        if method == "greedy-moments":  # a rigid start from the images' inertia tensors
-            g.execute(f"-d 3 -threads {THREADS} -moments 2 -det 1 -i {fixed} {moving} -o {out_dir}/moments.mat")
-            start = f"-ia {out_dir}/moments.mat"
-        g.execute(f"-d 3 -threads {THREADS} -a -dof 12 {start} -i {fixed} {moving} -o {out_dir}/affine.mat "
-                  "-n 100x50x10 -m SSD")
-        g.execute(f"-d 3 -threads {THREADS} -i {fixed} {moving} -it {out_dir}/affine.mat -o {out_dir}/deform.nii.gz "
-                  "-n 100x50x20 -m SSD -s 2vox 1vox")
-        g.execute(f"-d 3 -threads {THREADS} -rf {fixed} -r {out_dir}/deform.nii.gz {out_dir}/affine.mat "
-                  f"-rc {out_dir}/warp.nii.gz")
-    else:
-        raise ValueError(f"Expected a peer `method` in {PEERS}, got {method!r}.")
-
-
 def _reference_field(case: Case, method: str, out: Path) -> None:
     """The identity's or the true map's displacement field, written as a method's would be."""
     from volreg.io.fields import write_displacement
@@ -368,26 +291,6 @@ def _reference_field(case: Case, method: str, out: Path) -> None:
     x = case.fixed.grid_points().reshape(-1, 3)
     u = np.zeros_like(x) if method == "identity" else case.truth(x) - x
     write_displacement(u.reshape(*case.fixed.shape, 3), case.fixed, out / "warp.nii.gz")
-
-
-def score(case: Case, field_path: Path) -> dict:
-    """Endpoint error (mean, p95; mm) at the fixed label voxels and mean Dice over the fixed labels of
-    at least LARGE voxels, for the displacement field at ``field_path`` (on the fixed grid)."""
-    from volreg.evaluation.metrics import dice
-    from volreg.io.fields import read_displacement
-    from volreg.warp.resample import resample_labels
-
-    u, grid = read_displacement(field_path)
-    if not grid.same_geometry(case.fixed, atol=1e-3):
-        raise ValueError(f"Expected the field `{field_path}` on the fixed grid, got {grid}.")
-    x = case.fixed.grid_points()
-    positions = x + u
-    inside = case.fixed.array > 0
-    err = np.linalg.norm(positions[inside] - case.truth(x[inside]), axis=1)
-    warped = resample_labels(case.moving, positions)
-    large = [v for v in case.fixed.labels() if np.count_nonzero(case.fixed.array == v) >= LARGE]
-    d = [dice(case.fixed.array == v, warped == v) for v in large]
-    return {"epe_mean": float(err.mean()), "epe_p95": float(np.percentile(err, 95)), "dice": float(np.mean(d))}
 
 
 def _linear_error(case: Case, model: Path) -> dict | None:
@@ -419,12 +322,11 @@ def run_method(case: Case, method: str, paths: dict, out: Path, args) -> dict:
                        paths["moving"], str(out)]
         else:
             raise ValueError(f"Expected a method in {REFERENCES + ('volreg',) + PEERS}, got {method!r}.")
-        rc, seconds, rss = _timed(command, log, out, args.timeout)
+        rc, seconds, rss = timed(command, log, out, args.timeout)
         if rc != 0 or not (out / "warp.nii.gz").exists():
-            lines = [s for s in log.read_text(errors="replace").splitlines() if s.strip()]
-            return {"failed": (lines[-1][:160] if lines else f"exit status {rc}") + f" (exit {rc}, {seconds:.0f} s)"}
+            return {"failed": last_line(log, rc, seconds)}
         result = {"seconds": seconds, "peak_rss_gb": rss}
-    result.update(score(case, out / "warp.nii.gz"))
+    result.update(score_field(case.fixed, case.moving, case.truth, out / "warp.nii.gz"))
     if method == "volreg":
         report = json.loads((out / "report.json").read_text()) if (out / "report.json").exists() else {}
         result["stages"] = [(s.get("stage"), s.get("seconds")) for s in report.get("stages", [])]
@@ -458,24 +360,13 @@ def _summary(block, limit: int = 400) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def _grid_text(v) -> str:
-    oblique = "" if np.allclose(v.direction, np.eye(3)) else ", oblique"
-    return (f"{' x '.join(map(str, v.shape))} of {' x '.join(f'{s:g}' for s in v.spacing)} mm{oblique} "
-            f"({np.prod(v.shape) / 1e6:.2f} M voxels)")
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=1, help="runs per case and method (medians are shown)")
     parser.add_argument("--cases", default="1,2,3,4,5", help="comma-separated subset of 1-5")
     parser.add_argument("--methods", default=DEFAULT_METHODS,
                         help=f"comma-separated subset of {','.join(REFERENCES + ('volreg',) + PEERS)}")
-    parser.add_argument("--volreg-command", default=str(REPO / ".venv" / "bin" / "volreg"),
-                        help="the volreg command line (default: the repository's .venv/bin/volreg)")
-    parser.add_argument("--peer-python", default=sys.executable, help="Python with the bench extra (default: this one)")
-    parser.add_argument("--timeout", type=float, default=1800.0, help="seconds before a run is stopped")
-    parser.add_argument("--workdir", type=Path, default=None, help="keep the volumes and outputs in this new folder")
-    parser.add_argument("--peer", nargs=4, metavar=("METHOD", "FIXED", "MOVING", "OUT"), help=argparse.SUPPRESS)
+    add_run_options(parser)
     args = parser.parse_args()
     if args.peer:
         run_peer(*args.peer)
@@ -486,10 +377,7 @@ def main() -> None:
         if m not in REFERENCES + ("volreg",) + PEERS:
             parser.error(f"unknown method {m!r}")
 
-    print("```\nPYTHON benchmarks/bench_pose.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]) + "\n```\n")
-    load = os.getloadavg()
-    print(f"{os.cpu_count()} CPU cores; load average {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} at the start "
-          f"(1 / 5 / 15 min); peers with {THREADS} threads.\n", flush=True)
+    print_header("bench_pose.py")
 
     work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_pose_"))
     work.mkdir(parents=True, exist_ok=args.workdir is None)
@@ -504,8 +392,8 @@ def main() -> None:
             paths = {k: str(work / f"case{number}_{k}.nii.gz") for k in ("fixed", "moving")}
             write_labels(case.fixed, paths["fixed"])
             write_labels(case.moving, paths["moving"])
-            case_rows.append(f"| {number} | {case.title} | {_grid_text(case.fixed)}, {len(case.fixed.labels())} labels "
-                             f"| {_grid_text(case.moving)}, {len(case.moving.labels())} labels | {case.pose_text} "
+            case_rows.append(f"| {number} | {case.title} | {grid_text(case.fixed)}, {len(case.fixed.labels())} labels "
+                             f"| {grid_text(case.moving)}, {len(case.moving.labels())} labels | {case.pose_text} "
                              f"| {time.perf_counter() - t0:.0f} |")
             built.append((case, paths))
         print("| case | pair | fixed | moving | tau_true (pose L after the smooth warp) | built in s |")
