@@ -53,7 +53,7 @@ def test_all_pairs_complete_and_the_corrupt_one_fails_alone(cohort):
     d, _ = cohort
     rows = _rows(d / "out" / "batch.csv")
     assert [(r["fixed_id"], r["moving_id"]) for r in rows] == [("template", f"s{i}") for i in range(6)] + [("template", "bad")]
-    assert [r["status"] for r in rows] == ["done"] * 6 + ["failed"]
+    assert [r["status"] for r in rows] == ["done"] * 6 + ["failed"], [(r["moving_id"], r["error"]) for r in rows]
     assert "corrupt.nii.gz" in rows[-1]["error"] and "\n" not in rows[-1]["error"]
     for r in rows[:6]:
         assert float(r["mean_dice_after"]) >= float(r["mean_dice_before"]) - 1e-9
