@@ -15,6 +15,7 @@ import csv
 import hashlib
 import io
 import json
+import logging
 import re
 import signal
 import sys
@@ -283,15 +284,16 @@ def run(args: argparse.Namespace) -> int:
     folders = pair_folders(pairs, args.manifest)
     outdir: Path = args.output
     make_directory(outdir)
-    if args.scheduler:
-        client = Client(args.scheduler)
-        cluster = None
-    else:
-        cluster = LocalCluster(n_workers=args.workers or 2, threads_per_worker=1, processes=True,
-                               dashboard_address=":0")
-        client = Client(cluster)
     rows: list[dict] = []
+    client = cluster = None
     try:
+        # inside the try: an interrupt while the cluster starts is reported like any other
+        if args.scheduler:
+            client = Client(args.scheduler)
+        else:
+            cluster = LocalCluster(n_workers=args.workers or 2, threads_per_worker=1, processes=True,
+                                   dashboard_address=":0")
+            client = Client(cluster)
         if client.dashboard_link and not args.quiet:
             print(f"{PROG} batch: Dask dashboard {client.dashboard_link}", file=sys.stderr)
         futures = {}
@@ -316,11 +318,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"{PROG} batch: interrupted by {name}; {finished} of {len(pairs)} pairs finished and are kept in "
               f"`{outdir / 'pairs'}` (a rerun skips them); the {len(pairs) - finished} others are unfinished and a "
               f"rerun redoes them; `{outdir / 'batch.csv'}` was not written.", file=sys.stderr)
+        # a cluster interrupted while starting complains when it is collected; the line above says it all
+        sys.unraisablehook = lambda unraisable: None
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)
         return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        for part in (client, cluster):
+            if part is not None:
+                try:
+                    part.close()
+                except Exception:  # a cluster interrupted while starting may not close cleanly
+                    pass
     order = {(f[0], m[0]): i for i, (f, m) in enumerate(pairs)}
     rows.sort(key=lambda r: order[(r["fixed_id"], r["moving_id"])])
     _write_table(rows, outdir / "batch.csv")
