@@ -258,6 +258,17 @@ def _write_plot(rows: list[dict], path: Path) -> None:
         canvas.print_png(str(tmp))
 
 
+
+def _close(client, cluster) -> None:
+    """Close the Dask client and the local cluster, if any; one interrupted while starting may not
+    close cleanly, and that is not worth a traceback."""
+    for part in (client, cluster):
+        if part is not None:
+            try:
+                part.close()
+            except Exception:
+                pass
+
 def run(args: argparse.Namespace) -> int:
     """``volreg batch MANIFEST -o OUTDIR``: every pair as a Dask task; exit status 1 if any failed."""
     try:
@@ -314,21 +325,19 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt as exc:
         # Finished pairs are complete results and stay; say so rather than "outputs removed".
         name = str(exc) or "SIGINT"
+        # workers stopped first, so that their farewells do not follow the one line below
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        _close(client, cluster)
+        client = cluster = None
         finished = sum(1 for r in rows if r.get("status") == "done")
         print(f"{PROG} batch: interrupted by {name}; {finished} of {len(pairs)} pairs finished and are kept in "
               f"`{outdir / 'pairs'}` (a rerun skips them); the {len(pairs) - finished} others are unfinished and a "
               f"rerun redoes them; `{outdir / 'batch.csv'}` was not written.", file=sys.stderr)
         # a cluster interrupted while starting complains when it is collected; the line above says it all
         sys.unraisablehook = lambda unraisable: None
-        logging.getLogger("distributed").setLevel(logging.CRITICAL)
         return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
     finally:
-        for part in (client, cluster):
-            if part is not None:
-                try:
-                    part.close()
-                except Exception:  # a cluster interrupted while starting may not close cleanly
-                    pass
+        _close(client, cluster)
     order = {(f[0], m[0]): i for i, (f, m) in enumerate(pairs)}
     rows.sort(key=lambda r: order[(r["fixed_id"], r["moving_id"])])
     _write_table(rows, outdir / "batch.csv")
