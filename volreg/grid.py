@@ -52,6 +52,34 @@ class VoxelChunk:
     total: int
 
 
+def apply_affine(points: np.ndarray, matrix: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """``points @ matrix.T + offset`` for (N, D) points, column by column.
+
+    Several times faster than a BLAS product whose inner dimension is D (and free of BLAS
+    threads), which matters when millions of points pass through it.
+
+    Parameters
+    ----------
+    points : (N, D) float array_like
+    matrix : (E, D) float ndarray
+    offset : (E,) float ndarray
+
+    Returns
+    -------
+    (N, E) float ndarray
+    """
+    p = np.asarray(points, dtype=float)
+    matrix = np.asarray(matrix, dtype=float)
+    if p.ndim != 2 or p.shape[1] != matrix.shape[1]:
+        return p @ matrix.T + offset
+    out = np.empty((p.shape[0], matrix.shape[0]))
+    for a in range(matrix.shape[0]):
+        out[:, a] = offset[a]
+        for b in range(matrix.shape[1]):
+            out[:, a] += matrix[a, b] * p[:, b]
+    return out
+
+
 def _geometry(d: int, origin, spacing, direction) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Validate and normalise the geometry of a ``D``-dimensional grid (the one place it is checked)."""
     origin = np.asarray(origin, dtype=float).reshape(-1)
@@ -178,13 +206,12 @@ class Grid:
         -------
         (N, D) float ndarray, mm
         """
-        index = np.asarray(index, dtype=float)
-        return index @ (self.direction * self.spacing[None, :]).T + self.origin
+        return apply_affine(index, self.direction * self.spacing[None, :], self.origin)
 
     def world_to_index(self, points: np.ndarray) -> np.ndarray:
         """Map LPS world points (mm) to continuous voxel indices, ``(N, D)``."""
-        points = np.asarray(points, dtype=float)
-        return ((points - self.origin) @ self.direction) / self.spacing
+        m = self.direction.T / self.spacing[:, None]
+        return apply_affine(points, m, -m @ self.origin)
 
     def grid_points(self) -> np.ndarray:
         """World coordinates of every voxel centre, shape ``(*shape, D)``, mm."""

@@ -765,12 +765,17 @@ def _sample_on_fixed_grid(warp, fixed, moving, max_folded_fraction: float, progr
     return _FixedGridFields(grid, u, jac, points, warped)
 
 
-def _inverse_on_moving_grid(warp, moving, progress):
-    """The warp's inverse (:class:`~volreg.warp.inverse.InverseWarp`) and its displacement on the moving grid, mm."""
-    from volreg.warp.field import displacement_on_grid
-    from volreg.warp.inverse import InverseWarp
+def _inverse_on_moving_grid(warp, moving, progress, fixed=None, displacement=None):
+    """The warp's inverse (:class:`~volreg.warp.inverse.InverseWarp`) and its displacement on the moving grid, mm.
 
-    inverse = InverseWarp(warp)
+    Given the warp's ``displacement`` on the ``fixed`` grid, Newton's method starts from its
+    interpolated inverse (:class:`~volreg.warp.inverse.GridStart`): the same answer (to the
+    inverse's 1e-6 mm) with fewer evaluations of the warp."""
+    from volreg.warp.field import displacement_on_grid
+    from volreg.warp.inverse import GridStart, InverseWarp, _linear_of
+
+    start = None if displacement is None else GridStart(displacement, fixed, _linear_of(warp))
+    inverse = InverseWarp(warp, start=start)
     return inverse, displacement_on_grid(inverse, moving, progress=progress, stage="invert warp")
 
 
@@ -908,7 +913,7 @@ def _register_and_write(fixed, moving, outdir, *, protocol, drive_labels, landma
         stages.append(_stage("resample", t0))
 
         t0 = time.perf_counter()
-        inverse, u_inverse = _inverse_on_moving_grid(result.warp, moving, progress)
+        inverse, u_inverse = _inverse_on_moving_grid(result.warp, moving, progress, fixed, fields.displacement)
         stages.append(_stage("inverse", t0))
 
         t0 = time.perf_counter()

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from volreg.grid import apply_affine
 from volreg.settings import LINEAR_KINDS
 
 __all__ = ["LINEAR_KINDS", "LinearFit", "LinearMap", "cut_labels", "fit_linear"]
@@ -72,8 +73,7 @@ class LinearMap:
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """``A x + b`` at ``points``, (N, D) mm."""
-        p = np.asarray(points, dtype=float)
-        return p @ self.matrix.T + self.translation
+        return apply_affine(points, self.matrix, self.translation)
 
     def inverse(self) -> "LinearMap":
         """``y -> A^-1 (y - b)``."""
