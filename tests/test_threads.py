@@ -81,3 +81,20 @@ def test_implicit_fits_on_threads_equal_serial_fits():
         for la, lb in zip(a.levels, b.levels):
             np.testing.assert_array_equal(la.alpha, lb.alpha)
             np.testing.assert_array_equal(la.centres, lb.centres)
+
+
+@pytest.mark.parametrize("preset, expected", [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
+def test_idle_openmp_threads_sleep_unless_the_user_says_otherwise(preset, expected):
+    """numba's OpenMP runtime reads OMP_WAIT_POLICY when its first parallel loop loads it;
+    volreg sets it to PASSIVE before that (a user's value is kept)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if preset is not None:
+        env["OMP_WAIT_POLICY"] = preset
+    code = ("import os, numpy as np; from volreg.kernels import kernel_sum; import numba; "
+            "print(os.environ.get('OMP_WAIT_POLICY'))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == expected
