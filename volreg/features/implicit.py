@@ -35,6 +35,7 @@ import scipy.sparse as sp
 
 from volreg._jit import njit
 from volreg.kernels import CellGrid, _check_points, kernel_matrix, kernel_sum, put_rows, spatial_order, take_rows
+from volreg.kernels.wu import wu
 
 __all__ = ["ImplicitSurface", "ImplicitLevel", "estimate_normals", "thin_points"]
 
@@ -342,11 +343,12 @@ class ImplicitSurface:
             y = np.concatenate([np.zeros(len(sp_pts)), off_val])
             residual = y - self.evaluate(x, order=0)[0]
             grid = CellGrid.build(x, width)
-            kmat = kernel_matrix(x, grid, width)
+            kmat = kernel_matrix(x, grid, width, sort=False)  # coordinate descent only walks the rows
             beta = np.zeros(len(x))
             kbeta = np.zeros(len(x))
             sweeps, mean_change, max_change = _svr_coordinate_descent(
-                kmat.indptr, kmat.indices, kmat.data, kmat.diagonal(), residual, eps, float(box), beta, kbeta,
+                kmat.indptr, kmat.indices, kmat.data, np.full(len(x), float(wu(np.zeros(1))[0])),  # K_ii = k(0)
+                residual, eps, float(box), beta, kbeta,
                 int(max_sweeps), tol,
             )
             used = beta != 0

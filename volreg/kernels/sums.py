@@ -259,7 +259,8 @@ def kernel_sum_reference(
     return tuple(outs)
 
 
-def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float) -> sp.csr_matrix:
+def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float, *,
+                  sort: bool = True) -> sp.csr_matrix:
     """Sparse kernel matrix ``K[i, j] = k(|rows_i - cols_j| / sigma)`` (Wu kernel (13)).
 
     Parameters
@@ -267,11 +268,14 @@ def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float) -
     rows : (N, D) float ndarray, mm
     cols : (M, D) float ndarray, mm, or a CellGrid of them (radius >= sigma)
     sigma : float, mm
+    sort : bool
+        Sort the column indices of each row (scipy's canonical form); a caller that
+        only walks the rows (coordinate descent) may skip it.
 
     Returns
     -------
     (N, M) scipy.sparse.csr_matrix
-        Column indices refer to the original order of ``cols``; sorted per row.
+        Column indices refer to the original order of ``cols``; sorted per row if ``sort``.
     """
     grid = cols if isinstance(cols, CellGrid) else CellGrid.build(_check_points("cols", cols), sigma)
     dim = grid.points.shape[1]
@@ -290,7 +294,10 @@ def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float) -
     index_dtype = np.int32 if max(nnz, len(grid.points)) < 2**31 - 1 else np.int64
     indptr, indices = indptr.astype(index_dtype), indices.astype(index_dtype)
     mat = sp.csr_matrix((data, indices, indptr), shape=(len(rows), len(grid.points)))
-    mat.sort_indices()
+    if sort:
+        mat.sort_indices()
+    else:
+        mat.has_sorted_indices = False  # scipy sorts (or checks) before any operation that needs it
     return mat
 
 
