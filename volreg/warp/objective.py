@@ -186,21 +186,29 @@ class LevelObjective:
         if len(subsets) != len(self.features):
             raise ValueError(f"Expected one entry of `feature_samples` per feature, got {len(subsets)} for {len(self.features)}.")
         self._subsets = [None if s is None else np.asarray(s, dtype=np.intp) for s in subsets]
-        self._f1 = [
-            [pair.f1.evaluate((self.samples if idx is None else self.samples[idx]) + dx, order=order) for dx in offsets]
-            for pair, idx in zip(self.features, self._subsets)
-        ]
         # With many labels each feature sits at a few dozen samples: evaluated one by one, the
         # calls cost far more than the arithmetic.  The batch evaluates all at once.
         self._batch = FeatureBatch.build([pair.f2 for pair in self.features]) if self.batched and self.features else None
+        fixed_batch = FeatureBatch.build([pair.f1 for pair in self.features]) if self._batch is not None else None
+        self._f1 = []
+        if self._batch is None or fixed_batch is None:
+            self._f1 = [
+                [pair.f1.evaluate((self.samples if idx is None else self.samples[idx]) + dx, order=order)
+                 for dx in offsets]
+                for pair, idx in zip(self.features, self._subsets)
+            ]
         if self._batch is not None:
             rows = [np.arange(n) if idx is None else idx for idx in self._subsets]
             counts = np.array([len(r) for r in rows], dtype=np.int64)
             self._rows = np.concatenate(rows).astype(np.intp)
             self._starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
             self._row_weight = np.repeat(np.array([pair.weight for pair in self.features], float), counts)
-            self._f1_rows = [tuple(np.concatenate([f1[k][j] for f1 in self._f1]) for j in range(order + 1))
-                             for k in range(len(offsets))]
+            if fixed_batch is not None:
+                self._f1_rows = [fixed_batch.evaluate(self.samples[self._rows] + dx, self._starts, order=order)
+                                 for dx in offsets]
+            else:
+                self._f1_rows = [tuple(np.concatenate([f1[k][j] for f1 in self._f1]) for j in range(order + 1))
+                                 for k in range(len(offsets))]
         if self.lambda_p > 0:
             if self.landmark_kernel is None or self.landmark_base is None or self.landmark_targets is None:
                 raise ValueError("Expected `landmark_kernel`, `landmark_base` and `landmark_targets` when `lambda_p` > 0.")
