@@ -135,10 +135,10 @@ class LevelObjective:
         skipping those samples changes neither the minimiser nor the gradient
         (with many labels, each label's surface is near few samples).
     batched : bool
-        Evaluate the ``f2`` of all feature pairs in one compiled pass
-        (:class:`~volreg.features.batch.FeatureBatch`) where they support it (implicit
-        surfaces and voxel distance maps, through one common linear map).  ``False``:
-        one feature at a time; the two agree up to rounding.
+        Evaluate the ``f2`` (and, once, the ``f1``) of all feature pairs in one compiled
+        pass (:class:`~volreg.features.batch.FeatureBatch`) where they support it
+        (implicit surfaces and voxel distance maps, through one common linear map).
+        ``False``: one feature at a time; the two agree up to rounding.
     """
 
     kernel: sp.spmatrix
