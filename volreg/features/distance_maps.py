@@ -76,69 +76,83 @@ def _axis(x: float, n: int, idx, w, d, s) -> None:
         idx[k] = _mirror(base - 1 + k, n)
 
 
+@njit(fastmath=True, inline="always")
+def _bspline3_at(coef, i0, i1, i2, order, p, f, g, h, index, weight):  # pragma: no cover - compiled
+    """:func:`_bspline3` at one continuous index ``(i0, i1, i2)``, written to row ``p``;
+    ``index`` (3, 4) int and ``weight`` (9, 4) float are scratch."""
+    nx, ny, nz = coef.shape
+    ix, iy, iz = index[0], index[1], index[2]
+    wx, wy, wz, dx, dy, dz, sx, sy, sz = (weight[0], weight[1], weight[2], weight[3], weight[4], weight[5],
+                                          weight[6], weight[7], weight[8])
+    _axis(i0, nx, ix, wx, dx, sx)
+    _axis(i1, ny, iy, wy, dy, sy)
+    _axis(i2, nz, iz, wz, dz, sz)
+    v = 0.0
+    gx = 0.0
+    gy = 0.0
+    gz = 0.0
+    hxx = 0.0
+    hyy = 0.0
+    hzz = 0.0
+    hxy = 0.0
+    hxz = 0.0
+    hyz = 0.0
+    for a in range(4):
+        for b in range(4):
+            for c in range(4):
+                q = coef[ix[a], iy[b], iz[c]]
+                v += wx[a] * wy[b] * wz[c] * q
+                if order >= 1:
+                    gx += dx[a] * wy[b] * wz[c] * q
+                    gy += wx[a] * dy[b] * wz[c] * q
+                    gz += wx[a] * wy[b] * dz[c] * q
+                if order >= 2:
+                    hxx += sx[a] * wy[b] * wz[c] * q
+                    hyy += wx[a] * sy[b] * wz[c] * q
+                    hzz += wx[a] * wy[b] * sz[c] * q
+                    hxy += dx[a] * dy[b] * wz[c] * q
+                    hxz += dx[a] * wy[b] * dz[c] * q
+                    hyz += wx[a] * dy[b] * dz[c] * q
+    f[p] = v
+    if order >= 1:
+        g[p, 0] = gx
+        g[p, 1] = gy
+        g[p, 2] = gz
+    if order >= 2:
+        h[p, 0, 0] = hxx
+        h[p, 1, 1] = hyy
+        h[p, 2, 2] = hzz
+        h[p, 0, 1] = hxy
+        h[p, 1, 0] = hxy
+        h[p, 0, 2] = hxz
+        h[p, 2, 0] = hxz
+        h[p, 1, 2] = hyz
+        h[p, 2, 1] = hyz
+
+
 @njit(parallel=True, fastmath=True)
 def _bspline3(coef, index, order, f, g, h):  # pragma: no cover - compiled
     """Cubic B-spline with coefficients ``coef`` (nx, ny, nz) at continuous indices
     ``index`` (N, 3): value ``f`` (N,), and for ``order`` >= 1 the gradient ``g``
     (N, 3) and for ``order`` >= 2 the Hessian ``h`` (N, 3, 3), per index unit."""
-    nx, ny, nz = coef.shape
     for p in numba.prange(index.shape[0]):
-        ix = np.empty(4, np.int64)
-        iy = np.empty(4, np.int64)
-        iz = np.empty(4, np.int64)
-        wx = np.empty(4)
-        wy = np.empty(4)
-        wz = np.empty(4)
-        dx = np.empty(4)
-        dy = np.empty(4)
-        dz = np.empty(4)
-        sx = np.empty(4)
-        sy = np.empty(4)
-        sz = np.empty(4)
-        _axis(index[p, 0], nx, ix, wx, dx, sx)
-        _axis(index[p, 1], ny, iy, wy, dy, sy)
-        _axis(index[p, 2], nz, iz, wz, dz, sz)
-        v = 0.0
-        gx = 0.0
-        gy = 0.0
-        gz = 0.0
-        hxx = 0.0
-        hyy = 0.0
-        hzz = 0.0
-        hxy = 0.0
-        hxz = 0.0
-        hyz = 0.0
-        for a in range(4):
-            for b in range(4):
-                for c in range(4):
-                    q = coef[ix[a], iy[b], iz[c]]
-                    v += wx[a] * wy[b] * wz[c] * q
-                    if order >= 1:
-                        gx += dx[a] * wy[b] * wz[c] * q
-                        gy += wx[a] * dy[b] * wz[c] * q
-                        gz += wx[a] * wy[b] * dz[c] * q
-                    if order >= 2:
-                        hxx += sx[a] * wy[b] * wz[c] * q
-                        hyy += wx[a] * sy[b] * wz[c] * q
-                        hzz += wx[a] * wy[b] * sz[c] * q
-                        hxy += dx[a] * dy[b] * wz[c] * q
-                        hxz += dx[a] * wy[b] * dz[c] * q
-                        hyz += wx[a] * dy[b] * dz[c] * q
-        f[p] = v
-        if order >= 1:
-            g[p, 0] = gx
-            g[p, 1] = gy
-            g[p, 2] = gz
-        if order >= 2:
-            h[p, 0, 0] = hxx
-            h[p, 1, 1] = hyy
-            h[p, 2, 2] = hzz
-            h[p, 0, 1] = hxy
-            h[p, 1, 0] = hxy
-            h[p, 0, 2] = hxz
-            h[p, 2, 0] = hxz
-            h[p, 1, 2] = hyz
-            h[p, 2, 1] = hyz
+        _bspline3_at(coef, index[p, 0], index[p, 1], index[p, 2], order, p, f, g, h, np.empty((3, 4), np.int64),
+                     np.empty((9, 4)))
+
+
+@njit(parallel=True, fastmath=True)
+def _bspline3_segments(coef, coff, shapes, rstart, index, order, f, g, h):  # pragma: no cover - compiled
+    """:func:`_bspline3` of several coefficient volumes, each at its own segment of ``index``.
+
+    Volume ``k`` is ``coef[coff[k]:coff[k + 1]]`` (flat, C order) of shape ``shapes[k]``
+    (3,) and is evaluated at rows ``rstart[k]:rstart[k + 1]``.  Volumes in parallel.
+    """
+    for k in numba.prange(rstart.shape[0] - 1):
+        volume = coef[coff[k]:coff[k + 1]].reshape((shapes[k, 0], shapes[k, 1], shapes[k, 2]))
+        stencil = np.empty((3, 4), np.int64)
+        weight = np.empty((9, 4))
+        for p in range(rstart[k], rstart[k + 1]):
+            _bspline3_at(volume, index[p, 0], index[p, 1], index[p, 2], order, p, f, g, h, stencil, weight)
 
 
 @njit(parallel=True)

@@ -890,3 +890,74 @@ def put_rows(src, perm):
         for a in range(src.shape[1]):
             out[perm[i], a] = src[i, a]
     return out
+
+
+# --------------------------------------------------------------------------------------
+# Many scalar kernel sums, each at its own few queries, in one parallel loop
+
+
+@njit(parallel=True, fastmath=True)
+def _segmented_sums(queries, rstart, jstart, poff, soff, px, py, pz, coef, sstart, lo, cell, dims, sigma,
+                    max_runs, order, val, grad, hess):
+    """Add kernel sums of several point sets, each at its own segment of the queries.
+
+    Segment ``f`` (queries ``rstart[f]:rstart[f + 1]``) gets the sums of the jobs
+    ``jstart[f]:jstart[f + 1]`` in turn; job ``j`` is one CellGrid's points
+    ``poff[j]:poff[j + 1]`` of ``px``, ``py``, ``pz`` with coefficients ``coef`` (in
+    grid order), cell starts ``sstart[soff[j]:soff[j + 1]]`` (relative to ``poff[j]``),
+    corner ``lo[j]``, cell edge ``cell[j]``, cells ``dims[j]`` and width ``sigma[j]``.
+    Per query the sums are those of :func:`_searched_sum` and
+    :func:`_searched_sum_hessian` (one neighbour search per query and job).  Segments
+    in parallel; ``val`` (N, 1), ``grad`` (N, 1, D) and ``hess`` (N, 1, D, D) as there
+    (``order`` 0, 1 or 2 says which are filled).
+    """
+    dim = queries.shape[1]
+    dim3 = dim == 3
+    for f in numba.prange(rstart.shape[0] - 1):
+        ranges = np.empty((max_runs, 2), dtype=np.int64)
+        for j in range(jstart[f], jstart[f + 1]):
+            p0, p1 = poff[j], poff[j + 1]
+            gx = px[p0:p1]
+            gy = py[p0:p1]
+            gz = pz[p0:p1]
+            gc = coef[p0:p1]
+            start = sstart[soff[j]:soff[j + 1]]
+            width = sigma[j]
+            inv_s2 = 1.0 / (width * width)
+            for q in range(rstart[f], rstart[f + 1]):
+                x = queries[q]
+                nr = _candidate_ranges(x, lo[j], cell[j], dims[j], width, start, ranges)
+                x0 = x[0]
+                x1 = x[1]
+                x2 = x[2] if dim3 else 0.0
+                if order == 2:
+                    v = g0 = g1 = g2 = gs = a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+                    for rr in range(nr):
+                        r = _run_value_grad_hess(x0, x1, x2, gx, gy, gz, gc, ranges[rr, 0], ranges[rr, 1], inv_s2)
+                        v += r[0]
+                        g0 += r[1]
+                        g1 += r[2]
+                        g2 += r[3]
+                        gs += r[4]
+                        a00 += r[5]
+                        a01 += r[6]
+                        a02 += r[7]
+                        a11 += r[8]
+                        a12 += r[9]
+                        a22 += r[10]
+                    _add_value_grad_hess(q, dim3, val, grad, hess, v, g0, g1, g2, gs, a00, a01, a02, a11, a12, a22)
+                elif order == 1:
+                    v = g0 = g1 = g2 = 0.0
+                    for rr in range(nr):
+                        dv, d0, d1, d2 = _run_value_grad(x0, x1, x2, gx, gy, gz, gc, ranges[rr, 0], ranges[rr, 1],
+                                                         inv_s2)
+                        v += dv
+                        g0 += d0
+                        g1 += d1
+                        g2 += d2
+                    _add_value_grad(q, dim3, val, grad, v, g0, g1, g2)
+                else:
+                    v = 0.0
+                    for rr in range(nr):
+                        v += _run_value(x0, x1, x2, gx, gy, gz, gc, ranges[rr, 0], ranges[rr, 1], inv_s2)
+                    val[q, 0] += v

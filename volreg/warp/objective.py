@@ -33,6 +33,7 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from volreg.features.batch import FeatureBatch
 from volreg.kernels import SharedPatternCSR
 
 __all__ = ["FeaturePair", "LevelObjective", "simplex_vertices"]
@@ -133,6 +134,11 @@ class LevelObjective:
         at their offsets, their residual is a constant with zero gradient, and
         skipping those samples changes neither the minimiser nor the gradient
         (with many labels, each label's surface is near few samples).
+    batched : bool
+        Evaluate the ``f2`` (and, once, the ``f1``) of all feature pairs in one compiled
+        pass (:class:`~volreg.features.batch.FeatureBatch`) where they support it
+        (implicit surfaces and voxel distance maps, through one common linear map).
+        ``False``: one feature at a time; the two agree up to rounding.
     """
 
     kernel: sp.spmatrix
@@ -156,6 +162,7 @@ class LevelObjective:
     sample_targets: np.ndarray | None = None
     lambda_target: float = 0.0
     robust: float = 0.0
+    batched: bool = True
     _f1: list = field(default_factory=list, init=False, repr=False)
     last_terms: dict = field(default_factory=dict, init=False, repr=False)
 
@@ -179,10 +186,29 @@ class LevelObjective:
         if len(subsets) != len(self.features):
             raise ValueError(f"Expected one entry of `feature_samples` per feature, got {len(subsets)} for {len(self.features)}.")
         self._subsets = [None if s is None else np.asarray(s, dtype=np.intp) for s in subsets]
-        self._f1 = [
-            [pair.f1.evaluate((self.samples if idx is None else self.samples[idx]) + dx, order=order) for dx in offsets]
-            for pair, idx in zip(self.features, self._subsets)
-        ]
+        # With many labels each feature sits at a few dozen samples: evaluated one by one, the
+        # calls cost far more than the arithmetic.  The batch evaluates all at once.
+        self._batch = FeatureBatch.build([pair.f2 for pair in self.features]) if self.batched and self.features else None
+        fixed_batch = FeatureBatch.build([pair.f1 for pair in self.features]) if self._batch is not None else None
+        self._f1 = []
+        if self._batch is None or fixed_batch is None:
+            self._f1 = [
+                [pair.f1.evaluate((self.samples if idx is None else self.samples[idx]) + dx, order=order)
+                 for dx in offsets]
+                for pair, idx in zip(self.features, self._subsets)
+            ]
+        if self._batch is not None:
+            rows = [np.arange(n) if idx is None else idx for idx in self._subsets]
+            counts = np.array([len(r) for r in rows], dtype=np.int64)
+            self._rows = np.concatenate(rows).astype(np.intp)
+            self._starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+            self._row_weight = np.repeat(np.array([pair.weight for pair in self.features], float), counts)
+            if fixed_batch is not None:
+                self._f1_rows = [fixed_batch.evaluate(self.samples[self._rows] + dx, self._starts, order=order)
+                                 for dx in offsets]
+            else:
+                self._f1_rows = [tuple(np.concatenate([f1[k][j] for f1 in self._f1]) for j in range(order + 1))
+                                 for k in range(len(offsets))]
         if self.lambda_p > 0:
             if self.landmark_kernel is None or self.landmark_base is None or self.landmark_targets is None:
                 raise ValueError("Expected `landmark_kernel`, `landmark_base` and `landmark_targets` when `lambda_p` > 0.")
@@ -242,27 +268,20 @@ class LevelObjective:
         g_tau = np.zeros_like(tau)
         scale = self.lambda_loc / (n * len(self.offsets))
         order = 2 if self.alpha > 0 else 1
-        for pair, f1_list, idx in zip(self.features, self._f1, self._subsets):
-            tau_l = tau if idx is None else tau[idx]
-            g_l = np.zeros_like(tau_l)
-            for dx, f1 in zip(self.offsets, f1_list):
-                out = pair.f2.evaluate(tau_l + dx, order=order)
-                r = f1[0] - out[0]  # (N_l,)
-                if self.robust > 0:
-                    root = np.sqrt(1.0 + (r / self.robust) ** 2)
-                    dist_term += pair.weight * 2.0 * self.robust**2 * float(np.sum(root - 1.0))
-                    r = r / root  # d/dr of the loss, halved: r / sqrt(1 + (r / robust)^2)
+        if self._batch is not None:
+            dist_term, grad_term = self._batched_terms(tau, g_tau, order, 2 * scale)
+        else:
+            for pair, f1_list, idx in zip(self.features, self._f1, self._subsets):
+                dists, grads, g_l = _feature_terms(pair, f1_list, idx, tau=tau, offsets=self.offsets, order=order,
+                                                   alpha=self.alpha, robust=self.robust, factor=2 * scale)
+                for value in dists:
+                    dist_term += value
+                for value in grads:
+                    grad_term += value
+                if idx is None:
+                    g_tau += g_l
                 else:
-                    dist_term += pair.weight * float(r @ r)
-                g_l -= (2 * scale * pair.weight) * r[:, None] * out[1]
-                if self.alpha > 0:
-                    rg = f1[1] - out[1]  # (N_l, D)
-                    grad_term += pair.weight * self.alpha * float(np.einsum("nd,nd->", rg, rg))
-                    g_l -= (2 * scale * pair.weight * self.alpha) * np.einsum("nab,nb->na", out[2], rg)
-            if idx is None:
-                g_tau += g_l
-            else:
-                g_tau[idx] += g_l  # the indices of one feature are distinct
+                    g_tau[idx] += g_l  # the indices of one feature are distinct
         consistency = 0.0
         if self.lambda_target > 0:
             resid = tau - self.sample_targets
@@ -287,6 +306,84 @@ class LevelObjective:
         self.last_terms = dict(regulariser=reg, landmarks=land, distance=scale * dist_term,
                                gradient=scale * grad_term, folding=fold, consistency=consistency)
         return reg + land + loc + fold + consistency, grad.ravel()
+
+    def _batched_terms(self, tau: np.ndarray, g_tau: np.ndarray, order: int, factor: float) -> tuple[float, float]:
+        """The locational cost's distance and gradient sums (unscaled) over all feature pairs
+        at once (:class:`~volreg.features.batch.FeatureBatch`); adds their derivative with
+        respect to ``tau`` (scaled by ``factor / 2``) to ``g_tau`` (N, D) in place."""
+        w = self._row_weight
+        dist_term = 0.0
+        grad_term = 0.0
+        g_rows = np.zeros((len(self._rows), self.dim))
+        tau_rows = tau[self._rows]
+        for dx, f1 in zip(self.offsets, self._f1_rows):
+            out = self._batch.evaluate(tau_rows + dx, self._starts, order=order)
+            r = f1[0] - out[0]  # (R,)
+            if self.robust > 0:
+                root = np.sqrt(1.0 + (r / self.robust) ** 2)
+                dist_term += 2.0 * self.robust**2 * float(w @ (root - 1.0))
+                r = r / root  # d/dr of the loss, halved: r / sqrt(1 + (r / robust)^2)
+            else:
+                dist_term += float(w @ (r * r))
+            g_rows -= (factor * w * r)[:, None] * out[1]
+            if self.alpha > 0:
+                rg = f1[1] - out[1]  # (R, D)
+                grad_term += self.alpha * float(w @ np.einsum("nd,nd->n", rg, rg))
+                g_rows -= (factor * self.alpha * w)[:, None] * np.einsum("nab,nb->na", out[2], rg)
+        for d in range(self.dim):
+            g_tau[:, d] += np.bincount(self._rows, weights=g_rows[:, d], minlength=len(tau))
+        return dist_term, grad_term
+
+
+def _feature_terms(pair: FeaturePair, f1_list: list, idx: np.ndarray | None, *, tau: np.ndarray, offsets: np.ndarray,
+                   order: int, alpha: float, robust: float, factor: float) -> tuple[list[float], list[float], np.ndarray]:
+    """One feature pair's share of the locational cost (3)-(6) and its gradient.
+
+    Parameters
+    ----------
+    pair : FeaturePair
+    f1_list : list of tuples
+        Per offset, ``f1`` (and its gradient) at the pair's samples.
+    idx : (N_l,) int ndarray or None
+        The pair's samples (None: all).
+    tau : (N, D) float ndarray, mm
+        The warp at every sample.
+    offsets : (K, D) float ndarray, mm
+        Offsets ``dx`` of the neighbourhood cost (5).
+    order : {1, 2}
+        Derivatives of ``f2`` needed (2 with the gradient term).
+    alpha : float, mm^2
+        Weight of the gradient term (4).
+    robust : float, mm
+        Pseudo-Huber scale of the distance term, 0 for squares.
+    factor : float
+        ``2 lambda_loc / (N K)``: the scale of the gradient.
+
+    Returns
+    -------
+    dists, grads : lists of K floats
+        The pair's weighted distance and gradient sums per offset (unscaled).
+    g_l : (N_l, D) float ndarray
+        Derivative of the scaled cost with respect to ``tau`` at the pair's samples.
+    """
+    tau_l = tau if idx is None else tau[idx]
+    g_l = np.zeros_like(tau_l)
+    dists, grads = [], []
+    for dx, f1 in zip(offsets, f1_list):
+        out = pair.f2.evaluate(tau_l + dx, order=order)
+        r = f1[0] - out[0]  # (N_l,)
+        if robust > 0:
+            root = np.sqrt(1.0 + (r / robust) ** 2)
+            dists.append(pair.weight * 2.0 * robust**2 * float(np.sum(root - 1.0)))
+            r = r / root  # d/dr of the loss, halved: r / sqrt(1 + (r / robust)^2)
+        else:
+            dists.append(pair.weight * float(r @ r))
+        g_l -= (factor * pair.weight) * r[:, None] * out[1]
+        if alpha > 0:
+            rg = f1[1] - out[1]  # (N_l, D)
+            grads.append(pair.weight * alpha * float(np.einsum("nd,nd->", rg, rg)))
+            g_l -= (factor * pair.weight * alpha) * np.einsum("nab,nb->na", out[2], rg)
+    return dists, grads, g_l
 
 
 def _det_cofactor(jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
