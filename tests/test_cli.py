@@ -17,7 +17,6 @@ import SimpleITK as sitk
 
 import volreg
 from volreg import LabelVolume
-from volreg.cli import surface as surface_cli
 from volreg.cli import main
 from volreg.io import VolregIOError, write_labels
 
@@ -327,7 +326,7 @@ def test_any_existing_output_refuses_before_computing(labels3d, tmp_path, capsys
     out = tmp_path / "out"
     out.mkdir()
     (out / "surface.json").write_text("{}")  # the last output written
-    monkeypatch.setattr(surface_cli, "label_surfaces", _must_not_run)
+    monkeypatch.setattr("volreg.features.label_surfaces.label_surfaces", _must_not_run)
     assert main(["surface", str(labels3d), "-o", str(out)]) == 2
     _assert_one_error_line(capsys.readouterr().err, r"surface\.json` exists")
     assert _files(out) == {"surface.json"}
@@ -340,7 +339,7 @@ def _must_not_run(*args, **kwargs):
 
 def _failing_second_write(monkeypatch, error: Exception) -> None:
     calls = []
-    real = surface_cli.write_scalar
+    real = volreg.io.write_scalar
 
     def write_scalar(*args, **kwargs):
         calls.append(1)
@@ -348,7 +347,7 @@ def _failing_second_write(monkeypatch, error: Exception) -> None:
             raise error
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(surface_cli, "write_scalar", write_scalar)
+    monkeypatch.setattr("volreg.io.write_scalar", write_scalar)
 
 
 def test_failed_write_midway_removes_what_was_written(labels3d, tmp_path, capsys, monkeypatch):
