@@ -17,9 +17,9 @@ import SimpleITK as sitk
 
 import volreg
 from volreg import LabelVolume
-from volreg.cli import surface as surface_cli
 from volreg.cli import main
 from volreg.io import VolregIOError, write_labels
+from volreg.settings import SurfaceSettings
 
 from shapes import rotation
 
@@ -327,7 +327,7 @@ def test_any_existing_output_refuses_before_computing(labels3d, tmp_path, capsys
     out = tmp_path / "out"
     out.mkdir()
     (out / "surface.json").write_text("{}")  # the last output written
-    monkeypatch.setattr(surface_cli, "label_surfaces", _must_not_run)
+    monkeypatch.setattr("volreg.features.label_surfaces.label_surfaces", _must_not_run)
     assert main(["surface", str(labels3d), "-o", str(out)]) == 2
     _assert_one_error_line(capsys.readouterr().err, r"surface\.json` exists")
     assert _files(out) == {"surface.json"}
@@ -340,7 +340,7 @@ def _must_not_run(*args, **kwargs):
 
 def _failing_second_write(monkeypatch, error: Exception) -> None:
     calls = []
-    real = surface_cli.write_scalar
+    real = volreg.io.write_scalar
 
     def write_scalar(*args, **kwargs):
         calls.append(1)
@@ -348,7 +348,7 @@ def _failing_second_write(monkeypatch, error: Exception) -> None:
             raise error
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(surface_cli, "write_scalar", write_scalar)
+    monkeypatch.setattr("volreg.io.write_scalar", write_scalar)
 
 
 def test_failed_write_midway_removes_what_was_written(labels3d, tmp_path, capsys, monkeypatch):
@@ -389,6 +389,35 @@ def test_usage_errors(argv, pattern, capsys):
 def test_version(capsys):
     assert main(["--version"]) == 0
     assert capsys.readouterr().out.strip() == f"volreg {volreg.__version__}"
+
+
+#: Modules that take most of a second to import: the command line loads them only when a command runs.
+HEAVY_MODULES = ("numpy", "numba", "scipy", "SimpleITK", "nibabel", "pyvista", "matplotlib", "dask")
+
+
+@pytest.mark.parametrize(
+    "argv, status, stream, pattern",
+    [
+        (["--version"], 0, "stdout", rf"volreg {re.escape(volreg.__version__)}"),
+        (["register", "--help"], 0, "stdout", r"usage: volreg register .* FIXED MOVING .* --linear \{none,rigid,similarity,affine\} .*"),
+        (["surface", "--help"], 0, "stdout", rf"usage: volreg surface .* \(default {SurfaceSettings().smoothing}; 0: none\) .*"),
+        (["register", "fixed.nii.gz"], 2, "stderr",
+         r"usage: volreg register .* volreg register: error: the following arguments are required: MOVING, -o/--output"),
+    ],
+)
+def test_parser_imports_no_heavy_module(argv, status, stream, pattern):
+    """--version, --help and usage errors answer without importing numpy, numba, SimpleITK, pyvista, ..."""
+    proc = subprocess.run([sys.executable, "-X", "importtime", "-m", "volreg", *argv],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == status, proc.stderr
+    timings = [line for line in proc.stderr.splitlines() if line.startswith("import time:")]
+    imported = {line.rsplit("|", 1)[1].strip() for line in timings}
+    assert "volreg.cli" in imported  # -X importtime did report the imports
+    heavy = sorted(m for m in imported if m.split(".")[0] in HEAVY_MODULES)
+    assert not heavy, heavy
+    output = proc.stdout if stream == "stdout" else "\n".join(
+        line for line in proc.stderr.splitlines() if not line.startswith("import time:"))
+    assert re.fullmatch(pattern, " ".join(output.split())), output
 
 
 def test_python_m_volreg(disc2d, tmp_path):

@@ -14,8 +14,6 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
-import numpy as np
-
 from volreg.errors import ProtocolError
 
 __all__ = ["LINEAR_KINDS", "LinearSettings", "OutputSettings", "Protocol", "ReviewSettings", "SurfaceSettings", "WarpSettings", "replace_settings", "settings_from_mapping"]
@@ -127,19 +125,19 @@ class WarpSettings:
         for name in ("lambda_loc", "alpha", "lambda_p", "neighbourhood", "lambda_fold", "fold_margin", "min_det",
                      "lambda_consistency", "robust"):
             value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 0):
+            if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"Expected `{name}` >= 0, got {value}.")
         for name in ("pad", "min_width", "band", "sample_spacing"):
             value = getattr(self, name)
-            if value is not None and not (np.isfinite(value) and value > 0):
+            if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"Expected a positive `{name}` (mm), got {value}.")
-        if not (np.isfinite(self.sample_scale) and 0 < self.sample_scale <= 16):
+        if not (math.isfinite(self.sample_scale) and 0 < self.sample_scale <= 16):
             raise ValueError(f"Expected `sample_scale` in (0, 16], got {self.sample_scale}.")
-        if not (np.isfinite(self.max_folded_fraction) and 0 <= self.max_folded_fraction <= 1):
+        if not (math.isfinite(self.max_folded_fraction) and 0 <= self.max_folded_fraction <= 1):
             raise ValueError(f"Expected `max_folded_fraction` in [0, 1], got {self.max_folded_fraction}.")
         if not 0 < self.fraction <= 1:
             raise ValueError(f"Expected `fraction` in (0, 1], got {self.fraction}.")
-        if not (np.isfinite(self.tolerance) and 0 < self.tolerance < 1):
+        if not (math.isfinite(self.tolerance) and 0 < self.tolerance < 1):
             raise ValueError(f"Expected `tolerance` in (0, 1), got {self.tolerance}.")
         if self.max_iter < 0:
             raise ValueError(f"Expected `max_iter` >= 0, got {self.max_iter}.")

@@ -27,8 +27,6 @@ from volreg import __version__
 from volreg.cli import apply, batch, consistency, demo, morph, protocols, register, register_surfaces, surface, transfer, tune
 from volreg.cli._common import EXPECTED_ERRORS, PROG, UsageError, _warn
 from volreg.errors import VolregWarning
-from volreg.io._atomic import kept_results
-from volreg.progress import clear_interrupt, note_interrupt
 
 __all__ = ["main", "build_parser", "UsageError"]
 
@@ -64,6 +62,8 @@ def _raise_interrupt(signum, frame) -> None:
 
 def _interrupted(command: str, name: str) -> int:
     """Report an interrupt in one line; return the exit status (130 for SIGINT, 143 for SIGTERM)."""
+    from volreg.io._atomic import kept_results
+
     kept = "".join(f" (the previous result in `{p}` was kept)" for p in kept_results()[:1])
     print(f"{PROG} {command}: interrupted by {name}; the outputs of this run were removed{kept}.", file=sys.stderr)
     return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
@@ -83,6 +83,7 @@ def _unraisable_hook(previous):
     ctypes callback; Python reports it there as "Exception ignored" and the run went on to
     finish (exit 0).  Recorded instead, it is raised again at the next progress report.
     """
+    from volreg.progress import note_interrupt
 
     def hook(unraisable) -> None:
         if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
@@ -121,6 +122,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(None if argv is None else list(argv))
     except SystemExit as exc:  # argparse exits for --help, --version and usage errors
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    # Imported once a command runs, so that --help, --version and usage errors stay quick.
+    from volreg.io._atomic import kept_results
+    from volreg.progress import clear_interrupt
+
     # SIGTERM (a scheduler or `kill` stopping the job) unwinds like Ctrl-C, so every command's
     # clean-up runs: outputs written so far are removed and temporary files deleted.
     previous = _install_sigterm()

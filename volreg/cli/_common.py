@@ -9,13 +9,13 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from volreg.errors import UsageError, VolregError
-from volreg.grid import LabelVolume
-from volreg.io.landmarks import read_landmarks
-from volreg.register import ITK_H5_OUTPUTS, REGISTRATION_OUTPUTS, LabelRegistration, world_box
+
+if TYPE_CHECKING:  # the command modules import numpy and the pipeline only when a command runs
+    from volreg.grid import LabelVolume
+    from volreg.register import LabelRegistration
 
 PROG = "volreg"
 
@@ -126,6 +126,8 @@ def _fit_logger(command: str) -> Callable[[LabelRegistration], None]:
 
 def _summary_line(command: str, report: dict, outdir: Path) -> str:
     """The one line ``volreg register`` and ``volreg demo`` print on stdout."""
+    from volreg.register import ITK_H5_OUTPUTS, REGISTRATION_OUTPUTS
+
     d = report["mean_dice"]
     line = (f"{PROG} {command}: mean Dice {d['before']:.3f} -> {d['after']:.3f} over {len(report['labels'])} labels, "
             f"folded {100 * report['jacobian']['folded_fraction']:.3f} %")
@@ -142,6 +144,11 @@ def _summary_line(command: str, report: dict, outdir: Path) -> str:
 
 def _load_landmarks(args, fixed: LabelVolume | None = None, moving: LabelVolume | None = None):
     """The ``--landmarks`` pair, checked for equal counts and (given the volumes) to lie in their images."""
+    import numpy as np
+
+    from volreg.io.landmarks import read_landmarks
+    from volreg.register import world_box
+
     if args.landmarks is None:
         return None
     a = read_landmarks(args.landmarks[0], keep_unplaced=True)

@@ -6,18 +6,18 @@ from __future__ import annotations
 import re
 import warnings
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from volreg.cli._common import _warn
 from volreg.errors import UsageError, VolregWarning
-from volreg.evaluation.review import Finding
-from volreg.io import write_mesh
-from volreg.io.gifti import GiftiArrayMeta, is_gifti, write_gifti
-from volreg.io.meshes import SurfaceData, add_vertex_data, read_surface
-from volreg.morph import surface_normals
-from volreg.register import register_surfaces
-from volreg.warp.model import KernelWarp
+
+if TYPE_CHECKING:  # imported where used, so that the parsers load without numpy and the pipeline
+    import numpy as np
+
+    from volreg.evaluation.review import Finding
+    from volreg.io.gifti import GiftiArrayMeta
+    from volreg.io.meshes import SurfaceData
+    from volreg.warp.model import KernelWarp
 
 #: The frame of each kind of surface output, as the reports state it.
 FRAMES = {".vtk": "LPS mm", ".gii": "RAS mm", ".csv": "LPS mm"}
@@ -34,6 +34,8 @@ def _add_data_options(parser, *roles: str) -> None:
 def _read(path: Path, role: str, data=()) -> SurfaceData:
     """The surface (mesh or point cloud) at ``path`` with the arrays of the GIFTI ``data`` files, with at
     least 10 vertices; ``role`` names it in errors."""
+    from volreg.io.meshes import add_vertex_data, read_surface
+
     surface = read_surface(path)
     if len(surface.vertices) < 10:
         raise UsageError(f"{role} `{path}` has {len(surface.vertices)} vertices; expected at least 10 to fit a surface.")
@@ -43,6 +45,8 @@ def _read(path: Path, role: str, data=()) -> SurfaceData:
 
 def _wants_gifti(args, source_path: Path) -> bool:
     """Whether to write GIFTI outputs: SOURCE is GIFTI, or ``--gifti`` was given."""
+    from volreg.io.gifti import is_gifti
+
     return bool(getattr(args, "gifti", False)) or is_gifti(source_path)
 
 
@@ -60,6 +64,10 @@ def _fitting_points(data: SurfaceData, name: object) -> tuple[np.ndarray, np.nda
     like every vertex but not fitted (with a warning).  Refuses vertices that span no volume
     a surface could bound: all at one point, on a line, or a point cloud in a plane.
     """
+    import numpy as np
+
+    from volreg.morph import surface_normals
+
     normals = surface_normals(data.vertices, data.triangles, data.normals)
     ok = np.linalg.norm(normals, axis=1) > 0.5
     if len(data.triangles) and not ok.all():
@@ -88,6 +96,10 @@ def _register(source: SurfaceData, target: SurfaceData, protocol, landmarks, pro
     sizes differ by more than :data:`MAX_SIZE_RATIO` are refused: one is most likely in
     other units (metres, centimetres) and the fit would end far off.
     """
+    import numpy as np
+
+    from volreg.register import register_surfaces
+
     src = _fitting_points(source, names[0])
     tgt = _fitting_points(target, names[1])
     size = [float(np.linalg.norm(np.ptp(p, axis=0))) for p in (src[0], tgt[0])]
@@ -103,22 +115,30 @@ def _register(source: SurfaceData, target: SurfaceData, protocol, landmarks, pro
 
 def _write_surface(path: Path, data: SurfaceData, vertices: np.ndarray, arrays: dict, force: bool) -> None:
     """``data``'s faces with moved ``vertices`` (LPS mm) and per-vertex ``arrays``: VTK/VTP in LPS."""
+    from volreg.io import write_mesh
+
     write_mesh(vertices, data.triangles, path, point_data=arrays or None, force=force, allow_points=True)
 
 
 def _write_gifti_surface(path: Path, data: SurfaceData, vertices: np.ndarray, force: bool) -> None:
     """``data``'s faces with moved ``vertices`` (LPS mm) as a GIFTI surface in RAS, with ``data``'s metadata."""
+    from volreg.io.gifti import write_gifti
+
     write_gifti(vertices, data.triangles, path, meta=data.gifti, force=force)
 
 
 def _is_label(surface: SurfaceData, name: str) -> bool:
     """Whether ``surface``'s array ``name`` holds labels: integers, or a GIFTI label array."""
+    import numpy as np
+
     meta = surface.array_meta.get(name)
     return np.asarray(surface.arrays[name]).dtype.kind in "iub" or (meta is not None and meta.is_label)
 
 
 def _data_meta(surface: SurfaceData, name: str) -> GiftiArrayMeta:
     """The GIFTI metadata of ``surface``'s array ``name`` (a bare one for arrays not read from GIFTI)."""
+    from volreg.io.gifti import GiftiArrayMeta
+
     meta = surface.array_meta.get(name)
     if meta is not None:
         return meta
@@ -139,6 +159,8 @@ def _warn_findings(command: str, findings: list[Finding]) -> None:
 
 def _load_model(result: Path) -> KernelWarp:
     """The 3-D warp saved in a ``volreg register-surfaces`` OUTDIR."""
+    from volreg.warp.model import KernelWarp
+
     model = result / "model.npz"
     if not model.is_file():
         raise UsageError(f"`{result}` has no model.npz; expected an OUTDIR written by `volreg register-surfaces`.")

@@ -6,20 +6,8 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
-
 from volreg.cli._common import PROG, _warn
 from volreg.errors import UsageError
-from volreg.grid import Grid
-from volreg.io import check_writable, read_grid, read_image, read_labels, write_labels, write_scalar
-from volreg.io.fields import read_displacement, read_itk_linear
-from volreg.io.images import READ_SUFFIXES
-from volreg.io.pointsets import MESH_FORMATS, POINT_SUFFIXES, check_same_format, point_set_kind, read_point_set, write_point_set
-from volreg.progress import ProgressBars
-from volreg.warp.field import displacement_on_grid, linear_displacement_on_grid
-from volreg.warp.model import KernelWarp
-from volreg.warp.points import DisplacementField, transform_normals, transform_points
-from volreg.warp.resample import resample_image, resample_labels
 
 __all__ = ["add_parser", "run"]
 
@@ -63,6 +51,9 @@ def add_parser(commands) -> None:
 
 def _kind(path: Path) -> str:
     """``"points"``, ``"mesh"`` or ``"image"`` by INPUT's suffix; a one-line error for any other."""
+    from volreg.io.images import READ_SUFFIXES
+    from volreg.io.pointsets import MESH_FORMATS, POINT_SUFFIXES, point_set_kind
+
     kind = point_set_kind(path)
     if kind in ("csv", "fcsv", "mrk.json"):
         return "points"
@@ -76,6 +67,8 @@ def _kind(path: Path) -> str:
 
 def _check_overlap(field, reference, warp_path, reference_path) -> None:
     """Refuse a displacement field whose grid misses the reference grid: it would act as the identity there."""
+    import numpy as np
+
     from volreg.register import world_box
 
     lo1, hi1 = world_box(field)
@@ -114,6 +107,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _read_warp(path: Path, space: str):
     """The map to apply and whether to invert it: (KernelWarp | LinearMap | DisplacementField, inverse)."""
+    from volreg.io.fields import read_displacement, read_itk_linear
+    from volreg.warp.model import KernelWarp
+    from volreg.warp.points import DisplacementField
+
     name = path.name.lower()
     if name.endswith(".npz"):
         return KernelWarp.load(path), space == "moving"
@@ -136,6 +133,12 @@ def _read_warp(path: Path, space: str):
 
 def _run_points(args: argparse.Namespace, kind: str) -> int:
     """Landmarks or a mesh, carried point by point."""
+    import numpy as np
+
+    from volreg.io import check_writable
+    from volreg.io.pointsets import check_same_format, read_point_set, write_point_set
+    from volreg.warp.points import transform_normals, transform_points
+
     start = time.perf_counter()
     check_same_format(args.image, args.output)
     check_writable([args.output], force=args.force)
@@ -174,6 +177,16 @@ def _run_points(args: argparse.Namespace, kind: str) -> int:
 
 def _run_image(args: argparse.Namespace) -> int:
     """An image in moving space, resampled onto the grid of --reference."""
+    import numpy as np
+
+    from volreg.grid import Grid
+    from volreg.io import read_grid, read_image, read_labels, write_labels, write_scalar
+    from volreg.io.fields import read_displacement, read_itk_linear
+    from volreg.progress import ProgressBars
+    from volreg.warp.field import displacement_on_grid, linear_displacement_on_grid
+    from volreg.warp.model import KernelWarp
+    from volreg.warp.resample import resample_image, resample_labels
+
     interpolation = args.interpolation or "label"
     start = time.perf_counter()
     reference = read_grid(args.reference)

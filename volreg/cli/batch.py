@@ -24,8 +24,6 @@ from pathlib import Path
 
 from volreg.cli._common import EXPECTED_ERRORS, PROG
 from volreg.errors import UsageError
-from volreg.io import write_text
-from volreg.io._atomic import make_directory
 
 __all__ = ["add_parser", "read_manifest", "plan_pairs", "pair_folders", "settings_fingerprint", "run_pair", "run"]
 
@@ -226,6 +224,8 @@ def _review_cell(reviews: list[dict]) -> str:
 
 
 def _write_table(rows: list[dict], path: Path) -> None:
+    from volreg.io import write_text
+
     table = io.StringIO()
     writer = csv.DictWriter(table, fieldnames=COLUMNS, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
@@ -275,8 +275,9 @@ def run(args: argparse.Namespace) -> int:
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError:
         raise UsageError("volreg batch needs Dask: pip install 'dask[distributed]' (or volreg[batch]).") from None
-    from volreg.progress import ProgressBars
+    from volreg.io._atomic import make_directory
     from volreg.io.protocol import load_protocol
+    from volreg.progress import ProgressBars
 
     start = time.perf_counter()
     load_protocol(args.protocol)  # validate before starting a cluster

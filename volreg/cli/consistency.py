@@ -9,19 +9,14 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from volreg.cli._common import PROG, _fit_logger, _label_list, _sha256, _strict_status, _warn
 from volreg.errors import UsageError
-from volreg.evaluation.consistency import write_consistency_test
-from volreg.grid import LabelVolume
-from volreg.io import read_labels
-from volreg.io.fields import read_displacement
-from volreg.io.protocol import load_protocol
-from volreg.progress import ProgressBars
-from volreg.register import check_pair
-from volreg.warp.model import KernelWarp
+
+if TYPE_CHECKING:  # the pipeline is imported when the command runs
+    from volreg.grid import LabelVolume
+    from volreg.warp.model import KernelWarp
 
 __all__ = ["add_parser", "run"]
 
@@ -56,6 +51,11 @@ def add_parser(commands) -> None:
 
 def _load_result(result: Path, grid: LabelVolume, option: str, grid_path: Path, role: str) -> KernelWarp:
     """The warp of a saved ``volreg register`` OUTDIR whose fixed grid must be ``grid``."""
+    import numpy as np
+
+    from volreg.io.fields import read_displacement
+    from volreg.warp.model import KernelWarp
+
     model = result / "model.npz"
     field = result / "warp.nii.gz"
     for p in (model, field):
@@ -77,6 +77,12 @@ def _load_result(result: Path, grid: LabelVolume, option: str, grid_path: Path, 
 
 def run(args: argparse.Namespace) -> int:
     """``volreg consistency A B -o OUTDIR [--forward RESULT_AB --backward RESULT_BA]``."""
+    from volreg.evaluation.consistency import write_consistency_test
+    from volreg.io import read_labels
+    from volreg.io.protocol import load_protocol
+    from volreg.progress import ProgressBars
+    from volreg.register import check_pair
+
     start = time.perf_counter()
     if (args.forward is None) != (args.backward is None):
         given, missing = ("--forward", "--backward") if args.backward is None else ("--backward", "--forward")

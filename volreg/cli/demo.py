@@ -6,11 +6,6 @@ import argparse
 from pathlib import Path
 
 from volreg.cli._common import _fit_logger, _sha256, _summary_line, _warn_review
-from volreg.io import read_labels, write_labels
-from volreg.io._atomic import output_folder
-from volreg.io.protocol import load_protocol
-from volreg.progress import ProgressBars
-from volreg.register import write_registration
 
 __all__ = ["add_parser", "run"]
 
@@ -37,6 +32,11 @@ def add_parser(commands) -> None:
 def run(args: argparse.Namespace) -> int:
     """``volreg demo -o OUTDIR``: the frog pair, its inputs and every output of ``volreg register``."""
     from volreg.demo import frog_pair, frog_path
+    from volreg.io import read_labels, write_labels
+    from volreg.io._atomic import output_folder
+    from volreg.io.protocol import load_protocol
+    from volreg.progress import ProgressBars
+    from volreg.register import write_registration
 
     protocol = load_protocol(args.protocol)
     path = Path(frog_path())

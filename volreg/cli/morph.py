@@ -5,18 +5,15 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from volreg.cli._common import PROG
 from volreg.cli._surfaces import (_add_data_options, _data_file_name, _data_meta, _is_label, _load_model, _read,
                                   _register, _wants_gifti, _write_gifti_surface, _write_surface)
 from volreg.errors import UsageError
-from volreg.io._atomic import output_folder
-from volreg.io.gifti import write_gifti_data
-from volreg.io.protocol import load_protocol
-from volreg.morph import morph_vertices, transfer_values
-from volreg.progress import ProgressBars
+
+if TYPE_CHECKING:  # numpy and the pipeline are imported when the command runs
+    import numpy as np
 
 __all__ = ["add_parser", "run"]
 
@@ -49,6 +46,7 @@ def _render(frames: list[np.ndarray], triangles: np.ndarray, colours: list[np.nd
             record) -> list[np.ndarray]:
     """One PNG per frame (matplotlib, off-screen) with fixed axes, each passed to ``record`` once written,
     and the frames for the GIF."""
+    import numpy as np
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -84,6 +82,14 @@ def _render(frames: list[np.ndarray], triangles: np.ndarray, colours: list[np.nd
 
 def run(args: argparse.Namespace) -> int:
     """``volreg morph SOURCE TARGET -o OUTDIR``."""
+    import numpy as np
+
+    from volreg.io._atomic import output_folder
+    from volreg.io.gifti import write_gifti_data
+    from volreg.io.protocol import load_protocol
+    from volreg.morph import morph_vertices, transfer_values
+    from volreg.progress import ProgressBars
+
     start = time.perf_counter()
     if args.frames < 2:
         raise UsageError(f"--frames {args.frames}: expected at least 2 frames (the source and the warped source).")

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from volreg.io.protocol import PROTOCOL_DIR, load_protocol
-
 __all__ = ["add_parser", "run"]
 
 
@@ -18,6 +16,8 @@ def add_parser(commands) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``volreg protocols``: one line per preset, its name and description."""
+    from volreg.io.protocol import PROTOCOL_DIR, load_protocol
+
     for path in sorted(PROTOCOL_DIR.glob("*.toml")):
         p = load_protocol(path)
         print(f"{p.name:<10} {p.description}")

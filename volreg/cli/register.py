@@ -15,11 +15,7 @@ from volreg.cli._common import (
     _summary_line,
     _warn_review,
 )
-from volreg.io import read_labels
-from volreg.io.protocol import load_protocol
-from volreg.progress import ProgressBars
-from volreg.register import check_pair, write_registration
-from volreg.settings import LINEAR_KINDS, LinearSettings
+from volreg.settings import LINEAR_KINDS
 
 __all__ = ["add_parser", "run"]
 
@@ -59,6 +55,12 @@ def add_parser(commands) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``volreg register FIXED MOVING -o OUTDIR``."""
+    from volreg.io import read_labels
+    from volreg.io.protocol import load_protocol
+    from volreg.progress import ProgressBars
+    from volreg.register import check_pair, write_registration
+    from volreg.settings import LinearSettings
+
     protocol = load_protocol(args.protocol)
     if args.linear is not None:
         protocol = dataclasses.replace(protocol, linear=LinearSettings(kind=args.linear))

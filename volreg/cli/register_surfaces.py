@@ -9,19 +9,10 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
-
 from volreg import __version__
 from volreg.cli._common import PROG, _load_landmarks, _sha256
 from volreg.cli._surfaces import (FRAMES, _add_data_options, _read, _register, _wants_gifti, _warn_findings,
                                   _write_gifti_surface, _write_surface)
-from volreg.evaluation.surface_review import SurfaceReviewLimits, diameter, review_surface_distance
-from volreg.io import write_json, write_text
-from volreg.io._atomic import output_folder
-from volreg.io.protocol import load_protocol
-from volreg.io.summary import json_safe, package_versions
-from volreg.morph import closest_points
-from volreg.progress import ProgressBars
 
 __all__ = ["add_parser", "run"]
 
@@ -56,6 +47,16 @@ def add_parser(commands) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``volreg register-surfaces SOURCE TARGET -o OUTDIR``."""
+    import numpy as np
+
+    from volreg.evaluation.surface_review import SurfaceReviewLimits, diameter, review_surface_distance
+    from volreg.io import write_json, write_text
+    from volreg.io._atomic import output_folder
+    from volreg.io.protocol import load_protocol
+    from volreg.io.summary import json_safe, package_versions
+    from volreg.morph import closest_points
+    from volreg.progress import ProgressBars
+
     start = time.perf_counter()
     protocol = load_protocol(args.protocol)
     source = _read(args.source, "SOURCE", args.source_data)

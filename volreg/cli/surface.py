@@ -7,23 +7,20 @@ import os
 import time
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
+
 from volreg import __version__
-from volreg.io import read_labels, write_json, write_mesh, write_scalar
-from volreg.io._atomic import output_folder
-from volreg.io.gifti import GiftiSurfaceMeta, write_gifti
-from volreg.progress import ProgressBars
-from volreg.features.label_surfaces import implicit_on_grid, implicit_surfaces, label_surfaces
-from volreg.grid import LabelVolume
 from volreg.cli._common import PROG, _float_at_least, _label_list, _listing, _warn
 from volreg.errors import UsageError
 from volreg.settings import SurfaceSettings
+
+if TYPE_CHECKING:  # the pipeline is imported when the command runs
+    from volreg.grid import LabelVolume
 
 __all__ = ["add_parser", "run"]
 
 
 _DEFAULTS = SurfaceSettings()
-#: GIFTI POINTSETs of label meshes: in the world of the label volume, which NIfTI calls scanner RAS (code 1).
-_SCANNER_RAS = GiftiSurfaceMeta(dataspace=1, xformspace=1)
 
 
 def add_parser(commands) -> None:
@@ -83,6 +80,14 @@ def _select_labels(volume: LabelVolume, image: Path, requested: list[int] | None
 
 def run(args: argparse.Namespace) -> int:
     """``volreg surface``: meshes, implicit surfaces and their signed distances for each label."""
+    from volreg.features.label_surfaces import implicit_on_grid, implicit_surfaces, label_surfaces
+    from volreg.io import read_labels, write_json, write_mesh, write_scalar
+    from volreg.io._atomic import output_folder
+    from volreg.io.gifti import GiftiSurfaceMeta, write_gifti
+    from volreg.progress import ProgressBars
+
+    # GIFTI POINTSETs of label meshes: in the world of the label volume, which NIfTI calls scanner RAS (code 1).
+    scanner_ras = GiftiSurfaceMeta(dataspace=1, xformspace=1)
     start = time.perf_counter()
     volume = read_labels(args.image)
     labels = _select_labels(volume, args.image, args.labels, args.skip_small)
@@ -147,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
                 write_mesh(surf.vertices, surf.cells, meshes[label], normals=surf.normals, force=args.force)
                 folder.record(meshes[label])
                 if giftis:
-                    write_gifti(surf.vertices, surf.cells, giftis[label], meta=_SCANNER_RAS, force=args.force)
+                    write_gifti(surf.vertices, surf.cells, giftis[label], meta=scanner_ras, force=args.force)
                     folder.record(giftis[label])
                 sdf = implicit_on_grid(implicit[label], volume)
                 write_scalar(sdf, volume, sdfs[label], force=args.force)

@@ -6,15 +6,9 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
-
 from volreg.cli._common import PROG
 from volreg.cli._surfaces import _add_data_options, _data_meta, _is_label, _load_model, _read, _warn_findings
 from volreg.errors import UsageError
-from volreg.evaluation.surface_review import diameter, review_surface_distance, review_surface_extents
-from volreg.io import check_writable, write_mesh
-from volreg.io.gifti import is_gifti, write_gifti_data
-from volreg.morph import closest_points, transfer_values
 
 __all__ = ["add_parser", "run"]
 
@@ -58,6 +52,13 @@ def _check_output(out: Path) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``volreg transfer SOURCE TARGET --result OUTDIR [--array NAME] -o OUT``."""
+    import numpy as np
+
+    from volreg.evaluation.surface_review import diameter, review_surface_distance, review_surface_extents
+    from volreg.io import check_writable, write_mesh
+    from volreg.io.gifti import is_gifti, write_gifti_data
+    from volreg.morph import closest_points, transfer_values
+
     start = time.perf_counter()
     source = _read(args.source, "SOURCE", args.source_data)
     target = _read(args.target, "TARGET", args.target_data)

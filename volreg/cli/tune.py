@@ -12,12 +12,6 @@ from pathlib import Path
 
 from volreg.cli._common import PROG, _label_list, _load_landmarks
 from volreg.errors import ProtocolError, UsageError
-from volreg.evaluation.tune import grid_settings, tune_settings
-from volreg.io import read_labels, write_text
-from volreg.io._atomic import output_folder
-from volreg.io.protocol import load_protocol, protocol_to_toml
-from volreg.register import check_pair
-from volreg.settings import replace_settings
 
 __all__ = ["add_parser", "parse_grid", "run"]
 
@@ -94,6 +88,13 @@ def _print_score(i: int, n: int, values: dict, row: dict) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``volreg tune A B -o OUTDIR --grid KEY=V1,V2,...``."""
+    from volreg.evaluation.tune import grid_settings, tune_settings
+    from volreg.io import read_labels, write_text
+    from volreg.io._atomic import output_folder
+    from volreg.io.protocol import load_protocol, protocol_to_toml
+    from volreg.register import check_pair
+    from volreg.settings import replace_settings
+
     start = time.perf_counter()
     protocol = load_protocol(args.protocol)
     grid = parse_grid(args.grid)
