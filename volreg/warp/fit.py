@@ -540,11 +540,13 @@ class _Whitened:
 
     def back(self, z: np.ndarray) -> np.ndarray:
         """``C = L^-T z``."""
-        return scipy.linalg.solve_triangular(self.chol, z, lower=True, trans="T")
+        # no finiteness check: a diverging objective's NaNs reach the caller's own check
+        return scipy.linalg.solve_triangular(self.chol, z, lower=True, trans="T", check_finite=False)
 
     def __call__(self, flat: np.ndarray) -> tuple[float, np.ndarray]:
         value, grad = self.objective(self.back(flat.reshape(self.shape)).ravel())
-        return value, scipy.linalg.solve_triangular(self.chol, grad.reshape(self.shape), lower=True).ravel()
+        return value, scipy.linalg.solve_triangular(self.chol, grad.reshape(self.shape), lower=True,
+                                                    check_finite=False).ravel()
 
 
 def _minimise(objective: LevelObjective, start: np.ndarray, start_value: float, fold: _FoldSet, grid: CellGrid,
