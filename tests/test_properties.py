@@ -16,9 +16,10 @@ FAST = settings(max_examples=25, deadline=None)
 
 @st.composite
 def label_volumes(draw):
-    """Small 3-D label volumes with a few arbitrary label values (0 = background) on a random grid."""
+    """Small 3-D label volumes with a few to a dozen arbitrary label values (0 = background) on a
+    random grid (label resampling takes another path beyond 8 labels)."""
     shape = tuple(draw(st.integers(3, 9)) for _ in range(3))
-    values = draw(st.lists(st.integers(1, 60000), min_size=1, max_size=4, unique=True))
+    values = draw(st.lists(st.integers(1, 60000), min_size=1, max_size=12, unique=True))
     dtype = np.uint16
     seed = draw(st.integers(0, 2**31 - 1))
     rng = np.random.default_rng(seed)
@@ -104,3 +105,18 @@ def test_label_boxes_are_the_tight_boxes_of_every_label(dtype, seed):
     for v, box in boxes.items():
         where = np.argwhere(arr == v)
         assert box == tuple(slice(int(a), int(b) + 1) for a, b in zip(where.min(0), where.max(0)))
+
+
+def test_many_labels_shifted_by_one_voxel_move_by_one_voxel():
+    """Forty block labels sampled one voxel further along each axis in turn: the label map moves by
+    exactly one voxel (the many-label path of label resampling)."""
+    blocks = np.arange(40, dtype=np.int16).reshape(2, 4, 5) + 1
+    array = np.kron(blocks, np.ones((6, 5, 4), dtype=np.int16))  # 12 x 20 x 20 voxels
+    volume = LabelVolume(array, (0, 0, 0), (1.0, 0.8, 1.5), np.eye(3))
+    for axis in range(3):
+        shift = np.zeros(3)
+        shift[axis] = volume.spacing[axis]
+        out = resample_labels(volume, volume.grid_points() + shift)
+        inner = [slice(None)] * 3
+        inner[axis] = slice(0, -1)
+        assert np.array_equal(out[tuple(inner)], np.roll(array, -1, axis=axis)[tuple(inner)])

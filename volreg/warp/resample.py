@@ -119,19 +119,31 @@ def resample_labels(
     best = np.zeros(len(index), dtype=np.float32)  # a point is a label's only where its distance < 0
     boxes = image.label_boxes()
     labels = image.labels()
+    # With many labels, the valid points sorted by their first index: each label's candidates
+    # are then one slab of them, and small labels do not each scan every point (500 labels at
+    # 1.5 mm: 14 s instead of 29 s). With few labels the sort would cost more than it saves.
+    slab_order = np.flatnonzero(valid)
+    if len(labels) > 8:
+        slab_order = slab_order[np.argsort(index[slab_order, 0], kind="stable")]
+        slab_key = index[slab_order, 0]
+    else:
+        slab_key = None
     for n, value in enumerate(labels):
         box = boxes[int(value)]
         lo = np.array([max(s.start - margin, 0) for s in box])
         hi = np.array([min(s.stop + margin, size) for s, size in zip(box, image.shape)])
         # Points whose linear stencil touches the crop.
-        near = valid & np.all((index > lo - 1) & (index < hi), axis=1)
-        if near.any():
+        near = slab_order
+        if slab_key is not None:
+            near = near[np.searchsorted(slab_key, lo[0] - 1, side="right"):np.searchsorted(slab_key, hi[0], side="left")]
+        near = near[np.all((index[near] > lo - 1) & (index[near] < hi), axis=1)]
+        if near.size:
             crop = array[tuple(slice(a, b) for a, b in zip(lo, hi))]
             sdf = signed_distance_map(crop == value, image.spacing)
             at = (index[near] - lo).T
             d = ndimage.map_coordinates(sdf, at, order=1, mode="nearest")
             win = d < best[near]
-            sel = np.flatnonzero(near)[win]
+            sel = near[win]
             best[sel] = d[win]
             out[sel] = value
         if progress is not None:
