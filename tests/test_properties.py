@@ -120,3 +120,28 @@ def test_many_labels_shifted_by_one_voxel_move_by_one_voxel():
         inner = [slice(None)] * 3
         inner[axis] = slice(0, -1)
         assert np.array_equal(out[tuple(inner)], np.roll(array, -1, axis=axis)[tuple(inner)])
+
+
+def test_label_scores_within_label_boxes_equal_the_whole_arrays():
+    """Per-label Dice and surface distances computed within each label's boxes equal those of
+    the whole arrays: for labels in both, in one only, in neither, and the background."""
+    from volreg.evaluation.metrics import dice, label_scores, surface_distances
+
+    rng = np.random.default_rng(5)
+    reference = np.zeros((30, 24, 20), dtype=np.int32)
+    other = np.zeros_like(reference)
+    for value in range(1, 9):
+        lo = rng.integers(0, 16, 3)
+        reference[lo[0]:lo[0] + 10, lo[1]:lo[1] + 6, lo[2]:lo[2] + 5] = value
+        lo = np.minimum(lo + rng.integers(-2, 3, 3), [20, 18, 15]).clip(0)
+        if value != 8:  # label 8 only in the reference
+            other[lo[0]:lo[0] + 10, lo[1]:lo[1] + 6, lo[2]:lo[2] + 5] = value
+    other[0:3, 0:3, 0:3] = 9  # label 9 only in the other
+    spacing = np.array([0.8, 1.0, 1.5])
+    labels = [0, *range(1, 11)]  # 10 is in neither
+    scores = label_scores(reference, other, labels, spacing)
+    for v in labels:
+        a, b = reference == v, other == v
+        mean, hd95 = surface_distances(a, b, spacing)
+        assert scores[v]["dice"] == dice(a, b)
+        np.testing.assert_array_equal([scores[v]["mean_surface_distance_mm"], scores[v]["hd95_mm"]], [mean, hd95])

@@ -80,6 +80,26 @@ def apply_affine(points: np.ndarray, matrix: np.ndarray, offset: np.ndarray) -> 
     return out
 
 
+def label_boxes(array: np.ndarray) -> dict[int, tuple[slice, ...]]:
+    """Bounding box of every non-zero value of an integer ``array``, as index slices.
+
+    One pass over the array (``scipy.ndimage.find_objects``) when the values are
+    non-negative and below 2^24; otherwise one pass per value, so that a large value
+    does not ask for a list of that length.
+
+    Returns
+    -------
+    dict of int to tuple of ``array.ndim`` slices
+    """
+    from scipy import ndimage
+
+    array = array.view(np.uint8) if array.dtype == np.bool_ else array
+    if array.size and array.min() >= 0 and array.max() < 1 << 24:
+        return {v + 1: box for v, box in enumerate(ndimage.find_objects(array)) if box is not None}
+    values = np.unique(array)
+    return {int(v): ndimage.find_objects((array == v).view(np.uint8))[0] for v in values[values != 0]}
+
+
 def _geometry(d: int, origin, spacing, direction) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Validate and normalise the geometry of a ``D``-dimensional grid (the one place it is checked)."""
     origin = np.asarray(origin, dtype=float).reshape(-1)
@@ -385,12 +405,7 @@ class LabelVolume:
         -------
         dict of int to tuple of ``ndim`` slices
         """
-        from scipy import ndimage
-
-        array = self.array.view(np.uint8) if self.array.dtype == np.bool_ else self.array
-        if array.size and array.min() >= 0 and array.max() < 1 << 24:
-            return {v + 1: box for v, box in enumerate(ndimage.find_objects(array)) if box is not None}
-        return {int(v): ndimage.find_objects((array == v).view(np.uint8))[0] for v in self.labels()}
+        return label_boxes(self.array)
 
     def same_geometry(self, other: Grid | LabelVolume, atol: float = 1e-6) -> bool:
         """True when ``other`` (a grid or a volume) has the same grid size, origin, spacing and direction."""

@@ -67,10 +67,24 @@ def label_scores(reference: np.ndarray, other: np.ndarray, labels, spacing: np.n
     """
     if np.shape(reference) != np.shape(other):
         raise ValueError(f"Expected `other` of shape {np.shape(reference)}, got {np.shape(other)}.")
+    from volreg.grid import label_boxes
+
+    reference, other = np.asarray(reference), np.asarray(other)
+    boxes = (label_boxes(reference), label_boxes(other))
     out = {}
     for v in labels:
-        a = reference == v
-        b = other == v
+        # Within the union of the label's boxes in both, padded by a voxel: outside it neither
+        # has the label, so Dice and the boundaries are those of the whole arrays.
+        present = [b[int(v)] for b in boxes if int(v) in b]
+        if int(v) == 0:  # the background has no box
+            window = tuple(slice(None) for _ in range(reference.ndim))
+        elif present:
+            window = tuple(slice(max(min(b[a].start for b in present) - 1, 0), max(b[a].stop for b in present) + 1)
+                           for a in range(reference.ndim))
+        else:
+            window = tuple(slice(0, 0) for _ in range(reference.ndim))
+        a = reference[window] == v
+        b = other[window] == v
         mean, hd95 = surface_distances(a, b, spacing)
         out[int(v)] = {"dice": dice(a, b), "mean_surface_distance_mm": mean, "hd95_mm": hd95}
     return out
