@@ -418,6 +418,27 @@ def _add_value_grad_hess(q, dim3, val, grad, hess, v, g0, g1, g2, gs, a00, a01, 
         hess[q, 0, 2, 2] += gs + a22
 
 
+@njit(fastmath=True, inline="always")
+def _ranges_value_grad_hess(q, dim3, val, grad, hess, x0, x1, x2, px, py, pz, coef, ranges, nr, inv_s2):
+    """Value, gradient and Hessian of the kernel sum at one query over its ``nr`` candidate
+    runs of centres (:func:`_run_value_grad_hess`), added into row ``q`` of the outputs."""
+    v = g0 = g1 = g2 = gs = a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+    for rr in range(nr):
+        r = _run_value_grad_hess(x0, x1, x2, px, py, pz, coef, ranges[rr, 0], ranges[rr, 1], inv_s2)
+        v += r[0]
+        g0 += r[1]
+        g1 += r[2]
+        g2 += r[3]
+        gs += r[4]
+        a00 += r[5]
+        a01 += r[6]
+        a02 += r[7]
+        a11 += r[8]
+        a12 += r[9]
+        a22 += r[10]
+    _add_value_grad_hess(q, dim3, val, grad, hess, v, g0, g1, g2, gs, a00, a01, a02, a11, a12, a22)
+
+
 # --------------------------------------------------------------------------------------
 # The kernel-sum loops (which serves which case: ``volreg.kernels.sums._LOOPS``)
 
@@ -663,21 +684,7 @@ def _searched_sum_hessian(queries, px, py, pz, coef, start, lo, cell, dims, max_
             x0 = x[0]
             x1 = x[1]
             x2 = x[2] if dim3 else 0.0
-            v = g0 = g1 = g2 = gs = a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-            for rr in range(nr):
-                r = _run_value_grad_hess(x0, x1, x2, px, py, pz, coef, ranges[rr, 0], ranges[rr, 1], inv_s2)
-                v += r[0]
-                g0 += r[1]
-                g1 += r[2]
-                g2 += r[3]
-                gs += r[4]
-                a00 += r[5]
-                a01 += r[6]
-                a02 += r[7]
-                a11 += r[8]
-                a12 += r[9]
-                a22 += r[10]
-            _add_value_grad_hess(q, dim3, val, grad, hess, v, g0, g1, g2, gs, a00, a01, a02, a11, a12, a22)
+            _ranges_value_grad_hess(q, dim3, val, grad, hess, x0, x1, x2, px, py, pz, coef, ranges, nr, inv_s2)
 
 
 @njit(parallel=True)
@@ -931,21 +938,7 @@ def _segmented_sums(queries, rstart, jstart, poff, soff, px, py, pz, coef, sstar
                 x1 = x[1]
                 x2 = x[2] if dim3 else 0.0
                 if order == 2:
-                    v = g0 = g1 = g2 = gs = a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-                    for rr in range(nr):
-                        r = _run_value_grad_hess(x0, x1, x2, gx, gy, gz, gc, ranges[rr, 0], ranges[rr, 1], inv_s2)
-                        v += r[0]
-                        g0 += r[1]
-                        g1 += r[2]
-                        g2 += r[3]
-                        gs += r[4]
-                        a00 += r[5]
-                        a01 += r[6]
-                        a02 += r[7]
-                        a11 += r[8]
-                        a12 += r[9]
-                        a22 += r[10]
-                    _add_value_grad_hess(q, dim3, val, grad, hess, v, g0, g1, g2, gs, a00, a01, a02, a11, a12, a22)
+                    _ranges_value_grad_hess(q, dim3, val, grad, hess, x0, x1, x2, gx, gy, gz, gc, ranges, nr, inv_s2)
                 elif order == 1:
                     v = g0 = g1 = g2 = 0.0
                     for rr in range(nr):
