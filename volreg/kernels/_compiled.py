@@ -419,6 +419,29 @@ def _add_value_grad_hess(q, dim3, val, grad, hess, v, g0, g1, g2, gs, a00, a01, 
 
 
 @njit(fastmath=True, inline="always")
+def _ranges_value(x0, x1, x2, px, py, pz, coef, ranges, nr, inv_s2):
+    """Value of the kernel sum at one query over its ``nr`` candidate runs of centres."""
+    v = 0.0
+    for rr in range(nr):
+        v += _run_value(x0, x1, x2, px, py, pz, coef, ranges[rr, 0], ranges[rr, 1], inv_s2)
+    return v
+
+
+@njit(fastmath=True, inline="always")
+def _ranges_value_grad(q, dim3, val, grad, x0, x1, x2, px, py, pz, coef, ranges, nr, inv_s2):
+    """Value and gradient of the kernel sum at one query over its ``nr`` candidate runs of
+    centres (:func:`_run_value_grad`), added into row ``q`` of the outputs."""
+    v = g0 = g1 = g2 = 0.0
+    for rr in range(nr):
+        dv, d0, d1, d2 = _run_value_grad(x0, x1, x2, px, py, pz, coef, ranges[rr, 0], ranges[rr, 1], inv_s2)
+        v += dv
+        g0 += d0
+        g1 += d1
+        g2 += d2
+    _add_value_grad(q, dim3, val, grad, v, g0, g1, g2)
+
+
+@njit(fastmath=True, inline="always")
 def _ranges_value_grad_hess(q, dim3, val, grad, hess, x0, x1, x2, px, py, pz, coef, ranges, nr, inv_s2):
     """Value, gradient and Hessian of the kernel sum at one query over its ``nr`` candidate
     runs of centres (:func:`_run_value_grad_hess`), added into row ``q`` of the outputs."""
@@ -649,23 +672,9 @@ def _searched_sum(queries, px, py, pz, coef, start, lo, cell, dims, max_runs, si
             x1 = x[1]
             x2 = x[2] if dim3 else 0.0
             if want_grad:
-                v = 0.0
-                g0 = 0.0
-                g1 = 0.0
-                g2 = 0.0
-                for rr in range(nr):
-                    dv, d0, d1, d2 = _run_value_grad(x0, x1, x2, px, py, pz, coef, ranges[rr, 0], ranges[rr, 1],
-                                                     inv_s2)
-                    v += dv
-                    g0 += d0
-                    g1 += d1
-                    g2 += d2
-                _add_value_grad(q, dim3, val, grad, v, g0, g1, g2)
+                _ranges_value_grad(q, dim3, val, grad, x0, x1, x2, px, py, pz, coef, ranges, nr, inv_s2)
             else:
-                v = 0.0
-                for rr in range(nr):
-                    v += _run_value(x0, x1, x2, px, py, pz, coef, ranges[rr, 0], ranges[rr, 1], inv_s2)
-                val[q, 0] += v
+                val[q, 0] += _ranges_value(x0, x1, x2, px, py, pz, coef, ranges, nr, inv_s2)
 
 
 @njit(parallel=True, fastmath=True)
@@ -940,17 +949,6 @@ def _segmented_sums(queries, rstart, jstart, poff, soff, px, py, pz, coef, sstar
                 if order == 2:
                     _ranges_value_grad_hess(q, dim3, val, grad, hess, x0, x1, x2, gx, gy, gz, gc, ranges, nr, inv_s2)
                 elif order == 1:
-                    v = g0 = g1 = g2 = 0.0
-                    for rr in range(nr):
-                        dv, d0, d1, d2 = _run_value_grad(x0, x1, x2, gx, gy, gz, gc, ranges[rr, 0], ranges[rr, 1],
-                                                         inv_s2)
-                        v += dv
-                        g0 += d0
-                        g1 += d1
-                        g2 += d2
-                    _add_value_grad(q, dim3, val, grad, v, g0, g1, g2)
+                    _ranges_value_grad(q, dim3, val, grad, x0, x1, x2, gx, gy, gz, gc, ranges, nr, inv_s2)
                 else:
-                    v = 0.0
-                    for rr in range(nr):
-                        v += _run_value(x0, x1, x2, gx, gy, gz, gc, ranges[rr, 0], ranges[rr, 1], inv_s2)
-                    val[q, 0] += v
+                    val[q, 0] += _ranges_value(x0, x1, x2, gx, gy, gz, gc, ranges, nr, inv_s2)
