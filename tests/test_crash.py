@@ -147,3 +147,20 @@ def test_killed_runs_leave_complete_results_and_a_rerun_completes(inputs, tmp_pa
         assert not [p for p in target.parent.iterdir() if ".volreg-" in p.name]
     assert sum(outcomes.values()) == MOMENTS
     print(f"{command} {sig.name}: {outcomes}")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_signal_while_the_libraries_load_exits_cleanly(inputs, tmp_path, sig):
+    """Signals 0.3-1.2 s after the start land while Python loads numpy, numba, SimpleITK, ...;
+    held back until the handlers are in place, each ends the run with 143 (130 for SIGINT) and
+    one line, or (before Python had started volreg) by the signal itself, and leaves nothing.
+    Acted on inside a C extension's import, they ended it by SIGINT or a segmentation fault."""
+    clean = {signal.SIGTERM: 143, signal.SIGINT: 130}[sig]
+    for k, moment in enumerate(np.linspace(0.3, 1.2, 10)):
+        target = tmp_path / f"out{k}"
+        rc, err = _run(_args("register", inputs, target), inputs, kill_after=float(moment), sig=sig)
+        assert rc in (0, clean, -sig), (moment, rc, err)
+        if rc == clean:
+            assert err.strip().splitlines()[-1].startswith(f"volreg register: interrupted by {sig.name}"), err
+            assert not target.exists()
+        assert not [p for p in tmp_path.iterdir() if ".volreg-" in p.name]

@@ -35,6 +35,39 @@ __all__ = ["main", "build_parser", "UsageError"]
 COMMANDS = (surface, register, apply, protocols, demo, consistency, tune, register_surfaces, morph, transfer, batch)
 
 
+#: What every command but ``protocols`` loads, loaded before the command runs with SIGINT and
+#: SIGTERM held back (they are acted on once it is loaded and the handlers are in place).  A
+#: signal that lands inside a C extension's import can crash the interpreter (a segmentation
+#: fault), or end it by SIGINT after the interrupt was reported, instead of the clean exit
+#: status 130 or 143.
+PRELOAD = ("numpy", "scipy.ndimage", "scipy.optimize", "scipy.sparse", "numba", "SimpleITK", "nibabel",
+           "skimage.measure", "pyvista", "volreg.io", "volreg.io.report_figure", "volreg.io.protocol",
+           "volreg.progress", "volreg.register")
+
+
+def _hold_signals():
+    """Block SIGINT and SIGTERM (main thread); return the previous mask, or None where nothing was held."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        return None
+    return signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
+def _release_signals(mask) -> None:
+    """Restore the mask that :func:`_hold_signals` returned: a signal that came meanwhile is acted on now."""
+    if mask is not None:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
+def _preload(command: str) -> None:
+    """Import :data:`PRELOAD`, unless ``command`` is ``protocols``."""
+    if command == "protocols":
+        return
+    import importlib
+
+    for name in PRELOAD:
+        importlib.import_module(name)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``volreg`` command, with its subcommands."""
     parser = argparse.ArgumentParser(
@@ -122,9 +155,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(None if argv is None else list(argv))
     except SystemExit as exc:  # argparse exits for --help, --version and usage errors
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
-    # Imported once a command runs, so that --help, --version and usage errors stay quick.
-    from volreg.io._atomic import kept_results
-    from volreg.progress import clear_interrupt
+    # Imported once a command runs, so that --help, --version and usage errors stay quick; with
+    # SIGINT and SIGTERM held until the handlers are in place (see PRELOAD).
+    held = _hold_signals()
+    try:
+        _preload(args.command)
+        from volreg.io._atomic import kept_results
+        from volreg.progress import clear_interrupt
+    except BaseException:
+        _release_signals(held)
+        raise
 
     # SIGTERM (a scheduler or `kill` stopping the job) unwinds like Ctrl-C, so every command's
     # clean-up runs: outputs written so far are removed and temporary files deleted.
@@ -145,6 +185,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     filters.__enter__()
     warnings.simplefilter("always", VolregWarning)  # shown (one line each) whatever the global filters say
     try:
+        _release_signals(held)
         output = getattr(args, "output", None)
         if output is not None and ".." in Path(output).parts:
             raise UsageError(
