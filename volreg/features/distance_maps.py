@@ -27,7 +27,7 @@ from volreg._jit import njit
 __all__ = ["VoxelDistance", "clipped_signed_distance"]
 
 
-@njit(inline="always")
+@njit
 def _mirror(i: int, n: int) -> int:
     """Index ``i`` reflected into ``[0, n)`` (scipy.ndimage's ``mirror`` mode)."""
     if n == 1:
@@ -39,7 +39,7 @@ def _mirror(i: int, n: int) -> int:
     return i if i < n else period - i
 
 
-@njit(inline="always")
+@njit
 def _axis(x: float, n: int, idx, w, d, s) -> None:
     """Stencil of the cubic B-spline on one axis at continuous index ``x``: the four
     indices ``idx``, weights ``w`` and their first and second derivatives ``d``, ``s``.
@@ -77,7 +77,7 @@ def _axis(x: float, n: int, idx, w, d, s) -> None:
         idx[k] = _mirror(base - 1 + k, n)
 
 
-@njit(fastmath=True, inline="always")
+@njit(fastmath=True)
 def _bspline3_at(coef, i0, i1, i2, order, p, f, g, h, index, weight):  # pragma: no cover - compiled
     """:func:`_bspline3` at one continuous index ``(i0, i1, i2)``, written to row ``p``;
     ``index`` (3, 4) int and ``weight`` (9, 4) float are scratch."""

@@ -80,7 +80,7 @@ def _cell_sort(points, lo, cell, dims):
     return order, start
 
 
-@njit(inline="always")
+@njit
 def _gap2(x, lo_c, cell):
     """Squared distance (mm^2) from coordinate ``x`` to the interval ``[lo_c, lo_c + cell]``."""
     if x < lo_c:
@@ -90,7 +90,7 @@ def _gap2(x, lo_c, cell):
     return 0.0
 
 
-@njit(inline="always")
+@njit
 def _axis_range(x, radius, lo, cell, n):
     """Cells ``(first, last)`` of one axis (``n`` cells from ``lo``) that can hold points
     within ``radius`` of ``x``; empty when ``first > last``."""
@@ -101,7 +101,7 @@ def _axis_range(x, radius, lo, cell, n):
     return np.int64(first), np.int64(last)
 
 
-@njit(inline="always")
+@njit
 def _candidate_ranges(x, lo, cell, dims, radius, start, ranges):
     """Runs of grid points that may lie within ``radius`` of ``x`` (D = 2 or 3).
 
@@ -200,7 +200,7 @@ def _query_blocks(queries, width, max_size):
     return starts[: nb + 1]
 
 
-@njit(inline="always")
+@njit
 def _block_box(queries, q0, q1, dim3):
     """Bounding box ``(l0, h0, l1, h1, l2, h2)`` (mm) of ``queries[q0:q1]`` (z = 0 in 2-D)."""
     l0 = queries[q0, 0]
@@ -220,7 +220,7 @@ def _block_box(queries, q0, q1, dim3):
     return l0, h0, l1, h1, l2, h2
 
 
-@njit(inline="always")
+@njit
 def _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3):
     """Cell ranges ``(i0, i1, j0, j1, k0, k1)`` of the box dilated by ``sigma``.
 
@@ -238,7 +238,7 @@ def _box_cells(l0, h0, l1, h1, l2, h2, sigma, lo, cell, dims, dim3):
     return i0, i1, np.int64(0), np.int64(0), j0, j1
 
 
-@njit(inline="always")
+@njit
 def _gather_block(queries, q0, q1, dim3, px, py, pz, coef, start, lo, cell, dims, sigma, buf):
     """Copy the centres within ``sigma`` of the bounding box of ``queries[q0:q1]`` into ``buf``.
 
