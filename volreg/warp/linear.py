@@ -656,17 +656,19 @@ class _Side:
             self._maps[key] = self._compute(key)
         return self._maps[key]
 
+    def missing(self, labels: list[int], spacing_mm: float, floor_mm: float) -> list[tuple]:
+        """The keys of the maps of ``labels`` at a level not made yet."""
+        keys = {self.map_key(label, spacing_mm, floor_mm) for label in labels}
+        return sorted(k for k in keys if k not in self._maps)
+
+    def cells(self, key: tuple) -> int:
+        """About how many voxels the map of ``key`` covers (its label's box): its cost."""
+        return int(np.prod([s.stop - s.start for s in self.shapes[key[0]].box]))
+
     def bank(self, labels: list[int], spacing_mm: float, floor_mm: float) -> tuple[_MapBank, dict[int, int]]:
         """The maps of ``labels`` at a level, and the position of each label's map in it."""
-        from volreg._threads import thread_map
-
         keys = tuple(self.map_key(label, spacing_mm, floor_mm) for label in labels)
-        # The maps not made yet, largest first, on the thread budget (the distance
-        # transforms release the GIL for much of their work).
-        missing = sorted({k for k in keys if k not in self._maps},
-                         key=lambda k: -np.prod([s.stop - s.start for s in self.shapes[k[0]].box]))
-        for key, value in zip(missing, thread_map(self._compute, missing)):
-            self._maps[key] = value
+        _make_maps([self], labels, spacing_mm, floor_mm)
         if keys not in self._banks:
             entries, where = [], {}
             for key in keys:
@@ -696,6 +698,18 @@ class _Side:
         if not pts:
             return _Samples(np.zeros((0, d)), np.zeros(0, dtype=np.int64), np.zeros(0))
         return _Samples(np.concatenate(pts), np.concatenate(which), np.concatenate(weights), np.concatenate(cuts))
+
+
+def _make_maps(sides: list[_Side], labels: list[int], spacing_mm: float, floor_mm: float) -> None:
+    """Make the maps of ``labels`` at a level that the ``sides`` lack, all together on the
+    thread budget, largest first (the distance transforms release the GIL for much of their
+    work): the two volumes' largest maps are made at once."""
+    from volreg._threads import thread_map
+
+    jobs = [(side, key) for side in sides for key in side.missing(labels, spacing_mm, floor_mm)]
+    jobs.sort(key=lambda job: -job[0].cells(job[1]))
+    for (side, key), value in zip(jobs, thread_map(lambda job: job[0]._compute(job[1]), jobs)):
+        side._maps[key] = value
 
 
 def _finite(value: float) -> float | None:
@@ -888,6 +902,7 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
             candidates.append((family, name, cand))
     candidates.append(("identity", "identity", LinearMap.identity(dim)))
 
+    _make_maps([side_f, side_m], drive, spacings[0], floor_mm)
     bank_f, where_f = side_f.bank(drive, spacings[0], floor_mm)
     bank_m, where_m = side_m.bank(drive, spacings[0], floor_mm)
     fwd = side_f.samples(drive, where_m, counts[0], cut)
@@ -914,6 +929,7 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
     # Coarse to fine.
     level_log = []
     for level, (h, count) in enumerate(zip(spacings, counts)):
+        _make_maps([side_f, side_m], drive, h, floor_mm)
         bank_f, where_f = side_f.bank(drive, h, floor_mm)
         bank_m, where_m = side_m.bank(drive, h, floor_mm)
         fwd = side_f.samples(drive, where_m, count, cut)
