@@ -194,12 +194,12 @@ def clipped_signed_distance(mask: np.ndarray, spacing: np.ndarray, clip: float, 
     centres of the two kinds (where marching cubes puts the surface) instead of to the
     nearest centre of the other kind, to first order: every distance is shortened by a
     third of the mean voxel spacing (at most half the finest spacing).  The distances
-    between centres are too long by 0.3-0.6 voxel, depending on the boundary's
-    orientation and the distance to it: 0.39 voxel on average within 3 voxels of a
-    sphere, at 1, 2 and 3 mm and at 1 x 1 x 1.5 mm, so that the same object at two
+    between centres are too long by 0.25-0.6 voxel, depending on the boundary's
+    orientation and the distance to it: 0.38-0.44 voxel on average within 3 voxels of
+    spheres of radius 12 and 25 mm at 1, 2 and 3 mm, so that the same object at two
     resolutions gets two different maps (0.4 mm apart at 1 and 2 mm).  Shortened, the
-    mean error there is 0.06-0.13 voxel at 1, 2 and 3 mm and within 0.04 mm at
-    0.8 x 0.8 x 2.5 and 1 x 1 x 1.5 mm.  (A shortening that depends on the direction to
+    mean error there is 0.05-0.11 voxel, and within 0.04 mm at 0.8 x 0.8 x 2.5 and
+    1 x 1 x 1.5 mm.  (A shortening that depends on the direction to
     the nearest centre of the other kind is less biased on the sphere, but makes the map
     rough where neighbouring voxels find their nearest centres along different axes, and
     the warps fitted to it were less accurate.)
