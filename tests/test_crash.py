@@ -164,3 +164,15 @@ def test_a_signal_while_the_libraries_load_exits_cleanly(inputs, tmp_path, sig):
             assert err.strip().splitlines()[-1].startswith(f"volreg register: interrupted by {sig.name}"), err
             assert not target.exists()
         assert not [p for p in tmp_path.iterdir() if ".volreg-" in p.name]
+
+
+def test_a_signal_while_the_batch_cluster_starts_exits_cleanly(inputs, tmp_path):
+    """SIGTERM 0.5-3 s after the start of a batch lands while Dask is loaded and its local cluster
+    starts: each run ends with 143 and the batch's one line last on stderr (before, Dask's exit
+    hook added a traceback after it, or Python ended by SIGINT), or by the signal itself."""
+    for k, moment in enumerate(np.linspace(0.5, 3.0, 10)):
+        target = tmp_path / f"out{k}"
+        rc, err = _run(_args("batch", inputs, target), inputs, kill_after=float(moment), sig=signal.SIGTERM)
+        assert rc in (0, 143, -signal.SIGTERM), (moment, rc, err)
+        if rc == 143:
+            assert err.strip().splitlines()[-1].startswith("volreg batch: interrupted by SIGTERM"), (moment, err)

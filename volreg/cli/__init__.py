@@ -59,13 +59,19 @@ def _release_signals(mask) -> None:
 
 
 def _preload(command: str) -> None:
-    """Import :data:`PRELOAD`, unless ``command`` is ``protocols``."""
+    """Import :data:`PRELOAD`, unless ``command`` is ``protocols``; for ``batch`` also Dask, where
+    it is installed (the command says what to install where it is not)."""
     if command == "protocols":
         return
     import importlib
 
     for name in PRELOAD:
         importlib.import_module(name)
+    if command == "batch":
+        try:
+            importlib.import_module("dask.distributed")
+        except ImportError:
+            pass
 
 
 def build_parser() -> argparse.ArgumentParser:

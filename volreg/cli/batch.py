@@ -269,6 +269,23 @@ def _close(client, cluster) -> None:
             except Exception:
                 pass
 
+def _close_started_clusters() -> None:
+    """Close the local clusters an interrupt caught while they started (the ``LocalCluster``
+    call had not returned, so there is no object to close), quietly.  Left to Dask's exit hook,
+    their workers, still starting, fail its check of their status and it prints a traceback
+    after the one-line report."""
+    import atexit
+
+    from distributed.deploy import spec
+
+    for started in list(spec.SpecCluster._instances):
+        try:
+            started.close(timeout=10)
+        except Exception:
+            pass
+    atexit.unregister(spec.close_clusters)
+
+
 def run(args: argparse.Namespace) -> int:
     """``volreg batch MANIFEST -o OUTDIR``: every pair as a Dask task; exit status 1 if any failed."""
     try:
@@ -330,6 +347,7 @@ def run(args: argparse.Namespace) -> int:
         logging.getLogger("distributed").setLevel(logging.CRITICAL)
         _close(client, cluster)
         client = cluster = None
+        _close_started_clusters()
         finished = sum(1 for r in rows if r.get("status") == "done")
         print(f"{PROG} batch: interrupted by {name}; {finished} of {len(pairs)} pairs finished and are kept in "
               f"`{outdir / 'pairs'}` (a rerun skips them); the {len(pairs) - finished} others are unfinished and a "
