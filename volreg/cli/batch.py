@@ -269,6 +269,7 @@ def _close(client, cluster) -> None:
             except Exception:
                 pass
 
+
 def _close_started_clusters() -> None:
     """Close the local clusters an interrupt caught while they started (the ``LocalCluster``
     call had not returned, so there is no object to close), quietly.  Left to Dask's exit hook,
