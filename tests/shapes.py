@@ -84,6 +84,17 @@ class Disc2D:
 
 
 
+def bumpy_ellipsoid_parts(bumps: int = 8) -> list:
+    """The ellipsoids of :func:`bumpy_ellipsoid`: the body (semi-axes 20 / 14 / 10 mm), then
+    the first ``bumps`` (0-8) of the eight small ones."""
+    body = Ellipsoid((20, 14, 10), (0.37, -0.21, 0.13))
+    extra = [Ellipsoid((6, 6, 6), (14.0, 8.0, 3.0)), Ellipsoid((5, 5, 5), (-6.0, -9.0, 7.0)),
+             Ellipsoid((7, 5, 5), (-15.0, 4.0, -4.0)), Ellipsoid((5, 5, 6), (3.0, 6.0, -9.0)),
+             Ellipsoid((5, 6, 5), (10.0, -8.0, -5.0)), Ellipsoid((6, 5, 5), (-10.0, 10.0, 6.0)),
+             Ellipsoid((5, 5, 5), (18.0, -3.0, 4.0)), Ellipsoid((5, 5, 5), (-3.0, -2.0, 11.0))][:bumps]
+    return [body] + extra
+
+
 def bumpy_ellipsoid(bumps: int = 8):
     """Signed distance bound of an ellipsoid (semi-axes 20 / 14 / 10 mm) with the first
     ``bumps`` (0-8) of eight small ellipsoids attached: the union (min) of their distances.
@@ -91,14 +102,10 @@ def bumpy_ellipsoid(bumps: int = 8):
     The known-deformation shapes (`tests/test_known_deformation.py`,
     `benchmarks/bench_register.py`); the bumps are the features that pin sliding.
     """
-    body = Ellipsoid((20, 14, 10), (0.37, -0.21, 0.13))
-    extra = [Ellipsoid((6, 6, 6), (14.0, 8.0, 3.0)), Ellipsoid((5, 5, 5), (-6.0, -9.0, 7.0)),
-             Ellipsoid((7, 5, 5), (-15.0, 4.0, -4.0)), Ellipsoid((5, 5, 6), (3.0, 6.0, -9.0)),
-             Ellipsoid((5, 6, 5), (10.0, -8.0, -5.0)), Ellipsoid((6, 5, 5), (-10.0, 10.0, 6.0)),
-             Ellipsoid((5, 5, 5), (18.0, -3.0, 4.0)), Ellipsoid((5, 5, 5), (-3.0, -2.0, 11.0))][:bumps]
+    parts = bumpy_ellipsoid_parts(bumps)
 
     def sdf(p):
-        return np.min([body.signed_distance(p)] + [b.signed_distance(p) for b in extra], axis=0)
+        return np.min([e.signed_distance(p) for e in parts], axis=0)
 
     return sdf
 
