@@ -76,6 +76,23 @@ def test_absent_and_small_labels():
         label_surfaces(vol, on_small="ignore")
 
 
+def test_many_labels_give_the_surfaces_of_one_label_at_a_time():
+    """label_surfaces finds every label's box in one pass; each mesh is the one label_surface
+    makes from the whole volume, vertex for vertex."""
+    vol = _sphere_volume(*GEOMETRIES["identity"])
+    array = vol.array.copy()
+    array[array.shape[0] // 2:][array[array.shape[0] // 2:] == 7] = 2  # cut the ball into labels 7 and 2
+    array[1:4, 2:6, 1:3] = 9  # and a small box near a corner
+    vol = vol.with_array(array)
+    many = label_surfaces(vol)
+    assert list(many) == [2, 7, 9]
+    for lab, surf in many.items():
+        one = label_surface(vol, lab)
+        np.testing.assert_array_equal(surf.vertices, one.vertices)
+        np.testing.assert_array_equal(surf.cells, one.cells)
+    assert label_surfaces(vol, [9, 2]).keys() == {9, 2}
+
+
 def test_progress_callback_counts_labels():
     vol = _sphere_volume(*GEOMETRIES["identity"])
     calls = []

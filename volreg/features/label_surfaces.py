@@ -174,6 +174,7 @@ def label_surface(
     *,
     smoothing: float = SurfaceSettings.smoothing,
     min_voxels: int = 8,
+    box: tuple[slice, ...] | None = None,
 ) -> Surface:
     """Boundary mesh of one label, in world mm with outward normals.
 
@@ -193,6 +194,10 @@ def label_surface(
         shift is undone using ``H`` measured on the blurred mask.
     min_voxels : int
         Labels with fewer voxels raise :class:`SurfaceError`.
+    box : tuple of slices, optional
+        The label's bounding box in index space, as :meth:`LabelVolume.label_boxes`
+        gives it (one pass over the volume for all labels); default: found here,
+        with a pass over the whole volume.  The result is the same.
 
     Returns
     -------
@@ -203,8 +208,12 @@ def label_surface(
     SurfaceError
         If the label is absent or has fewer than ``min_voxels`` voxels.
     """
-    mask = volume.array == label
-    count = int(mask.sum())
+    if box is None:
+        mask = volume.array == label
+        nz = np.nonzero(mask)
+        box = tuple(slice(int(a.min()), int(a.max()) + 1) for a in nz) if len(nz[0]) else None
+    crop = volume.array[box] == label if box is not None else np.zeros((0,) * volume.ndim, bool)
+    count = int(crop.sum())
     if count == 0:
         raise SurfaceError(f"Label {label} is absent from the volume (labels present: {volume.labels().tolist()}).")
     if count < min_voxels:
@@ -212,10 +221,8 @@ def label_surface(
     sigma_mm = float(smoothing) * voxel_size(volume)
     sigma_vox = sigma_mm / volume.spacing
     margin = 2 + int(np.ceil(3 * sigma_vox.max()))
-    nz = np.nonzero(mask)
-    lo = np.array([a.min() for a in nz])
-    hi = np.array([a.max() for a in nz]) + 1
-    crop = mask[tuple(slice(a, b) for a, b in zip(lo, hi))].astype(np.float32)
+    lo = np.array([b.start for b in box])
+    crop = crop.astype(np.float32)
     padded = np.pad(crop, margin)
     # A structure thinner than about two blur widths never reaches 1/2 once
     # blurred; halve the blur until it does (down to the raw mask).
@@ -270,11 +277,12 @@ def label_surfaces(
     """
     if on_small not in ("error", "warn"):
         raise ValueError(f"Expected `on_small` in ('error', 'warn'), got {on_small!r}.")
-    labels = volume.labels().tolist() if labels is None else [int(v) for v in labels]
+    boxes = volume.label_boxes()
+    labels = sorted(boxes) if labels is None else [int(v) for v in labels]
     out: dict[int, Surface] = {}
     for i, lab in enumerate(labels):
         try:
-            out[lab] = label_surface(volume, lab, smoothing=smoothing, min_voxels=min_voxels)
+            out[lab] = label_surface(volume, lab, smoothing=smoothing, min_voxels=min_voxels, box=boxes.get(lab))
         except SurfaceError as err:
             if on_small == "error":
                 raise
