@@ -65,6 +65,42 @@ def test_warping_preserves_the_label_set(volume, warp):
 
 
 @FAST
+@given(label_volumes(), st.integers(1, 3), st.integers(0, 2**31 - 1))
+def test_label_resampling_follows_its_definition(volume, block, seed):
+    """At any point inside the image, the label whose linearly interpolated signed distance map
+    (the whole volume's, clamped at its edges) is the most negative, the first such label on ties,
+    or 0 where none is negative; outside the image, 0.  Blocks of ``block`` voxels of one label
+    give points whose interpolation voxels all hold one label, and points near boundaries."""
+    from scipy import ndimage
+
+    from volreg.warp.resample import signed_distance_map
+
+    array = volume.array
+    for axis in range(3):
+        array = np.repeat(array, block, axis=axis)
+    volume = LabelVolume(array, volume.origin, volume.spacing, np.eye(3))
+    rng = np.random.default_rng(seed)
+    size = np.array(array.shape)
+    index = np.concatenate([rng.uniform(-0.5, size - 0.5, (3000, 3)),  # inside, anywhere
+                            rng.integers(0, size, (100, 3)).astype(float),  # voxel centres
+                            rng.uniform(-3, size + 2, (100, 3))])  # some outside
+    points = volume.index_to_world(index)
+
+    out = resample_labels(volume, points)
+
+    best = np.zeros(len(index))
+    expected = np.zeros(len(index), dtype=array.dtype)
+    for value in volume.labels():
+        d = ndimage.map_coordinates(signed_distance_map(array == value, volume.spacing), index.T, order=1,
+                                    mode="nearest")
+        win = d < best
+        best[win], expected[win] = d[win], value
+    inside = np.all((index >= -0.5) & (index <= size - 0.5), axis=1)
+    expected[~inside] = 0
+    assert np.array_equal(out, expected)
+
+
+@FAST
 @given(smooth_warps())
 def test_composition_with_the_inverse_is_near_identity(warp):
     """tau(tau^-1(y)) = y and tau^-1(tau(x)) = x to 1e-5 mm wherever tau does not fold."""

@@ -71,6 +71,43 @@ def _indices(image: LabelVolume | Grid, points: np.ndarray) -> np.ndarray:
     return image.world_to_index(points.reshape(-1, image.ndim))
 
 
+def _mixed_stencils(array: np.ndarray, index: np.ndarray, points: np.ndarray, out: np.ndarray,
+                    chunk: int = 1 << 20) -> np.ndarray:
+    """Give the points whose 2^D interpolation voxels all hold one value that value; return the others.
+
+    Parameters
+    ----------
+    array : (n_0, ..., n_{D-1}) ndarray
+        The labels.
+    index : (N, D) float ndarray
+        Continuous indices of all points.
+    points : (M,) int ndarray
+        The rows of ``index`` to look at (inside the image).
+    out : (N,) ndarray
+        Written at the points whose stencil holds a single value.
+
+    Returns
+    -------
+    (K,) int ndarray
+        The rows of ``points`` whose stencil holds two values or more, in their order.
+    """
+    size = np.array(array.shape)
+    corners = np.array(np.meshgrid(*[[0, 1]] * array.ndim, indexing="ij")).reshape(array.ndim, -1).T[1:]
+    mixed = []
+    for s in range(0, len(points), chunk):
+        rows = points[s : s + chunk]
+        low = np.floor(index[rows]).astype(np.int64)
+        high = np.clip(low + 1, 0, size - 1)  # clamped at the image's edges, as the interpolation is
+        np.clip(low, 0, size - 1, out=low)
+        first = array[tuple(low.T)]
+        same = np.ones(len(rows), dtype=bool)
+        for corner in corners:
+            same &= array[tuple(np.where(corner, high, low).T)] == first
+        out[rows[same]] = first[same]
+        mixed.append(rows[~same])
+    return np.concatenate(mixed) if mixed else points
+
+
 def resample_labels(
     image: LabelVolume,
     points: np.ndarray,
@@ -119,10 +156,13 @@ def resample_labels(
     best = np.zeros(len(index), dtype=np.float32)  # a point is a label's only where its distance < 0
     boxes = image.label_boxes()
     labels = image.labels()
-    # With many labels, the valid points sorted by their first index: each label's candidates
+    # A point whose linear stencil holds one value only takes that value: that label's distance is
+    # negative at every corner, every other label's positive (the background: all positive). Only
+    # the other points, near a boundary, need the distance maps below.
+    slab_order = _mixed_stencils(array, index, np.flatnonzero(valid), out)
+    # With many labels, the points sorted by their first index: each label's candidates
     # are then one slab of them, and small labels do not each scan every point (500 labels at
     # 1.5 mm: 14 s instead of 29 s). With few labels the sort would cost more than it saves.
-    slab_order = np.flatnonzero(valid)
     if len(labels) > 8:
         slab_order = slab_order[np.argsort(index[slab_order, 0], kind="stable")]
         slab_key = index[slab_order, 0]
