@@ -209,9 +209,8 @@ def label_surface(
         If the label is absent or has fewer than ``min_voxels`` voxels.
     """
     if box is None:
-        mask = volume.array == label
-        nz = np.nonzero(mask)
-        box = tuple(slice(int(a.min()), int(a.max()) + 1) for a in nz) if len(nz[0]) else None
+        found = ndimage.find_objects((volume.array == label).view(np.uint8))
+        box = found[0] if found else None
     crop = volume.array[box] == label if box is not None else np.zeros((0,) * volume.ndim, bool)
     count = int(crop.sum())
     if count == 0:
