@@ -99,10 +99,27 @@ def _raise_interrupt(signum, frame) -> None:
     raise KeyboardInterrupt(name)
 
 
+def _forget_unhandled_interrupt() -> None:
+    """Keep the exit status that :func:`_interrupted` returns.
+
+    CPython remembers a KeyboardInterrupt that left Python code run through its ``PyRun_*``
+    functions (which some extensions call) as "unhandled", and at exit then ends the process by
+    SIGINT whatever its exit status; so an interrupt that landed there made the run end by
+    SIGINT after its one-line report.  One empty statement run that way clears the mark.
+    """
+    try:
+        import ctypes
+
+        ctypes.pythonapi.PyRun_SimpleString(b"pass")
+    except (ImportError, AttributeError, OSError):  # not CPython: no such mark
+        pass
+
+
 def _interrupted(command: str, name: str) -> int:
     """Report an interrupt in one line; return the exit status (130 for SIGINT, 143 for SIGTERM)."""
     from volreg.io._atomic import kept_results
 
+    _forget_unhandled_interrupt()
     kept = "".join(f" (the previous result in `{p}` was kept)" for p in kept_results()[:1])
     print(f"{PROG} {command}: interrupted by {name}; the outputs of this run were removed{kept}.", file=sys.stderr)
     return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
