@@ -47,7 +47,6 @@ def _pair():
 
 
 def _scores(fixed, moving, positions, truth, det):
-    from volreg.evaluation.metrics import dice
     from volreg.warp.resample import resample_labels
 
     warped = resample_labels(moving, positions)

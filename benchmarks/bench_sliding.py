@@ -217,8 +217,9 @@ def diagnose(f1, f2, warp, truth, vertices: np.ndarray, settings, diameter: floa
     return out
 
 
-def run(method: str, bumps: int, seed: int | None, args) -> dict:
-    source, target, truth, diameter = make_pair(bumps, seed)
+def run(method: str, bumps: int | str, pair, args) -> dict:
+    """One method on one pair (:func:`make_pair`'s result for the shape ``bumps``)."""
+    source, target, truth, diameter = pair
     v = source.vertices
     min_width = None if bumps == "ant" else 4.0  # the ant: ImplicitSurface's default, as register_surfaces
     f2 = ImplicitSurface(target.vertices, target.normals, min_width=min_width)
@@ -310,8 +311,9 @@ def main() -> None:
     for bumps, seed in pairs:
         shape = "ant" if bumps == "ant" else f"ellipsoid + {bumps} bumps" if bumps else "ellipsoid"
         warp = "shear" if seed is None else f"bumps, seed {seed}"
+        pair = make_pair(bumps, seed)
         for method in args.methods.split(","):
-            r = run(method, bumps, seed, args)
+            r = run(method, bumps, pair, args)
             summary.setdefault((f"{shape}, {'shear' if seed is None else 'bumps'}", method), []).append(r["error"])
             print(f"| {shape} | {warp} | {method} | {r['error']:.2f} ({r['identity']:.2f}) | {r['distance']:.3f} "
                   f"| {r['seconds']:.1f} |", flush=True)

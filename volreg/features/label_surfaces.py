@@ -211,8 +211,8 @@ def label_surface(
     if box is None:
         found = ndimage.find_objects((volume.array == label).view(np.uint8))
         box = found[0] if found else None
-    crop = volume.array[box] == label if box is not None else np.zeros((0,) * volume.ndim, bool)
-    count = int(crop.sum())
+    crop = None if box is None else volume.array[box] == label
+    count = 0 if crop is None else int(crop.sum())
     if count == 0:
         raise SurfaceError(f"Label {label} is absent from the volume (labels present: {volume.labels().tolist()}).")
     if count < min_voxels:
