@@ -98,3 +98,30 @@ def test_idle_openmp_threads_sleep_unless_the_user_says_otherwise(preset, expect
             "print(os.environ.get('OMP_WAIT_POLICY'))")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == expected
+
+
+def test_jobs_without_parallel_loops_run_concurrently_whatever_numbas_threading_layer():
+    """Two jobs that each wait for the other finish only when they run at the same time
+    (the distance transforms of the label scores, the writes of the outputs)."""
+    import threading
+
+    import numba
+
+    if numba.get_num_threads() < 2:
+        pytest.skip("one numba thread: thread_map is serial")
+    barrier = threading.Barrier(2, timeout=20)
+    assert list(thread_map(lambda i: (barrier.wait(), i)[1], [0, 1], parallel_loops=False)) == [0, 1]
+
+
+def test_label_scores_on_threads_equal_one_label_at_a_time():
+    from volreg.evaluation.metrics import label_scores
+
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 4, (18, 16, 14))
+    b = np.where(rng.random(a.shape) < 0.2, rng.integers(0, 4, a.shape), a)
+    spacing = np.array([1.0, 1.5, 2.0])
+    together = label_scores(a, b, [1, 2, 3], spacing)
+    assert list(together) == [1, 2, 3]
+    for v in (1, 2, 3):
+        assert together[v] == label_scores(a, b, [v], spacing)[v]
+        assert 0 < together[v]["dice"] < 1 and together[v]["hd95_mm"] > 0

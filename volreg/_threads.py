@@ -55,17 +55,20 @@ def _concurrent_numba() -> bool:
     return numba.threading_layer() in ("omp", "tbb")
 
 
-def thread_map(func: Callable[[T], R], items: Sequence[T]) -> Generator[R, None, None]:
+def thread_map(func: Callable[[T], R], items: Sequence[T], *, parallel_loops: bool = True) -> Generator[R, None, None]:
     """``map(func, items)`` on ``numba.get_num_threads()`` Python threads (in order).
 
-    For independent jobs whose compiled loops release the GIL (the implicit-surface fits
-    of several labels).  Serial with one numba thread or where numba's threading layer
-    does not allow concurrent parallel loops.  On an exception (a KeyboardInterrupt
-    too) jobs not yet started are cancelled; running ones finish first.  A caller that may
-    stop before the last result calls ``.close()`` on the generator to join the threads.
+    For independent jobs that release the GIL: compiled loops (the implicit-surface fits
+    of several labels), or with ``parallel_loops=False`` library calls that do (scipy's
+    distance transforms, zlib's compression, file writes).  Serial with one numba thread,
+    or, for jobs that run numba's parallel loops (``parallel_loops``, the default), where
+    its threading layer does not allow them concurrently.  On an exception (a
+    KeyboardInterrupt too) jobs not yet started are cancelled; running ones finish first.
+    A caller that may stop before the last result calls ``.close()`` on the generator to
+    join the threads.
     """
     workers = min(numba.get_num_threads(), len(items))
-    if workers <= 1 or not _concurrent_numba():
+    if workers <= 1 or (parallel_loops and not _concurrent_numba()):
         yield from map(func, items)
         return
     pool = ThreadPoolExecutor(max_workers=workers)

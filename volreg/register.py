@@ -790,7 +790,8 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
     from volreg.warp.resample import resample_labels
 
     grid, u, jac, points, warped_array = fields
-    before = resample_labels(moving, grid, method="nearest")
+    # On one grid, nearest neighbour at the fixed voxel centres is the moving array itself.
+    before = moving.array if moving.same_geometry(fixed) else resample_labels(moving, grid, method="nearest")
     labels = sorted(set(fixed.labels().tolist()) | set(moving.labels().tolist()))
     scores_before = label_scores(fixed.array, before, labels, fixed.spacing)
     scores_after = label_scores(fixed.array, warped_array, labels, fixed.spacing)
@@ -864,30 +865,35 @@ def _write_fields(folder, fixed, moving, warp, fields: _FixedGridFields, u_inver
     from volreg.io.report_figure import write_report_figure
 
     paths = {name: folder.path / name for name in REGISTRATION_OUTPUTS}
-    warp.save(paths["model.npz"], force=force)
-    folder.record(paths["model.npz"])
-    write_itk_linear(paths["linear.tfm"], warp.linear, force=force)
-    folder.record(paths["linear.tfm"])
-    write_displacement(fields.displacement, fixed, paths["warp.nii.gz"], force=force)
-    folder.record(paths["warp.nii.gz"])
-    write_displacement(u_inverse, moving, paths["inverse_warp.nii.gz"], force=force)
-    folder.record(paths["inverse_warp.nii.gz"])
-    if itk_h5:
-        write_itk_composite(fields.displacement, fixed, paths["warp.h5"], force=force)
-        folder.record(paths["warp.h5"])
-        write_itk_composite(u_inverse, moving, paths["inverse_warp.h5"], force=force)
-        folder.record(paths["inverse_warp.h5"])
     warped = fields.warped.astype(moving.array.dtype, copy=False)
-    write_labels(fixed.with_array(warped), paths["warped.nii.gz"], force=force)
-    folder.record(paths["warped.nii.gz"])
-    write_scalar(fields.jacobian, fixed, paths["jacobian.nii.gz"], force=force)
-    folder.record(paths["jacobian.nii.gz"])
     u_index = (fields.displacement @ fixed.direction) / fixed.spacing  # LPS mm -> index units of the fixed grid
-    write_report_figure(paths["report.png"], fixed.array, moving.array, fields.warped, u_index,
-                        fixed_spacing=fixed.spacing, moving_spacing=moving.spacing, force=force,
-                        title=f"volreg register: mean Dice {report['mean_dice']['before']:.3f} -> "
-                        f"{report['mean_dice']['after']:.3f}")
-    folder.record(paths["report.png"])
+    title = (f"volreg register: mean Dice {report['mean_dice']['before']:.3f} -> "
+             f"{report['mean_dice']['after']:.3f}")
+    def output(name: str, writer: Callable[[Path], None]) -> Callable[[], None]:
+        def job() -> None:
+            writer(paths[name])
+            folder.record(paths[name])  # once complete: a failed run removes it
+        return job
+
+    h5 = [output("warp.h5", lambda p: write_itk_composite(fields.displacement, fixed, p, force=force)),
+          output("inverse_warp.h5", lambda p: write_itk_composite(u_inverse, moving, p, force=force))]
+    # Largest first. The files are independent, and compressing and writing them release the
+    # GIL: on two threads the 1 mm phantom's outputs took 4.0 s instead of 7.5 s.
+    jobs = [
+        output("warp.nii.gz", lambda p: write_displacement(fields.displacement, fixed, p, force=force)),
+        output("inverse_warp.nii.gz", lambda p: write_displacement(u_inverse, moving, p, force=force)),
+        # The two HDF5 files in one job, one after the other: ITK's HDF5 library may not be thread-safe.
+        *([lambda: [job() for job in h5]] if itk_h5 else []),
+        output("jacobian.nii.gz", lambda p: write_scalar(fields.jacobian, fixed, p, force=force)),
+        output("warped.nii.gz", lambda p: write_labels(fixed.with_array(warped), p, force=force)),
+        output("report.png", lambda p: write_report_figure(p, fixed.array, moving.array, fields.warped, u_index,
+                                                           fixed_spacing=fixed.spacing,
+                                                           moving_spacing=moving.spacing, force=force, title=title)),
+        output("model.npz", lambda p: warp.save(p, force=force)),
+        output("linear.tfm", lambda p: write_itk_linear(p, warp.linear, force=force)),
+    ]
+    for _ in thread_map(lambda job: job(), jobs, parallel_loops=False):
+        pass
 
 
 def _register_and_write(fixed, moving, outdir, *, protocol, drive_labels, landmarks, force, inputs, truth, prior,

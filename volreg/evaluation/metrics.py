@@ -67,12 +67,13 @@ def label_scores(reference: np.ndarray, other: np.ndarray, labels, spacing: np.n
     """
     if np.shape(reference) != np.shape(other):
         raise ValueError(f"Expected `other` of shape {np.shape(reference)}, got {np.shape(other)}.")
+    from volreg._threads import thread_map
     from volreg.grid import label_boxes
 
     reference, other = np.asarray(reference), np.asarray(other)
     boxes = (label_boxes(reference), label_boxes(other))
-    out = {}
-    for v in labels:
+
+    def score(v) -> dict[str, float]:
         # Within the union of the label's boxes in both, padded by a voxel: outside it neither
         # has the label, so Dice and the boundaries are those of the whole arrays.
         present = [b[int(v)] for b in boxes if int(v) in b]
@@ -86,8 +87,12 @@ def label_scores(reference: np.ndarray, other: np.ndarray, labels, spacing: np.n
         a = reference[window] == v
         b = other[window] == v
         mean, hd95 = surface_distances(a, b, spacing)
-        out[int(v)] = {"dice": dice(a, b), "mean_surface_distance_mm": mean, "hd95_mm": hd95}
-    return out
+        return {"dice": dice(a, b), "mean_surface_distance_mm": mean, "hd95_mm": hd95}
+
+    # Labels on parallel threads: the distance transforms release the GIL (the 1 mm phantom's
+    # two labels took half the time on two threads).
+    labels = [int(v) for v in labels]
+    return dict(zip(labels, thread_map(score, labels, parallel_loops=False)))
 
 
 def folded_fraction(det: np.ndarray, mask: np.ndarray | None = None) -> float:

@@ -278,16 +278,29 @@ def label_surfaces(
         raise ValueError(f"Expected `on_small` in ('error', 'warn'), got {on_small!r}.")
     boxes = volume.label_boxes()
     labels = sorted(boxes) if labels is None else [int(v) for v in labels]
-    out: dict[int, Surface] = {}
-    for i, lab in enumerate(labels):
+
+    def extract(lab: int) -> Surface | SurfaceError:
         try:
-            out[lab] = label_surface(volume, lab, smoothing=smoothing, min_voxels=min_voxels, box=boxes.get(lab))
+            return label_surface(volume, lab, smoothing=smoothing, min_voxels=min_voxels, box=boxes.get(lab))
         except SurfaceError as err:
-            if on_small == "error":
-                raise
-            warnings.warn(f"Skipping label {lab}: {err}", stacklevel=2)
-        if progress is not None:
-            progress("extract surfaces", i + 1, len(labels))
+            return err
+
+    # Labels on parallel threads (the blur, marching cubes and the curvature's interpolation
+    # release the GIL); errors and warnings are raised here, in the labels' order.
+    out: dict[int, Surface] = {}
+    results = thread_map(extract, labels, parallel_loops=False)
+    try:
+        for i, (lab, result) in enumerate(zip(labels, results)):
+            if isinstance(result, SurfaceError):
+                if on_small == "error":
+                    raise result
+                warnings.warn(f"Skipping label {lab}: {result}", stacklevel=2)
+            else:
+                out[lab] = result
+            if progress is not None:
+                progress("extract surfaces", i + 1, len(labels))
+    finally:
+        results.close()  # joins the threads, also on an error or an interrupt
     return out
 
 

@@ -8,10 +8,13 @@ geometry.  Points outside the image get the background (0).
 Label interpolation
 -------------------
 ``"label"`` (the default for labels): for each label, a signed distance map
-(mm, negative inside, Euclidean distance transform of the mask and of its
-complement, ``scipy.ndimage.distance_transform_edt``) is interpolated
+(mm, negative inside: :func:`signed_distance_map`, the Euclidean distance
+transform of the mask and of its complement) is interpolated
 linearly at the points; a point takes the label whose distance is most
-negative, and the background where every distance is positive.  The boundary
+negative, and the background where every distance is positive.  (Only points
+whose 2^D interpolation voxels hold two values or more need the maps, and there
+only distances up to one voxel diagonal: the maps are computed clipped to that,
+which leaves every comparison as it was.)  The boundary
 then runs half-way between voxel centres of different labels and moves
 smoothly with the warp, instead of the staircase of nearest neighbour; only
 label values present in the input can come out, in the input's dtype, and at
@@ -27,6 +30,7 @@ from typing import Callable, Literal
 import numpy as np
 from scipy import ndimage
 
+from volreg.features.distance_maps import clipped_signed_distance
 from volreg.grid import Grid, GridLike, LabelVolume, as_grid
 
 __all__ = ["resample_labels", "resample_image", "signed_distance_map"]
@@ -163,6 +167,12 @@ def resample_labels(
     # With many labels, the points sorted by their first index: each label's candidates
     # are then one slab of them, and small labels do not each scan every point (500 labels at
     # 1.5 mm: 14 s instead of 29 s). With few labels the sort would cost more than it saves.
+    # Those points' interpolation voxels lie within one voxel diagonal of a voxel of another
+    # value: the distances of a label that one of them holds are at most that long at all of
+    # them, and a label none of them holds is positive at all of them. Distances clipped to
+    # the diagonal (a little more, for rounding) therefore give the same labels as the full
+    # maps, near the boundaries only (the 1 mm phantom's two labels: 0.4 s instead of 2.2 s).
+    diagonal = 1.001 * float(np.linalg.norm(image.spacing))
     if len(labels) > 8:
         slab_order = slab_order[np.argsort(index[slab_order, 0], kind="stable")]
         slab_key = index[slab_order, 0]
@@ -179,7 +189,7 @@ def resample_labels(
         near = near[np.all((index[near] > lo - 1) & (index[near] < hi), axis=1)]
         if near.size:
             crop = array[tuple(slice(a, b) for a, b in zip(lo, hi))]
-            sdf = signed_distance_map(crop == value, image.spacing)
+            sdf = clipped_signed_distance(crop == value, image.spacing, diagonal)
             at = (index[near] - lo).T
             d = ndimage.map_coordinates(sdf, at, order=1, mode="nearest")
             win = d < best[near]
