@@ -403,8 +403,9 @@ def _distance_map(volume, label: int, box: tuple, factors: np.ndarray, margin_mm
 class _MapBank:
     """Distance maps of several labels of one volume, sampled together.
 
-    Every map is one block of a flat ``(cells, D + 1)`` array; a sample names its
-    map by position.  Values are multilinear interpolants of the distance and of
+    Every map is a ``(cells, D + 1)`` block of its own (the maps as made, not copied
+    into one array: on a 1 mm brain-size volume each is hundreds of MB); a sample names
+    its map by position.  Values are multilinear interpolants of the distance and of
     its (central-difference) gradient; beyond a map's box the distance continues
     as ``d(q) + |p - q|`` (``q`` the nearest point of the box), a lower bound that
     keeps pulling stray points back.
@@ -414,17 +415,13 @@ class _MapBank:
         d = volume.ndim
         self.volume = volume
         self.dim = d
-        blocks, offsets, shapes, origins, steps = [], [], [], [], []
-        total = 0
+        blocks, shapes, origins, steps = [], [], [], []
         for origin, step, values in entries:
             blocks.append(values.reshape(-1, d + 1))
-            offsets.append(total)
             shapes.append(values.shape[:d])
             origins.append(origin)
             steps.append(step)
-            total += blocks[-1].shape[0]
-        self.flat = np.concatenate(blocks) if blocks else np.zeros((0, d + 1))
-        self.offsets = np.array(offsets, dtype=np.int64)
+        self.blocks = blocks
         self.shapes = np.array(shapes, dtype=np.int64).reshape(-1, d)
         self.strides = np.ones_like(self.shapes)
         for a in range(d - 2, -1, -1):
@@ -439,26 +436,34 @@ class _MapBank:
         inv_f = 1.0 / self.factors[which]
         top = (self.shapes[which] - 1).astype(float)
         strides = self.strides[which]
+        groups = [(m, np.flatnonzero(which == m)) for m in np.unique(which)]
         return (inv_f, self.origins[which] * inv_f, top, np.maximum(top - 1.0, 0.0), self.steps[which],
-                self.offsets[which], strides, strides @ self.corners.T)
+                groups, strides, strides @ self.corners.T)
 
     def sample(self, lookup: tuple, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distances (N,) mm and world gradients (N, D) at ``points`` (N, D) mm, of the maps
         whose :meth:`lookup` is ``lookup``."""
-        inv_f, shift, top, top1, step, offsets, strides, corner_offsets = lookup
+        inv_f, shift, top, top1, step, groups, strides, corner_offsets = lookup
         idx = self.volume.world_to_index(points) * inv_f - shift
         q = np.clip(idx, 0.0, top)
         excess = (idx - q) * step  # mm along the grid axes
         i0 = np.minimum(np.floor(q), top1)
         t = q - i0
-        base = offsets + np.einsum("ij,ij->i", i0.astype(np.int64), strides)
+        base = np.einsum("ij,ij->i", i0.astype(np.int64), strides)
         weights = np.stack([1.0 - t, t], axis=0)  # (2, N, D)
-        acc = np.zeros((len(points), self.dim + 1))
-        for k, corner in enumerate(self.corners):
+        corner_w = []
+        for corner in self.corners:
             w = weights[corner[0], :, 0]
             for a in range(1, self.dim):
                 w = w * weights[corner[a], :, a]
-            acc += w[:, None] * np.take(self.flat, base + corner_offsets[:, k], axis=0)
+            corner_w.append(w)
+        acc = np.empty((len(points), self.dim + 1))
+        for m, rows in groups:  # the samples of each map from its own block, corners in order
+            block, b, co = self.blocks[m], base[rows], corner_offsets[rows]
+            part = np.zeros((len(rows), self.dim + 1))
+            for k in range(len(self.corners)):
+                part += corner_w[k][rows, None] * np.take(block, b + co[:, k], axis=0)
+            acc[rows] = part
         dist, grad = acc[:, 0], acc[:, 1:]
         out = np.sqrt(np.einsum("ij,ij->i", excess, excess))
         far = out > 0
