@@ -324,3 +324,28 @@ def test_a_volume_filled_by_one_label_gives_the_identity():
     fit = fit_linear(fixed, LabelVolume(moving_a, **grid), kind="affine")
     assert fit.map.is_identity and "no label boundary" in fit.log["start_candidate"]
     json.dumps(fit.log)
+
+
+def test_a_bank_of_maps_samples_each_map_as_a_bank_of_it_alone():
+    """Samples of several labels' distance maps, read from each map's own block, equal those of
+    one-map banks bit for bit (interpolated inside a map's box, continued beyond it)."""
+    from volreg.warp.linear import _distance_map, _MapBank
+
+    rng = np.random.default_rng(5)
+    array = np.zeros((30, 26, 22), dtype=np.int16)
+    array[4:14, 5:20, 3:12] = 1
+    array[15:27, 8:18, 10:20] = 2
+    volume = LabelVolume(array, np.array([3.0, -7.0, 11.0]), np.array([1.0, 1.5, 2.0]), rotation(20.0, (1, 2, 3)))
+    boxes = volume.label_boxes()
+    entries = [_distance_map(volume, v, boxes[v], np.array(f), 4.0) for v, f in ((1, (1, 1, 1)), (2, (2, 1, 1)))]
+    both = _MapBank(volume, entries)
+    which = rng.integers(0, 2, 400)
+    lo, hi = volume.index_to_world(np.zeros((1, 3))), volume.index_to_world(np.array([array.shape]) - 1.0)
+    points = rng.uniform(np.minimum(lo, hi) - 8.0, np.maximum(lo, hi) + 8.0, (400, 3))
+    dist, grad = both.sample(both.lookup(which), points)
+    for m in (0, 1):
+        alone = _MapBank(volume, [entries[m]])
+        rows = which == m
+        d1, g1 = alone.sample(alone.lookup(np.zeros(int(rows.sum()), dtype=np.int64)), points[rows])
+        assert np.array_equal(dist[rows], d1) and np.array_equal(grad[rows], g1)
+    assert np.all(np.isfinite(dist)) and dist.min() < 0 < dist.max()  # inside and outside samples
