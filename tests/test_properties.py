@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -181,3 +182,22 @@ def test_label_scores_within_label_boxes_equal_the_whole_arrays():
         mean, hd95 = surface_distances(a, b, spacing)
         assert scores[v]["dice"] == dice(a, b)
         np.testing.assert_array_equal([scores[v]["mean_surface_distance_mm"], scores[v]["hd95_mm"]], [mean, hd95])
+
+
+@pytest.mark.parametrize("spacing", [(1.0, 1.0, 1.0), (0.8, 1.5, 2.5)])
+def test_boundary_distances_by_trees_equal_those_by_distance_transforms(spacing):
+    from volreg.evaluation.metrics import _boundary, _boundary_distances
+
+    rng = np.random.default_rng(3)
+    a = np.zeros((40, 36, 30), dtype=bool)
+    b = np.zeros_like(a)
+    a[5:25, 6:30, 4:20] = True
+    b[8:30, 4:26, 9:27] = True
+    b &= rng.random(b.shape) > 0.05  # ragged, with holes
+    ba, bb = _boundary(a), _boundary(b)
+    spacing = np.array(spacing)
+    by_edt = _boundary_distances(ba, bb, spacing, tree=False)
+    by_tree = _boundary_distances(ba, bb, spacing, tree=True)
+    for e, t in zip(by_edt, by_tree):
+        assert len(e) == len(t) > 100 and e.max() > 2 * spacing.max()
+        np.testing.assert_allclose(t, e, rtol=1e-12, atol=1e-12)

@@ -125,3 +125,4 @@ def test_label_scores_on_threads_equal_one_label_at_a_time():
     for v in (1, 2, 3):
         assert together[v] == label_scores(a, b, [v], spacing)[v]
         assert 0 < together[v]["dice"] < 1 and together[v]["hd95_mm"] > 0
+

@@ -3,7 +3,8 @@
 Dice per label; mean symmetric surface distance and the 95th-percentile
 Hausdorff distance (the larger of the two directed 95th percentiles of
 boundary-voxel distances, as MONAI's ``compute_hausdorff_distance``), both in
-mm using the voxel spacing; the folded fraction of a Jacobian-determinant map.
+mm using the voxel spacing (nearest boundary voxels by k-d trees or distance
+transforms, the same distances); the folded fraction of a Jacobian-determinant map.
 """
 
 from __future__ import annotations
@@ -28,6 +29,31 @@ def _boundary(mask: np.ndarray) -> np.ndarray:
     return mask & ~eroded
 
 
+#: Below this fraction of the window's voxels on the two boundaries, nearest boundary voxels are
+#: found by k-d trees instead of distance transforms of the whole window. Label scores before
+#: and after a registration, trees against transforms, the same figures: the 32 M voxel frog's
+#: 25 labels 1.4 s against 14.1 s, the 1 mm phantom's grey shell and core 0.9 s against 1.6 s,
+#: 100 parcels 0.3 s against 0.55 s. Transforms remain for boundaries that fill much of their
+#: window (a speckled label), where a tree of every voxel would cost more.
+_TREE_FRACTION = 0.5
+
+
+def _boundary_distances(ba: np.ndarray, bb: np.ndarray, spacing: np.ndarray,
+                        tree: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Distances (mm) from each voxel of ``ba`` to the nearest of ``bb``, and from ``bb`` to ``ba``
+    (both non-empty), between voxel centres: by k-d trees of the boundary voxels or by distance
+    transforms of the window (``tree``: which; default by :data:`_TREE_FRACTION`)."""
+    if tree is None:
+        tree = np.count_nonzero(ba) + np.count_nonzero(bb) < _TREE_FRACTION * ba.size
+    if not tree:
+        return (ndimage.distance_transform_edt(~bb, sampling=spacing)[ba],
+                ndimage.distance_transform_edt(~ba, sampling=spacing)[bb])
+    from scipy.spatial import cKDTree
+
+    pa, pb = np.argwhere(ba) * spacing, np.argwhere(bb) * spacing
+    return cKDTree(pb).query(pa)[0], cKDTree(pa).query(pb)[0]
+
+
 def surface_distances(a: np.ndarray, b: np.ndarray, spacing: np.ndarray) -> tuple[float, float]:
     """Mean symmetric surface distance and 95 % Hausdorff distance between two masks, mm.
 
@@ -50,8 +76,7 @@ def surface_distances(a: np.ndarray, b: np.ndarray, spacing: np.ndarray) -> tupl
     window = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in box)
     a, b = a[window], b[window]
     ba, bb = _boundary(a), _boundary(b)
-    to_b = ndimage.distance_transform_edt(~bb, sampling=spacing)[ba]
-    to_a = ndimage.distance_transform_edt(~ba, sampling=spacing)[bb]
+    to_b, to_a = _boundary_distances(ba, bb, spacing)
     mean = float((to_b.sum() + to_a.sum()) / (len(to_b) + len(to_a)))
     hd95 = float(max(np.percentile(to_b, 95), np.percentile(to_a, 95)))
     return mean, hd95
