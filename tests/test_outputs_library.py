@@ -153,6 +153,13 @@ def test_write_registration_writes_every_output_and_prints_nothing(small_pair, t
     assert [s["stage"] for s in report["stages"]][-4:] == ["resample", "inverse", "metrics", "write"]
     assert len(fitted) == 1 and isinstance(fitted[0], LabelRegistration)
     assert report["levels"] == fitted[0].log
+    # The report's |u| figures are those of the field written (float32 there).
+    from volreg.io.fields import read_displacement
+
+    u, _ = read_displacement(tmp_path / "out" / "warp.nii.gz")
+    size = np.linalg.norm(u, axis=-1)
+    assert report["displacement_mm"]["max"] == pytest.approx(size.max(), abs=1e-4) and size.max() > 0
+    assert report["displacement_mm"]["mean_in_labels"] == pytest.approx(size[a.array != 0].mean(), abs=1e-4)
     assert capsys.readouterr() == ("", "")
 
 
