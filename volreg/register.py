@@ -870,6 +870,7 @@ def _write_fields(folder, fixed, moving, warp, fields: _FixedGridFields, u_inver
     u_index = (fields.displacement @ fixed.direction) / fixed.spacing  # LPS mm -> index units of the fixed grid
     title = (f"volreg register: mean Dice {report['mean_dice']['before']:.3f} -> "
              f"{report['mean_dice']['after']:.3f}")
+
     def output(name: str, writer: Callable[[Path], None]) -> Callable[[], None]:
         def job() -> None:
             writer(paths[name])

@@ -164,15 +164,15 @@ def resample_labels(
     # negative at every corner, every other label's positive (the background: all positive). Only
     # the other points, near a boundary, need the distance maps below.
     slab_order = _mixed_stencils(array, index, np.flatnonzero(valid), out)
-    # With many labels, the points sorted by their first index: each label's candidates
-    # are then one slab of them, and small labels do not each scan every point (500 labels at
-    # 1.5 mm: 14 s instead of 29 s). With few labels the sort would cost more than it saves.
     # Those points' interpolation voxels lie within one voxel diagonal of a voxel of another
     # value: the distances of a label that one of them holds are at most that long at all of
     # them, and a label none of them holds is positive at all of them. Distances clipped to
     # the diagonal (a little more, for rounding) therefore give the same labels as the full
-    # maps, near the boundaries only (the 1 mm phantom's two labels: 0.4 s instead of 2.2 s).
+    # maps, near the boundaries only (the 1 mm phantom's two labels: 0.17 s instead of 2.3 s).
     diagonal = 1.001 * float(np.linalg.norm(image.spacing))
+    # With many labels, the points sorted by their first index: each label's candidates
+    # are then one slab of them, and small labels do not each scan every point (500 labels at
+    # 1.5 mm: 14 s instead of 29 s). With few labels the sort would cost more than it saves.
     if len(labels) > 8:
         slab_order = slab_order[np.argsort(index[slab_order, 0], kind="stable")]
         slab_key = index[slab_order, 0]
