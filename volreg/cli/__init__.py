@@ -45,6 +45,12 @@ PRELOAD = ("numpy", "scipy.ndimage", "scipy.optimize", "scipy.sparse", "numba", 
            "volreg.progress", "volreg.register")
 
 
+#: The commands that register label volumes: on a first run a helper process compiles their loops
+#: alongside the command (:mod:`volreg._precompile`); for ``batch``, alongside the local cluster's
+#: workers (not beside a remote ``--scheduler``, whose workers have caches of their own).
+COMPILE_AHEAD = ("register", "consistency", "tune", "demo", "batch")
+
+
 def _hold_signals():
     """Block SIGINT and SIGTERM (main thread); return the previous mask, or None where nothing was held."""
     if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
@@ -207,8 +213,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     filters = warnings.catch_warnings()
     filters.__enter__()
     warnings.simplefilter("always", VolregWarning)  # shown (one line each) whatever the global filters say
+    helper = None
     try:
         _release_signals(held)
+        if args.command in COMPILE_AHEAD and not getattr(args, "scheduler", None):
+            from volreg import _precompile
+
+            helper = _precompile.start()
         output = getattr(args, "output", None)
         if output is not None and ".." in Path(output).parts:
             raise UsageError(
@@ -248,6 +259,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _interrupted(args.command, _signalled[0])
         raise
     finally:
+        if helper is not None:
+            from volreg import _precompile
+
+            _precompile.stop(helper)
         filters.__exit__(None, None, None)
         warnings.showwarning = show
         if previous is not None:

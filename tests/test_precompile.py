@@ -1,0 +1,133 @@
+"""The helper process that compiles a first run's loops alongside the command (``volreg._precompile``)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import numba
+import pytest
+
+from volreg import _precompile
+from volreg._precompile import LOOPS, argument_types
+from volreg.io import write_labels
+from volreg.synthetic import GaussianBumps, deform_labels
+
+from test_register import blob_volume
+
+#: Run in a fresh interpreter: register a small pair with the default protocol, then print every
+#: signature that any of volreg's compiled loops holds (the cache is warm or not: loaded
+#: signatures count as well as compiled ones).  The small pair's implicit fits take their
+#: residuals one query at a time; on larger surfaces (the frog) they come in blocks of nearby
+#: queries, which one scalar kernel sum on a grid stands for here.
+_CALLED = """
+import json, sys
+import numpy as np
+from numba.core.registry import CPUDispatcher
+from volreg.cli import main
+from volreg.kernels.sums import kernel_sum
+status = main(["register", sys.argv[1], sys.argv[2], "-o", sys.argv[3], "--quiet"])
+axes = [np.linspace(0.0, 20.0, 30), np.linspace(0.0, 20.0, 30), np.linspace(0.0, 2.0, 30)]
+grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # rows within a block's width
+centres = np.ascontiguousarray(grid[::7])
+kernel_sum(grid, centres, np.ones((len(centres), 1)), 6.0, order=1)
+called = []
+for name, module in sorted(sys.modules.items()):
+    if name.startswith("volreg"):
+        for attr, obj in sorted(vars(module).items()):
+            if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == name:
+                called += [[name, attr, [str(t) for t in sig]] for sig in obj.signatures]
+print(json.dumps({"status": status, "called": called}))
+"""
+
+
+def _env(**extra) -> dict:
+    env = dict(os.environ)
+    env.update(extra)
+    return env
+
+
+def test_loops_are_exactly_those_a_registration_calls(tmp_path):
+    fixed = blob_volume()
+    inside = fixed.grid_points().reshape(-1, 3)[fixed.array.ravel() > 0]
+    truth = GaussianBumps.random(inside.min(0), inside.max(0), max_displacement=4.5, scale=14.0, count=5,
+                                 rng=np.random.default_rng(3))
+    moving = deform_labels(fixed, truth)
+    write_labels(fixed, tmp_path / "fixed.nii.gz")
+    write_labels(moving, tmp_path / "moving.nii.gz")
+    proc = subprocess.run([sys.executable, "-c", _CALLED, str(tmp_path / "fixed.nii.gz"),
+                           str(tmp_path / "moving.nii.gz"), str(tmp_path / "out")],
+                          capture_output=True, text=True, timeout=600, env=_env(VOLREG_COMPILE_AHEAD="0"))
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["status"] == 0
+    called = {(m, f, tuple(sig)) for m, f, sig in result["called"]}
+    listed = {(m, f, tuple(str(t) for t in argument_types(spec))) for m, f, spec in LOOPS}
+    assert listed == called
+    assert len(listed) == len(LOOPS)  # no entry twice
+
+
+def test_argument_types_are_those_numba_infers():
+    a = np.zeros((3, 4))
+    readonly = np.zeros((2, 2), np.float32)
+    readonly.flags.writeable = False
+    types = argument_types("float64[2] ro:float32[2] int64 float64 bool[3] int32[1]")
+    assert types == (numba.typeof(a), numba.typeof(readonly), numba.typeof(np.int64(1)), numba.typeof(1.0),
+                     numba.typeof(np.zeros((1, 1, 1), bool)), numba.typeof(np.zeros(2, np.int32)))
+    for bad in ("float16[2]", "ro:int64", "float64[5]", "float64 [2]x"):
+        with pytest.raises(ValueError, match="argument type"):
+            argument_types(bad)
+
+
+def _cold_in(cache: Path) -> list[int]:
+    code = "import json; from volreg import _precompile; print(json.dumps(_precompile.cold_loops()))"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          env=_env(NUMBA_CACHE_DIR=str(cache)))
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)
+
+
+def _index(module: str, name: str) -> int:
+    return next(i for i, (m, f, _) in enumerate(LOOPS) if (m, f) == (module, name))
+
+
+def test_helper_compiles_into_the_cache_that_the_next_process_reads(tmp_path):
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    assert _cold_in(cache) == list(range(len(LOOPS)))
+    chosen = [_index("volreg.kernels._compiled", "take_rows"), _index("volreg.kernels._compiled", "put_rows")]
+    proc = subprocess.run([sys.executable, "-m", "volreg._precompile", *map(str, chosen)], timeout=300,
+                          env=_env(NUMBA_CACHE_DIR=str(cache)))
+    assert proc.returncode == 0
+    assert _cold_in(cache) == [i for i in range(len(LOOPS)) if i not in chosen]
+
+
+def test_stopped_helper_ends_promptly_and_leaves_no_partial_file(tmp_path):
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    helper = subprocess.Popen([sys.executable, "-m", "volreg._precompile", *map(str, range(len(LOOPS)))],
+                              env=_env(NUMBA_CACHE_DIR=str(cache)), stderr=subprocess.PIPE)
+    time.sleep(4.0)  # imported, and compiling
+    assert helper.poll() is None
+    t0 = time.perf_counter()
+    _precompile.stop(helper)
+    assert time.perf_counter() - t0 < 10.0
+    assert helper.returncode == 0
+    with helper.stderr:
+        assert helper.stderr.read() == b""
+    assert not [p for p in cache.rglob("*") if ".tmp." in p.name]
+
+
+def test_no_helper_when_turned_off_or_warm(monkeypatch):
+    monkeypatch.setenv("VOLREG_COMPILE_AHEAD", "0")
+    assert _precompile.start() is None
+    monkeypatch.delenv("VOLREG_COMPILE_AHEAD")
+    for i, (_, _, spec) in enumerate(LOOPS):  # this process's cache now holds them all
+        _precompile._dispatcher(i).compile(argument_types(spec))
+    assert _precompile.cold_loops() == []
+    assert _precompile.start() is None

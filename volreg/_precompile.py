@@ -1,0 +1,220 @@
+"""Compile the loops of a first run on both ends at once: the command, and a helper process.
+
+On a fresh install numba compiles volreg's loops the first time each is called and caches
+them on disk (:mod:`volreg._jit`); a registration calls about twenty, and compiling them took
+about 26 s of the frog demo's first run on one core.  Compiling is pure Python and holds the
+GIL, so threads cannot share it, but processes can share numba's on-disk cache: a command that
+registers volumes starts one helper process (:func:`start`) that compiles the loops of
+:data:`LOOPS` in reverse order (the last-needed first) into the cache, while the command goes
+on and compiles the first-needed ones itself.  When the command reaches a loop the helper has
+cached, numba loads it instead of compiling it.  The two meet in the middle; the helper is
+stopped when the command ends (:func:`stop`), and what it cached stays for the next run.
+
+The helper is started only where the cache can be written and at least two of these loops
+are not cached yet, so a warm run costs only the check (a few small index reads).
+``VOLREG_COMPILE_AHEAD=0`` turns it off.  Results do not depend on it: a loop loaded from the
+cache is the one the next (warm) run uses anyway.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import re
+import signal
+import subprocess
+import sys
+
+__all__ = ["LOOPS", "start", "stop", "cold_loops"]
+
+#: The compiled loops of a 3-D label-volume registration (``register``, ``consistency``,
+#: ``tune``), in the order a run first calls them, with the argument types it calls them with:
+#: ``float64[2]`` a C-contiguous 2-D float64 array, ``ro:`` a read-only one, a bare name a
+#: scalar.  ``tests/test_precompile.py`` checks that a registration calls each with exactly these.
+LOOPS = (
+    ("volreg._threads", "_touch", "int64"),
+    ("volreg.kernels._compiled", "_cell_sort", "float64[2] float64[1] float64 int64[1]"),
+    ("volreg.kernels._compiled", "_grid_pairs",
+     "float64[2] float64[2] int64[1] int32[1] float64[1] float64 int64[1] int64 float64 int64[1] int64[1] "
+     "float64[1] bool"),
+    ("volreg.features.implicit", "_svr_coordinate_descent",
+     "int32[1] int32[1] float32[1] float64[1] float64[1] float64 float64 float64[1] float64[1] int64 float64"),
+    ("volreg.kernels._compiled", "_query_blocks", "float64[2] float64 int64"),
+    ("volreg.kernels._compiled", "_searched_sum",
+     "float64[2] float64[1] float64[1] float64[1] float64[1] int32[1] float64[1] float64 int64[1] int64 float64 "
+     "float64[2] float64[3]"),
+    ("volreg.kernels._compiled", "_blocked_sum",
+     "float64[2] int64[1] float64[1] float64[1] float64[1] float64[2] int32[1] float64[1] float64 int64[1] float64 "
+     "float64[2] float64[3]"),
+    ("volreg.features.distance_maps", "_clipped_sdf_band", "bool[3] bool[3] int64[2] float32[1] float32 float32[3]"),
+    ("volreg.features.distance_maps", "_bspline3", "float32[3] float64[2] int64 float64[1] float64[2] float64[3]"),
+    ("volreg.kernels._compiled", "_segmented_sums",
+     "float64[2] int64[1] int64[1] int64[1] int64[1] float64[1] float64[1] float64[1] float64[1] int32[1] "
+     "float64[2] float64[1] int64[2] float64[1] int64 int64 float64[2] float64[3] float64[4]"),
+    ("volreg.features.distance_maps", "_bspline3_segments",
+     "float32[1] int64[1] int64[2] int64[1] float64[2] int64 float64[1] float64[2] float64[3]"),
+    ("volreg.kernels._compiled", "_csr_matmul_shared", "int32[1] int32[1] float64[2] float64[2]"),
+    ("volreg.features.batch", "_congruence", "float64[3] ro:float64[2]"),
+    ("volreg.kernels._compiled", "_csr_matmul_shared_sum", "int32[1] int32[1] float64[2] float64[3]"),
+    ("volreg.kernels._compiled", "_blocked_sum_vector",
+     "float64[2] int64[1] float64[1] float64[1] float64[1] float64[2] int32[1] float64[1] float64 int64[1] float64 "
+     "float64[2] float64[3]"),
+    ("volreg.kernels._compiled", "_strict_sum",
+     "float64[2] float64[2] float64[2] int32[1] float64[1] float64 int64[1] int64 float64 int64 float64[2] "
+     "float64[3] float64[4]"),
+    ("volreg.kernels._compiled", "take_rows", "float64[2] int64[1]"),
+    ("volreg.kernels._compiled", "_cell_sort", "ro:float64[2] float64[1] float64 int64[1]"),
+    ("volreg.kernels._compiled", "put_rows", "float64[2] int64[1]"),
+    ("volreg.warp.inverse", "_grid_fixed_point",
+     "float64[4] float64[2] float64[1] float64[2] float64[1] float64[2] int64 float64 float64[2]"),
+    ("volreg.warp.inverse", "_newton_steps", "float64[3] float64[2] float64 float64[2] float64[2]"),
+)
+
+_WORD = re.compile(r"(ro:)?(bool|int32|int64|float32|float64)(?:\[([1-4])\])?")
+
+
+def argument_types(spec: str) -> tuple:
+    """The numba argument types that a :data:`LOOPS` entry's text names.
+
+    Parameters
+    ----------
+    spec : str
+        Space-separated words: ``float64`` (a scalar), ``float64[2]`` (a C-contiguous 2-D
+        array), ``ro:float64[2]`` (the same, read-only); dtypes bool, int32, int64, float32,
+        float64.
+
+    Returns
+    -------
+    tuple of numba types
+    """
+    from numba.core import types
+
+    dtypes = {"bool": types.boolean, "int32": types.int32, "int64": types.int64,
+              "float32": types.float32, "float64": types.float64}
+    out = []
+    for word in spec.split():
+        match = _WORD.fullmatch(word)
+        if match is None:
+            raise ValueError(f"argument type `{word}`: expected e.g. float64, float64[2] or ro:float64[2]")
+        readonly, name, ndim = match.groups()
+        if ndim is None:
+            if readonly:
+                raise ValueError(f"argument type `{word}`: only arrays can be read-only")
+            out.append(dtypes[name])
+        else:
+            out.append(types.Array(dtypes[name], int(ndim), "C", readonly=bool(readonly)))
+    return tuple(out)
+
+
+def _dispatcher(index: int):
+    module, name, _ = LOOPS[index]
+    return getattr(importlib.import_module(module), name)
+
+
+def cold_loops() -> list[int] | None:
+    """The indices into :data:`LOOPS` of the loops not in numba's on-disk cache yet.
+
+    Returns
+    -------
+    list of int, or None
+        None where this cannot be told (no cache, or a numba whose cache is laid out
+        differently): nothing is then compiled ahead.
+    """
+    from volreg._jit import cache_location
+
+    if cache_location() is None:
+        return None
+    cold = []
+    indexes: dict = {}
+    try:
+        for i, (_, _, spec) in enumerate(LOOPS):
+            dispatcher = _dispatcher(i)
+            cache = dispatcher._cache
+            if id(dispatcher) not in indexes:
+                indexes[id(dispatcher)] = cache._cache_file._load_index()
+            key = cache._index_key(argument_types(spec), dispatcher.targetctx.codegen())
+            if key not in indexes[id(dispatcher)]:
+                cold.append(i)
+    except Exception:  # numba's cache internals changed: compile as before, in the command alone
+        return None
+    return cold
+
+
+def start() -> subprocess.Popen | None:
+    """Start the helper process that compiles the cold loops into the cache, last-needed first.
+
+    Returns
+    -------
+    subprocess.Popen or None
+        The helper, to be passed to :func:`stop`; None where none was started (turned off by
+        ``VOLREG_COMPILE_AHEAD=0``, no cache, fewer than two loops cold, or no process could be
+        started).
+    """
+    if os.environ.get("VOLREG_COMPILE_AHEAD", "1").strip() == "0":
+        return None
+    cold = cold_loops()
+    if cold is None or len(cold) < 2:
+        return None
+    command = [sys.executable, "-m", "volreg._precompile", *(str(i) for i in reversed(cold))]
+    try:
+        return subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, close_fds=True)
+    except OSError:
+        return None
+
+
+def stop(helper: subprocess.Popen | None) -> None:
+    """Stop the helper if it still runs (what it cached stays); wait until it has ended."""
+    if helper is None or helper.poll() is not None:
+        return
+    try:
+        helper.terminate()
+        helper.wait(timeout=10)
+    except (subprocess.TimeoutExpired, KeyboardInterrupt):  # a step that ignores SIGTERM; a second Ctrl-C
+        helper.kill()
+        helper.wait()
+    except ProcessLookupError:  # pragma: no cover - ended meanwhile
+        pass
+
+
+class _Stopped(Exception):
+    """SIGTERM in the helper; an Exception (not BaseException) so that numba's cache writer,
+    interrupted while writing, removes its temporary file."""
+
+
+_stopping: list[bool] = []
+
+
+def _on_sigterm(signum, frame) -> None:
+    _stopping.append(True)
+    raise _Stopped
+
+
+def _main(argv: list[str]) -> int:
+    """The helper: compile the :data:`LOOPS` entries whose indices ``argv`` gives, in that order.
+
+    SIGTERM stops it: at once where Python runs, else (inside a ctypes callback of LLVM, where
+    the exception is only reported) after the loop being compiled.  Exit status 0 either way.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the command, which stops the helper
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    previous = sys.unraisablehook
+    sys.unraisablehook = lambda u: None if _stopping else previous(u)
+    try:
+        os.nice(5)  # the command's own parallel loops come first
+    except (AttributeError, OSError):  # pragma: no cover - not on POSIX
+        pass
+    try:
+        for word in argv:
+            if _stopping:
+                break
+            i = int(word)
+            _dispatcher(i).compile(argument_types(LOOPS[i][2]))
+    except Exception:
+        if not _stopping:  # a bug
+            raise
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))
