@@ -35,15 +35,19 @@ def block_mode(volume: LabelVolume, factors) -> LabelVolume:
         raise ValueError(f"Expected `factors` of {volume.ndim} positive integers, got {factors!r}.")
     shape = np.array(volume.shape) // f
     a = volume.array[tuple(slice(0, n * k) for n, k in zip(shape, f))]
-    blocks = np.stack([shape, f], axis=1).ravel()
-    axes = tuple(range(1, 2 * volume.ndim, 2))
-    best = np.zeros(tuple(shape), dtype=np.int32)
-    out = np.zeros(tuple(shape), dtype=volume.array.dtype)
-    for value in np.unique(a):
-        count = (a == value).reshape(blocks).sum(axis=axes, dtype=np.int32)
-        win = count > best
-        best[win] = count[win]
-        out[win] = value
+    # one row per block, sorted: the mode is the value of the longest run, the smallest on a tie
+    ndim = volume.ndim
+    rows = a.reshape(np.stack([shape, f], axis=1).ravel()).transpose(*range(0, 2 * ndim, 2), *range(1, 2 * ndim, 2))
+    rows = np.sort(rows.reshape(int(np.prod(shape)), int(np.prod(f))), axis=1)
+    out = rows[:, 0].copy()
+    run = np.ones(len(rows), dtype=np.int32)
+    best = run.copy()
+    for j in range(1, rows.shape[1]):
+        run = np.where(rows[:, j] == rows[:, j - 1], run + 1, 1)
+        win = run > best
+        best[win] = run[win]
+        out[win] = rows[win, j]
+    out = out.reshape(tuple(shape))
     origin = volume.index_to_world(((f - 1) / 2.0)[None])[0]
     return LabelVolume(out, origin, volume.spacing * f, volume.direction)
 
