@@ -9,7 +9,8 @@ import pytest
 from scipy import ndimage
 from shapes import ball_and_shifted_cube
 
-from volreg.features.distance_maps import VoxelDistance, clipped_signed_distance
+from volreg.features import distance_maps
+from volreg.features.distance_maps import VoxelDistance, clipped_signed_distance, euclidean_distance
 from volreg.warp.resample import signed_distance_map
 
 
@@ -245,3 +246,22 @@ def test_the_same_ball_at_two_resolutions_gives_the_same_feature():
     points = np.array([45.3, 44.6, 45.1]) + direction * rng.uniform(22.0, 28.0, (4000, 1))
     gap = np.abs(features[1.0].evaluate(points)[0] - features[2.0].evaluate(points)[0])
     assert gap.mean() < 0.15, gap.mean()
+
+
+@pytest.mark.parametrize("shape, spacing", [((23, 31, 17), (1.5, 1.0, 2.5)), ((40, 29), (0.9375, 1.2)),
+                                            ((9, 1, 30), (1.0, 2.0, 0.5)), ((12, 12, 12), (0.8, 0.8, 0.8))])
+def test_separable_distance_equals_scipys(shape, spacing, monkeypatch):
+    monkeypatch.setattr(distance_maps, "SEPARABLE_CELLS", 0)  # the separable passes whatever the size
+    rng = np.random.default_rng(len(shape) * 7 + shape[0])
+    masks = [rng.random(shape) < 0.9,  # scattered zeros: many lines without one
+             np.ones(shape, bool)]
+    masks[1][(0,) * len(shape)] = False  # one zero in a corner: distances across the whole box
+    for mask in masks:
+        expected = ndimage.distance_transform_edt(mask, sampling=spacing)
+        found = euclidean_distance(mask, spacing)
+        assert found.shape == mask.shape and found.dtype == np.float64
+        np.testing.assert_allclose(found, expected, rtol=1e-14, atol=0)
+    assert np.array_equal(euclidean_distance(masks[0], (1.0,) * len(shape)),
+                          ndimage.distance_transform_edt(masks[0]))  # integer squared sums: the same bits
+    with pytest.raises(ValueError, match="one spacing per axis"):
+        euclidean_distance(masks[0], (1.0,))

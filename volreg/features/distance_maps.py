@@ -24,7 +24,7 @@ from scipy import ndimage
 
 from volreg._jit import njit
 
-__all__ = ["VoxelDistance", "clipped_signed_distance"]
+__all__ = ["VoxelDistance", "clipped_signed_distance", "euclidean_distance"]
 
 
 @njit
@@ -178,6 +178,98 @@ def _clipped_sdf_band(mask, band, offsets, lengths, clip, out):  # pragma: no co
                             value = lengths[q]
                             break
                 out[i, j, k] = -value if inside else value
+
+
+#: Masks from this many voxels on get :func:`euclidean_distance`'s own separable passes.
+SEPARABLE_CELLS = 1 << 21
+
+
+@njit(parallel=True)
+def _squared_distance_lines(g, axis, s2):  # pragma: no cover - compiled
+    """Exact 1-D squared distance transform of every line of ``g`` (3-D, float64, in place)
+    along ``axis``: ``g[q] <- min_p s2 (q - p)^2 + g[p]`` over the line's finite entries
+    (the lower envelope of parabolas, Felzenszwalb & Huttenlocher 2012), lines in parallel."""
+    n = g.shape[axis]
+    na = g.shape[1] if axis == 0 else g.shape[0]
+    nb = g.shape[1] if axis == 2 else g.shape[2]
+    for a in numba.prange(na):
+        f = np.empty(n)
+        v = np.empty(n, dtype=np.int64)
+        z = np.empty(n + 1)
+        for b in range(nb):
+            for i in range(n):
+                if axis == 0:
+                    f[i] = g[i, a, b]
+                elif axis == 1:
+                    f[i] = g[a, i, b]
+                else:
+                    f[i] = g[a, b, i]
+            k = -1
+            for q in range(n):
+                fq = f[q]
+                if fq == np.inf:
+                    continue
+                cross = 0.0
+                while k >= 0:
+                    p = v[k]
+                    cross = ((fq + s2 * q * q) - (f[p] + s2 * p * p)) / (2.0 * s2 * (q - p))
+                    if cross <= z[k]:
+                        k -= 1
+                    else:
+                        break
+                k += 1
+                v[k] = q
+                z[k] = -np.inf if k == 0 else cross
+                z[k + 1] = np.inf
+            if k < 0:
+                continue  # no finite entry: the line stays infinite
+            j = 0
+            for q in range(n):
+                while z[j + 1] < q:
+                    j += 1
+                p = v[j]
+                value = s2 * (q - p) * (q - p) + f[p]
+                if axis == 0:
+                    g[q, a, b] = value
+                elif axis == 1:
+                    g[a, q, b] = value
+                else:
+                    g[a, b, q] = value
+
+
+def euclidean_distance(mask: np.ndarray, spacing) -> np.ndarray:
+    """Euclidean distance (mm) of each ``True`` voxel centre to the nearest ``False`` one; 0 on ``False`` voxels.
+
+    The values of ``scipy.ndimage.distance_transform_edt(mask, sampling=spacing)`` (exact,
+    to rounding).  Masks of :data:`SEPARABLE_CELLS` voxels or more are computed by three
+    separable 1-D passes of squared distances, lines in parallel: on the full-resolution
+    frog's 500 x 500 x 161 mask 1.1 s on two threads against 8.1 s for scipy (one thread), the
+    same values.  Smaller ones go to scipy, which takes a fraction of a second there, so
+    that the usual first run does not wait for this loop to compile (about 2.5 s).
+
+    Parameters
+    ----------
+    mask : (X, Y, Z) or (X, Y) bool ndarray
+        At least one ``False`` voxel (else every distance is infinite).
+    spacing : (D,) float, mm
+
+    Returns
+    -------
+    (X, Y, Z) or (X, Y) float64 ndarray, mm
+    """
+    mask = np.asarray(mask, dtype=bool)
+    spacing = np.asarray(spacing, dtype=float)
+    if mask.ndim not in (2, 3) or spacing.shape != (mask.ndim,):
+        raise ValueError(f"Expected a 2-D or 3-D mask and one spacing per axis, got {mask.shape} and {spacing.shape}.")
+    if mask.size < SEPARABLE_CELLS:
+        return ndimage.distance_transform_edt(mask, sampling=spacing)
+    g = np.where(mask, np.inf, 0.0)
+    if mask.ndim == 2:
+        g, spacing = g[None], np.concatenate([[1.0], spacing])
+    for axis in range(3):
+        if g.shape[axis] > 1:
+            _squared_distance_lines(g, axis, float(spacing[axis]) ** 2)
+    return np.sqrt(g, out=g).reshape(mask.shape)
 
 
 def clipped_signed_distance(mask: np.ndarray, spacing: np.ndarray, clip: float, *, midway: bool = False) -> np.ndarray:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from volreg.features.distance_maps import euclidean_distance
 from volreg.grid import apply_affine
 from volreg.settings import LINEAR_KINDS
 
@@ -360,7 +361,7 @@ def _distance_map(volume, label: int, box: tuple, factors: np.ndarray, margin_mm
     The mask is block-averaged over ``factors`` voxels and thresholded at one half;
     beyond the image edge it is continued by the edge voxels (a cut label is not
     closed by the edge).  Distances are exact Euclidean distances between cell
-    centres (``scipy.ndimage.distance_transform_edt``) shifted by half a cell, so
+    centres (:func:`~volreg.features.distance_maps.euclidean_distance`) shifted by half a cell, so
     that the zero level lies on the faces between inside and outside cells.
 
     Returns
@@ -370,8 +371,6 @@ def _distance_map(volume, label: int, box: tuple, factors: np.ndarray, margin_mm
         mm; ``values`` (*shape, D + 1): the distance and its gradient along the
         grid's axes (mm per mm).  None when the coarsened mask is empty or full.
     """
-    from scipy import ndimage
-
     array = volume.array
     f = np.asarray(factors, dtype=int)
     step = f * volume.spacing
@@ -391,8 +390,8 @@ def _distance_map(volume, label: int, box: tuple, factors: np.ndarray, margin_mm
         mask = 2 * votes >= int(np.prod(f))
     if mask.all() or not mask.any():
         return None
-    inside = ndimage.distance_transform_edt(mask, sampling=step)
-    outside = ndimage.distance_transform_edt(~mask, sampling=step)
+    inside = euclidean_distance(mask, step)
+    outside = euclidean_distance(~mask, step)
     half = 0.5 * float(step.min())
     dist = np.where(mask, half - inside, outside - half)
     grads = np.gradient(dist, *step) if dist.ndim > 1 else [np.gradient(dist, step[0])]
