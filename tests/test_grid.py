@@ -71,6 +71,9 @@ def test_grid_points_and_index_window(orientation):
     points = grid.grid_points()
     assert points.shape == (*SHAPE, 3)
     np.testing.assert_allclose(points[2, 3, 1], grid.index_to_world(np.array([[2, 3, 1]]))[0], atol=1e-12)
+    # every voxel centre is index_to_world of its index, to the last bit
+    every = np.stack(np.meshgrid(*map(np.arange, SHAPE), indexing="ij"), axis=-1).reshape(-1, 3)
+    np.testing.assert_array_equal(points.reshape(-1, 3), grid.index_to_world(every))
     # the window of the world box spanned by two voxel centres holds both
     a, b = points[1, 1, 1], points[3, 2, 2]
     window = grid.index_window(np.minimum(a, b), np.maximum(a, b))
@@ -87,6 +90,8 @@ def test_round_trip_2d_flipped():
         index = np.random.default_rng(1).uniform(0, 7, (50, 2))
         np.testing.assert_allclose(grid.world_to_index(grid.index_to_world(index)), index, atol=1e-12)
         assert grid.ndim == 2 and grid.affine.shape == (3, 3)
+        every = np.stack(np.meshgrid(np.arange(7), np.arange(3), indexing="ij"), axis=-1).reshape(-1, 2)
+        np.testing.assert_array_equal(grid.grid_points().reshape(-1, 2), grid.index_to_world(every))
 
 
 # ----------------------------------------------------------------------------- chunks
