@@ -120,7 +120,27 @@ def write_displacement(
     img.header.set_sform(affine, code=1)
     img.header.set_xyzt_units("mm", "sec")
     with atomic_output(p, force=force) as tmp:
-        nib.save(img, str(tmp))
+        if p.name.lower().endswith(".gz"):
+            _save_nifti_gz(img, tmp)
+        else:
+            nib.save(img, str(tmp))
+
+
+def _save_nifti_gz(img: nib.Nifti1Image, path: Path) -> None:
+    """``nib.save`` into a gzip stream compressed with zlib's run-length strategy.
+
+    Deflate's usual string matching finds almost nothing to match in a field of float32
+    displacements: the run-length strategy (matches at distance one only, which still
+    shrinks runs of zeros) wrote the full frog's 384 MB field at about 100 MB/s instead
+    of 38 MB/s, and 0.4 % smaller.  The file is ordinary gzip; every reader opens it.
+    """
+    import gzip
+    import zlib
+
+    with open(path, "wb") as raw, gzip.GzipFile(filename="", mode="wb", fileobj=raw, compresslevel=1, mtime=0) as gz:
+        if hasattr(gz, "compress"):  # CPython's GzipFile keeps its compressor here; else its own is used
+            gz.compress = zlib.compressobj(1, zlib.DEFLATED, -zlib.MAX_WBITS, zlib.DEF_MEM_LEVEL, zlib.Z_RLE)
+        img.to_file_map({"image": nib.FileHolder(fileobj=gz)})
 
 
 #: Suffixes ITK's HDF5 transform reader and writer take (ANTs writes ``.h5``).
