@@ -131,3 +131,30 @@ def test_no_helper_when_turned_off_or_warm(monkeypatch):
         _precompile._dispatcher(i).compile(argument_types(spec))
     assert _precompile.cold_loops() == []
     assert _precompile.start() is None
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc to tell an ended process")
+def test_helper_ends_soon_after_its_command_is_killed(tmp_path):
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    command = ("import subprocess, sys; h = subprocess.Popen([sys.executable, '-m', 'volreg._precompile', "
+               f"*map(str, range({len(LOOPS)}))]); print(h.pid, flush=True); h.wait()")
+    parent = subprocess.Popen([sys.executable, "-c", command], stdout=subprocess.PIPE, text=True,
+                              env=_env(NUMBA_CACHE_DIR=str(cache)))
+    helper = int(parent.stdout.readline())
+    time.sleep(3.0)
+    parent.kill()  # SIGKILL: the command cannot stop its helper
+    parent.wait()
+    parent.stdout.close()
+    deadline = time.monotonic() + 30.0  # the loop being compiled is finished first
+    while time.monotonic() < deadline:
+        try:
+            os.kill(helper, 0)
+        except ProcessLookupError:
+            break
+        if Path(f"/proc/{helper}/stat").exists() and Path(f"/proc/{helper}/stat").read_text().split()[2] == "Z":
+            break  # ended; a zombie until init reaps it
+        time.sleep(0.2)
+    else:
+        pytest.fail("the helper outlived its killed command by 30 s")
+    assert len(list(cache.rglob("*.nbi"))) < len(LOOPS) // 2  # it stopped long before compiling them all

@@ -194,7 +194,9 @@ def _main(argv: list[str]) -> int:
     """The helper: compile the :data:`LOOPS` entries whose indices ``argv`` gives, in that order.
 
     SIGTERM stops it: at once where Python runs, else (inside a ctypes callback of LLVM, where
-    the exception is only reported) after the loop being compiled.  Exit status 0 either way.
+    the exception is only reported) after the loop being compiled.  So does the end of the
+    command that started it, by any signal (SIGKILL included), after the loop being compiled.
+    Exit status 0 either way.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the command, which stops the helper
     signal.signal(signal.SIGTERM, _on_sigterm)
@@ -204,9 +206,10 @@ def _main(argv: list[str]) -> int:
         os.nice(5)  # the command's own parallel loops come first
     except (AttributeError, OSError):  # pragma: no cover - not on POSIX
         pass
+    parent = os.getppid()
     try:
         for word in argv:
-            if _stopping:
+            if _stopping or os.getppid() != parent:  # stopped, or the command was killed outright
                 break
             i = int(word)
             _dispatcher(i).compile(argument_types(LOOPS[i][2]))
