@@ -97,27 +97,19 @@ def _mixed_stencils(array: np.ndarray, index: np.ndarray, points: np.ndarray, ou
     """
     size = np.array(array.shape)
     corners = np.array(np.meshgrid(*[[0, 1]] * array.ndim, indexing="ij")).reshape(array.ndim, -1).T[1:]
-    # The voxels are read by flat position (one take per corner rather than a gather by D index
-    # arrays: on the 32 M voxel frog 1.2 s instead of 3.7 s).
+    # Each corner's voxels are taken by flat position (np.ravel_multi_index) rather than
+    # gathered by D index arrays: 8 M random points on the full frog's grid, 1.6 s instead of 3.2 s.
     values = np.ascontiguousarray(array).reshape(-1)
-    strides = np.array([int(np.prod(size[b + 1:])) for b in range(array.ndim)], dtype=np.int64)
     mixed = []
     for s in range(0, len(points), chunk):
         rows = points[s : s + chunk]
         low = np.floor(index[rows]).astype(np.int64)
         high = np.clip(low + 1, 0, size - 1)  # clamped at the image's edges, as the interpolation is
         np.clip(low, 0, size - 1, out=low)
-        step = (high - low) * strides  # per axis: 0 at the edge, else that axis's stride
-        base = low[:, 0] * strides[0]
-        for b in range(1, array.ndim):
-            base += low[:, b] * strides[b]
-        first = values.take(base)
+        first = values.take(np.ravel_multi_index(tuple(low.T), array.shape))
         same = np.ones(len(rows), dtype=bool)
         for corner in corners:
-            position = base.copy()
-            for b in np.flatnonzero(corner):
-                position += step[:, b]
-            same &= values.take(position) == first
+            same &= values.take(np.ravel_multi_index(tuple(np.where(corner, high, low).T), array.shape)) == first
         out[rows[same]] = first[same]
         mixed.append(rows[~same])
     return np.concatenate(mixed) if mixed else points
