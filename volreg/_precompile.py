@@ -25,7 +25,7 @@ import signal
 import subprocess
 import sys
 
-__all__ = ["LOOPS", "start", "stop", "cold_loops"]
+__all__ = ["LOOPS", "argument_types", "cold_loops", "start", "stop"]
 
 #: The compiled loops of a 3-D label-volume registration (``register``, ``consistency``,
 #: ``tune``), in the order a run first calls them, with the argument types it calls them with:
