@@ -100,7 +100,7 @@ def test_helper_compiles_into_the_cache_that_the_next_process_reads(tmp_path):
     cache = tmp_path / "cache"
     cache.mkdir()
     assert _cold_in(cache) == list(range(len(LOOPS)))
-    chosen = [_index("volreg.kernels._compiled", "take_rows"), _index("volreg.kernels._compiled", "put_rows")]
+    chosen = [_index("volreg.kernels._compiled", "_take_rows"), _index("volreg.kernels._compiled", "_put_rows")]
     proc = subprocess.run([sys.executable, "-m", "volreg._precompile", *map(str, chosen)], timeout=300,
                           env=_env(NUMBA_CACHE_DIR=str(cache)))
     assert proc.returncode == 0

@@ -24,9 +24,11 @@ _SNIPPET = """
 import sys, tempfile
 if len(sys.argv) > 1:
     tempfile.tempdir = sys.argv[1]  # the system's temporary directory unusable too
-import volreg._jit, volreg._threads, volreg.register, volreg.cli
+import volreg._jit, volreg.register, volreg.cli
 print(volreg._jit.cache_location())
-print(volreg._threads._touch(10))
+import numpy as np
+from volreg.kernels._compiled import take_rows
+print(int(take_rows(np.arange(10.0)[:, None], np.arange(10)[::-1].copy()).sum()))
 """
 
 

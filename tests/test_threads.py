@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from volreg._threads import _concurrent_numba, single_blas, thread_map
+from volreg._threads import run_parts, single_blas, thread_map
 from volreg.features.implicit import ImplicitSurface
 from volreg.warp.field import fields_on_grid
 from volreg.warp.fit import fit_warp
@@ -73,8 +73,8 @@ def test_implicit_fits_on_threads_equal_serial_fits():
     def fit(job):
         return ImplicitSurface(*job, min_width=3.0)
 
-    if numba.get_num_threads() < 2 or not _concurrent_numba():
-        pytest.skip("thread_map is serial here (one numba thread, or numba's workqueue layer)")
+    if numba.get_num_threads() < 2:
+        pytest.skip("thread_map is serial here (one thread)")
     threaded = list(thread_map(fit, jobs))
     for a, b in zip(threaded, map(fit, jobs)):
         assert len(a.levels) == len(b.levels) > 1
@@ -83,24 +83,7 @@ def test_implicit_fits_on_threads_equal_serial_fits():
             np.testing.assert_array_equal(la.centres, lb.centres)
 
 
-@pytest.mark.parametrize("preset, expected", [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
-def test_idle_openmp_threads_sleep_unless_the_user_says_otherwise(preset, expected):
-    """numba's OpenMP runtime reads OMP_WAIT_POLICY when its first parallel loop loads it;
-    volreg sets it to PASSIVE before that (a user's value is kept)."""
-    import os
-    import subprocess
-    import sys
-
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
-    if preset is not None:
-        env["OMP_WAIT_POLICY"] = preset
-    code = ("import os, numpy as np; from volreg.kernels import kernel_sum; import numba; "
-            "print(os.environ.get('OMP_WAIT_POLICY'))")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == expected
-
-
-def test_jobs_without_parallel_loops_run_concurrently_whatever_numbas_threading_layer():
+def test_jobs_run_concurrently():
     """Two jobs that each wait for the other finish only when they run at the same time
     (the distance transforms of the label scores, the writes of the outputs)."""
     import threading
@@ -110,7 +93,7 @@ def test_jobs_without_parallel_loops_run_concurrently_whatever_numbas_threading_
     if numba.get_num_threads() < 2:
         pytest.skip("one numba thread: thread_map is serial")
     barrier = threading.Barrier(2, timeout=20)
-    assert list(thread_map(lambda i: (barrier.wait(), i)[1], [0, 1], parallel_loops=False)) == [0, 1]
+    assert list(thread_map(lambda i: (barrier.wait(), i)[1], [0, 1])) == [0, 1]
 
 
 def test_label_scores_on_threads_equal_one_label_at_a_time():
@@ -126,3 +109,115 @@ def test_label_scores_on_threads_equal_one_label_at_a_time():
         assert together[v] == label_scores(a, b, [v], spacing)[v]
         assert 0 < together[v]["dice"] < 1 and together[v]["hd95_mm"] > 0
 
+
+
+def test_part_ranges_cover_each_item_once_in_order():
+    from volreg._threads import part_range
+
+    for n in (0, 1, 5, 31, 1000):
+        for parts in (1, 2, 3, 8, 40):
+            ranges = [part_range.py_func(n, p, parts) for p in range(parts)]
+            assert ranges[0][0] == 0 and ranges[-1][1] == n
+            assert all(a[1] == b[0] for a, b in zip(ranges, ranges[1:]))
+            sizes = [stop - first for first, stop in ranges]
+            assert max(sizes) - min(sizes) <= 1
+
+
+def _counting_loop():
+    import numba
+
+    from volreg._threads import part_range
+
+    @numba.njit(nogil=True)
+    def count(part, parts, hits, seen):
+        first, stop = part_range(len(hits), part, parts)
+        for i in range(first, stop):
+            hits[i] += 1
+        seen[part] = parts
+
+    return count
+
+
+@pytest.mark.parametrize("n, grain", [(1, 1), (7, 1), (1000, 1), (1000, 300), (1000, 5000)])
+def test_run_parts_runs_every_item_once(n, grain):
+    import numba
+
+    from volreg._threads import PARTS_PER_THREAD
+
+    count = _counting_loop()
+    hits = np.zeros(n, np.int64)
+    seen = np.zeros(64, np.int64)
+    run_parts(count, n, hits, seen, grain=grain)
+    assert np.all(hits == 1)
+    parts = seen[0]
+    expected = max(min(n // grain, PARTS_PER_THREAD * numba.get_num_threads()), 1)
+    if numba.get_num_threads() < 2 or expected < 2:
+        expected = 1
+    assert parts == expected
+    assert np.all(seen[:parts] == parts) and np.all(seen[parts:] == 0)
+
+
+def test_run_parts_on_one_thread_is_one_part_on_the_caller():
+    import threading
+
+    import numba
+
+    callers = []
+
+    def loop(part, parts, out):
+        callers.append(threading.get_ident())
+        out[part] = parts
+
+    out = np.zeros(4, np.int64)
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        run_parts(loop, 1000, out)
+    finally:
+        numba.set_num_threads(threads)
+    assert out.tolist() == [1, 0, 0, 0] and callers == [threading.get_ident()]
+
+
+def test_run_parts_raises_a_parts_error_after_every_started_part_ended():
+    import threading
+    import time
+
+    import numba
+
+    if numba.get_num_threads() < 2:
+        pytest.skip("one thread: a single part")
+    ended = []
+    lock = threading.Lock()
+
+    def loop(part, parts, out):
+        if part == 1:
+            raise ValueError("bad part")
+        time.sleep(0.05)
+        with lock:
+            ended.append(part)
+
+    with pytest.raises(ValueError, match="bad part"):
+        run_parts(loop, 100, None)
+    n_ended = len(ended)
+    time.sleep(0.3)
+    assert len(ended) == n_ended  # nothing still running once the error was raised
+
+
+def test_kernel_sums_in_parts_equal_one_part_to_the_bit():
+    import numba
+
+    from volreg.kernels import kernel_sum
+
+    rng = np.random.default_rng(3)
+    centres = rng.uniform(-20, 20, (3000, 3))
+    coef = rng.normal(size=(3000, 3))
+    queries = rng.uniform(-22, 22, (20000, 3))
+    threads = numba.get_num_threads()
+    together = kernel_sum(queries, centres, coef, 6.0, order=1)
+    numba.set_num_threads(1)
+    try:
+        alone = kernel_sum(queries, centres, coef, 6.0, order=1)
+    finally:
+        numba.set_num_threads(threads)
+    for a, b in zip(together, alone):
+        np.testing.assert_array_equal(a, b)

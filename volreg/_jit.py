@@ -21,15 +21,6 @@ from numba.core import config as _numba_config
 
 __all__ = ["njit", "cache_location"]
 
-# numba's parallel loops run on OpenMP (libgomp) where it is available. By default its idle
-# threads spin, and on a machine that other jobs share (a cluster node, a batch's several
-# workers) a spinning thread holds a core that the thread still working needs: on a 2-core
-# machine with one other busy process the frog demo's warp fit took 64 s instead of 1.7 s.
-# Idle threads that sleep instead cost little on an idle machine. libgomp reads this when it
-# is loaded, at the first parallel loop, so setting it here (before any) is enough; a value
-# the user set is kept.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
 #: Where compiled loops are cached: "default" (numba's own choice), a folder, or None (no cache).
 _LOCATION: str | None | bool = False  # False: not probed yet
 

@@ -32,41 +32,46 @@ __all__ = ["LOOPS", "argument_types", "cold_loops", "start", "stop"]
 #: ``float64[2]`` a C-contiguous 2-D float64 array, ``ro:`` a read-only one, a bare name a
 #: scalar.  ``tests/test_precompile.py`` checks that a registration calls each with exactly these.
 LOOPS = (
-    ("volreg._threads", "_touch", "int64"),
-    ("volreg.kernels._compiled", "_cell_sort", "float64[2] float64[1] float64 int64[1]"),
+    ("volreg.kernels._compiled", "_cell_sort", "ro:float64[2] float64[1] float64 int64[1]"),
     ("volreg.kernels._compiled", "_grid_pairs",
-     "float64[2] float64[2] int64[1] int32[1] float64[1] float64 int64[1] int64 float64 int64[1] int64[1] "
-     "float64[1] bool"),
+     "int64 int64 float64[2] float64[2] int64[1] int32[1] float64[1] float64 int64[1] int64 float64 "
+     "int64[1] int64[1] float64[1] bool"),
     ("volreg.features.implicit", "_svr_coordinate_descent",
-     "int32[1] int32[1] float32[1] float64[1] float64[1] float64 float64 float64[1] float64[1] int64 float64"),
+     "int32[1] int32[1] float32[1] float64[1] float64[1] float64 float64 float64[1] float64[1] int64 "
+     "float64"),
     ("volreg.kernels._compiled", "_query_blocks", "float64[2] float64 int64"),
     ("volreg.kernels._compiled", "_searched_sum",
-     "float64[2] float64[1] float64[1] float64[1] float64[1] int32[1] float64[1] float64 int64[1] int64 float64 "
-     "float64[2] float64[3]"),
+     "int64 int64 float64[2] float64[1] float64[1] float64[1] float64[1] int32[1] float64[1] float64 "
+     "int64[1] int64 float64 float64[2] float64[3]"),
     ("volreg.kernels._compiled", "_blocked_sum",
-     "float64[2] int64[1] float64[1] float64[1] float64[1] float64[2] int32[1] float64[1] float64 int64[1] float64 "
-     "float64[2] float64[3]"),
-    ("volreg.features.distance_maps", "_clipped_sdf_band", "bool[3] bool[3] int64[2] float32[1] float32 float32[3]"),
-    ("volreg.features.distance_maps", "_bspline3", "float32[3] float64[2] int64 float64[1] float64[2] float64[3]"),
+     "int64 int64 float64[2] int64[1] float64[1] float64[1] float64[1] float64[2] int32[1] float64[1] "
+     "float64 int64[1] float64 float64[2] float64[3]"),
+    ("volreg.features.distance_maps", "_clipped_sdf_band",
+     "int64 int64 bool[3] bool[3] int64[2] float32[1] float32 float32[3]"),
+    ("volreg.features.distance_maps", "_bspline3",
+     "int64 int64 float32[3] float64[2] int64 float64[1] float64[2] float64[3]"),
     ("volreg.kernels._compiled", "_segmented_sums",
-     "float64[2] int64[1] int64[1] int64[1] int64[1] float64[1] float64[1] float64[1] float64[1] int32[1] "
-     "float64[2] float64[1] int64[2] float64[1] int64 int64 float64[2] float64[3] float64[4]"),
+     "int64 int64 float64[2] int64[1] int64[1] int64[1] int64[1] float64[1] float64[1] float64[1] "
+     "float64[1] int32[1] float64[2] float64[1] int64[2] float64[1] int64 int64 float64[2] float64[3] "
+     "float64[4]"),
     ("volreg.features.distance_maps", "_bspline3_segments",
-     "float32[1] int64[1] int64[2] int64[1] float64[2] int64 float64[1] float64[2] float64[3]"),
-    ("volreg.kernels._compiled", "_csr_matmul_shared", "int32[1] int32[1] float64[2] float64[2]"),
+     "int64 int64 float32[1] int64[1] int64[2] int64[1] float64[2] int64 float64[1] float64[2] float64[3]"),
+    ("volreg.kernels._compiled", "_csr_matmul_shared",
+     "int64 int64 int32[1] int32[1] float64[2] float64[2] float64[3]"),
     ("volreg.features.batch", "_congruence", "float64[3] ro:float64[2]"),
-    ("volreg.kernels._compiled", "_csr_matmul_shared_sum", "int32[1] int32[1] float64[2] float64[3]"),
+    ("volreg.kernels._compiled", "_csr_matmul_shared_sum",
+     "int64 int64 int32[1] int32[1] float64[2] float64[3] float64[2]"),
     ("volreg.kernels._compiled", "_blocked_sum_vector",
-     "float64[2] int64[1] float64[1] float64[1] float64[1] float64[2] int32[1] float64[1] float64 int64[1] float64 "
-     "float64[2] float64[3]"),
+     "int64 int64 float64[2] int64[1] float64[1] float64[1] float64[1] float64[2] int32[1] float64[1] "
+     "float64 int64[1] float64 float64[2] float64[3]"),
     ("volreg.kernels._compiled", "_strict_sum",
-     "float64[2] float64[2] float64[2] int32[1] float64[1] float64 int64[1] int64 float64 int64 float64[2] "
-     "float64[3] float64[4]"),
-    ("volreg.kernels._compiled", "take_rows", "float64[2] int64[1]"),
-    ("volreg.kernels._compiled", "_cell_sort", "ro:float64[2] float64[1] float64 int64[1]"),
-    ("volreg.kernels._compiled", "put_rows", "float64[2] int64[1]"),
+     "int64 int64 float64[2] float64[2] float64[2] int32[1] float64[1] float64 int64[1] int64 float64 "
+     "int64 float64[2] float64[3] float64[4]"),
+    ("volreg.kernels._compiled", "_take_rows", "int64 int64 float64[2] int64[1] float64[2]"),
+    ("volreg.kernels._compiled", "_put_rows", "int64 int64 float64[2] int64[1] float64[2]"),
     ("volreg.warp.inverse", "_grid_fixed_point",
-     "float64[4] float64[2] float64[1] float64[2] float64[1] float64[2] int64 float64 float64[2]"),
+     "int64 int64 float64[4] float64[2] float64[1] float64[2] float64[1] float64[2] int64 float64 "
+     "float64[2]"),
     ("volreg.warp.inverse", "_newton_steps", "float64[3] float64[2] float64 float64[2] float64[2]"),
 )
 

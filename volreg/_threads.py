@@ -1,20 +1,36 @@
-"""One BLAS thread while volreg's compiled loops run.
+"""volreg's threads: compiled loops split into parts, independent jobs side by side, one BLAS thread.
 
-volreg's hot loops (kernel sums, sparse products) are numba-parallel over all
-cores.  The OpenBLAS libraries that numpy and scipy bundle keep worker threads
-of their own, which busy-wait for a while after each call (L-BFGS-B's vector
-operations between two objective evaluations are such calls).  On a 2-core
-machine they took the cores from numba's threads, and a parallel loop then
-waited for a scheduler time slice: on the 3 mm frog registration 332 of 3914
-calls of one kernel sum took about 7 ms each instead of tens of microseconds,
-and the whole registration took 8.3 s instead of 4.1 s with BLAS held to one
-thread.  volreg's own BLAS work is small
-vector operations, which gain nothing from threads.
+**Loops in parts.**  volreg's hot loops (kernel sums, sparse products, B-spline and distance
+passes, the inverse's fixed point) are serial numba functions that release the GIL and take
+two leading arguments, ``part`` and ``parts``: each covers the items
+:func:`part_range` gives it of its outermost loop, and writes only those items' outputs.
+:func:`run_parts` runs the parts of one call on the calling thread and on a pool of helper
+threads that take the next part as they come free, so a part that takes longer than the
+others does not hold the rest up.  numba's own parallel loops (``prange``) would compile each
+body twice (the function and its parallel kernel); serial loops compile in about half the time,
+and compiling is most of a first run's cost (:mod:`volreg._precompile`).
+
+**Independent jobs** (the implicit-surface fits of several labels, the outputs' writes)
+run on :func:`thread_map`'s threads; the loops they call share the same helper pool.
+
+**One BLAS thread.**  The OpenBLAS libraries that numpy and scipy bundle keep worker threads
+of their own, which busy-wait for a while after each call (L-BFGS-B's vector operations
+between two objective evaluations are such calls).  On a 2-core machine they took the cores
+from the loops' threads: on the 3 mm frog registration 332 of 3914 calls of one kernel sum
+took about 7 ms each instead of tens of microseconds, and the whole registration took 8.3 s
+instead of 4.1 s with BLAS held to one thread.  volreg's own BLAS work is small vector
+operations, which gain nothing from threads.
+
+The number of threads is numba's (``NUMBA_NUM_THREADS``, by default the machine's cores;
+``numba.set_num_threads`` lowers it for the calling thread).
 """
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+import itertools
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor, wait
 from functools import wraps
 from typing import Callable, Generator, Sequence, TypeVar
 
@@ -23,10 +39,13 @@ from threadpoolctl import threadpool_limits
 
 from volreg._jit import njit
 
-__all__ = ["single_blas", "thread_map"]
+__all__ = ["part_range", "run_parts", "single_blas", "thread_map"]
 
 T = TypeVar("T")
 R = TypeVar("R")
+
+#: Parts per thread that :func:`run_parts` splits a loop into (more parts balance uneven work).
+PARTS_PER_THREAD = 4
 
 
 def single_blas(func):
@@ -40,35 +59,95 @@ def single_blas(func):
     return wrapper
 
 
-@njit(parallel=True)
-def _touch(n):  # pragma: no cover - compiled
-    total = 0
-    for i in numba.prange(n):
-        total += i
-    return total
+@njit(inline="always")
+def part_range(n, part, parts):  # pragma: no cover - compiled
+    """The items ``[first, stop)`` of ``range(n)`` that part ``part`` of ``parts`` covers
+    (contiguous, sizes differing by at most one)."""
+    return n * part // parts, n * (part + 1) // parts
 
 
-def _concurrent_numba() -> bool:
-    """Whether numba's parallel loops may be entered from two Python threads at once: its
-    OpenMP and TBB layers allow it, the fallback workqueue layer aborts the process."""
-    _touch(2)  # the threading layer is chosen at the first parallel call
-    return numba.threading_layer() in ("omp", "tbb")
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
 
 
-def thread_map(func: Callable[[T], R], items: Sequence[T], *, parallel_loops: bool = True) -> Generator[R, None, None]:
+def _pool() -> ThreadPoolExecutor:
+    global _POOL
+    if _POOL is None:
+        with _POOL_LOCK:
+            if _POOL is None:
+                _POOL = ThreadPoolExecutor(max_workers=max(numba.config.NUMBA_NUM_THREADS - 1, 1),
+                                           thread_name_prefix="volreg-loop")
+    return _POOL
+
+
+def _forget_pool() -> None:  # a forked child has the pool object but none of its threads
+    global _POOL
+    _POOL = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
+def run_parts(loop: Callable, n: int, *args, grain: int = 1) -> None:
+    """Run a compiled loop's parts (see the module notes) on the calling thread and the helpers.
+
+    Parameters
+    ----------
+    loop : numba dispatcher
+        Called as ``loop(part, parts, *args)`` for every ``part`` in ``range(parts)``; each
+        call covers ``part_range(n', part, parts)`` of the loop's own outermost range ``n'``.
+    n : int
+        The length of that range (or an estimate).
+    *args
+        The loop's further arguments.
+    grain : int
+        The fewest items worth a part of their own (cheap items: a few hundred or more).
+
+    Notes
+    -----
+    With ``t`` threads the loop is split into ``min(n // grain, PARTS_PER_THREAD * t)`` parts,
+    taken in order by the calling thread and ``t - 1`` helpers; one part, on the calling thread
+    alone, where that is one or ``t`` is 1.  Results do not depend on the
+    split: each part writes its own items.  An error in any part is raised here once every
+    part that started has ended.
+    """
+    threads = numba.get_num_threads()
+    parts = min(int(n) // max(int(grain), 1), PARTS_PER_THREAD * threads)
+    if threads < 2 or parts < 2:
+        loop(0, 1, *args)
+        return
+    taken = itertools.count()
+
+    def drain():
+        for part in iter(taken.__next__, None):
+            if part >= parts:
+                return
+            loop(part, parts, *args)
+
+    pool = _pool()
+    helpers = [pool.submit(drain) for _ in range(min(threads, parts) - 1)]
+    try:
+        drain()
+    finally:
+        started = [h for h in helpers if not h.cancel()]  # a helper not yet started has nothing left
+        wait(started)
+    for h in started:
+        h.result()
+
+
+def thread_map(func: Callable[[T], R], items: Sequence[T]) -> Generator[R, None, None]:
     """``map(func, items)`` on ``numba.get_num_threads()`` Python threads (in order).
 
-    For independent jobs that release the GIL: compiled loops (the implicit-surface fits
-    of several labels), or with ``parallel_loops=False`` library calls that do (scipy's
-    distance transforms, zlib's compression, file writes).  Serial with one numba thread,
-    or, for jobs that run numba's parallel loops (``parallel_loops``, the default), where
-    its threading layer does not allow them concurrently.  On an exception (a
-    KeyboardInterrupt too) jobs not yet started are cancelled; running ones finish first.
-    A caller that may stop before the last result calls ``.close()`` on the generator to
-    join the threads.
+    For independent jobs that release the GIL: compiled loops (the implicit-surface fits of
+    several labels; the loops they run in parts share :func:`run_parts`' helpers) and library
+    calls that do (scipy's distance transforms, zlib's compression, file writes).  Serial with
+    one thread.  On an exception (a KeyboardInterrupt too) jobs not yet started are cancelled;
+    running ones finish first.  A caller that may stop before the last result calls
+    ``.close()`` on the generator to join the threads.
     """
     workers = min(numba.get_num_threads(), len(items))
-    if workers <= 1 or (parallel_loops and not _concurrent_numba()):
+    if workers <= 1:
         yield from map(func, items)
         return
     pool = ThreadPoolExecutor(max_workers=workers)

@@ -894,7 +894,7 @@ def _write_fields(folder, fixed, moving, warp, fields: _FixedGridFields, u_inver
         output("model.npz", lambda p: warp.save(p, force=force)),
         output("linear.tfm", lambda p: write_itk_linear(p, warp.linear, force=force)),
     ]
-    for _ in thread_map(lambda job: job(), jobs, parallel_loops=False):
+    for _ in thread_map(lambda job: job(), jobs):
         pass
 
 

@@ -117,7 +117,7 @@ def label_scores(reference: np.ndarray, other: np.ndarray, labels, spacing: np.n
     # Labels on parallel threads: the k-d tree searches, distance transforms and erosions
     # release the GIL.
     labels = [int(v) for v in labels]
-    return dict(zip(labels, thread_map(score, labels, parallel_loops=False)))
+    return dict(zip(labels, thread_map(score, labels)))
 
 
 def folded_fraction(det: np.ndarray, mask: np.ndarray | None = None) -> float:

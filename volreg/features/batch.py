@@ -19,6 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from volreg._jit import njit
+from volreg._threads import run_parts
 from volreg.features.distance_maps import VoxelDistance, _bspline3_segments
 from volreg.features.implicit import ImplicitSurface
 from volreg.features.mapped import LinearlyMapped
@@ -70,9 +71,9 @@ class _Implicit:
         val = np.zeros((n, 1))
         grad = np.zeros((n, 1, dim)) if order >= 1 else np.zeros((0, 1, dim))
         hess = np.zeros((n, 1, dim, dim)) if order >= 2 else np.zeros((0, 1, dim, dim))
-        _segmented_sums(points, rstart, self.jobs, self.poff, self.soff, self.px, self.py, self.pz, self.coef,
-                        self.start, self.lo, self.cell, self.dims, self.sigma, self.max_runs, int(order),
-                        val, grad, hess)
+        run_parts(_segmented_sums, len(rstart) - 1, points, rstart, self.jobs, self.poff, self.soff, self.px,
+                  self.py, self.pz, self.coef, self.start, self.lo, self.cell, self.dims, self.sigma, self.max_runs,
+                  int(order), val, grad, hess)
         val[:, 0] += np.repeat(self.offset, np.diff(rstart))
         out = [val[:, 0], grad[:, 0], hess[:, 0]]
         return out[: order + 1]
@@ -102,8 +103,8 @@ class _Voxel:
         f = np.empty(n)
         g = np.empty((n, 3)) if order >= 1 else np.empty((0, 3))
         h = np.empty((n, 3, 3)) if order >= 2 else np.empty((0, 3, 3))
-        _bspline3_segments(self.coef, self.coff, self.shapes, rstart, np.ascontiguousarray(index), int(order),
-                           f, g, h)
+        run_parts(_bspline3_segments, len(rstart) - 1, self.coef, self.coff, self.shapes, rstart,
+                  np.ascontiguousarray(index), int(order), f, g, h)
         out = [f]
         if order >= 1:
             step = self.step[which]

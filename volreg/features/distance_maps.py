@@ -18,11 +18,11 @@ Everything here is a pure function of arrays (no I/O).
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from scipy import ndimage
 
 from volreg._jit import njit
+from volreg._threads import part_range, run_parts
 
 __all__ = ["VoxelDistance", "clipped_signed_distance", "euclidean_distance"]
 
@@ -131,24 +131,26 @@ def _bspline3_at(coef, i0, i1, i2, order, p, f, g, h, index, weight):  # pragma:
         h[p, 2, 1] = hyz
 
 
-@njit(parallel=True, fastmath=True)
-def _bspline3(coef, index, order, f, g, h):  # pragma: no cover - compiled
+@njit(nogil=True, fastmath=True)
+def _bspline3(part, parts, coef, index, order, f, g, h):  # pragma: no cover - compiled
     """Cubic B-spline with coefficients ``coef`` (nx, ny, nz) at continuous indices
     ``index`` (N, 3): value ``f`` (N,), and for ``order`` >= 1 the gradient ``g``
     (N, 3) and for ``order`` >= 2 the Hessian ``h`` (N, 3, 3), per index unit."""
-    for p in numba.prange(index.shape[0]):
+    first, stop = part_range(index.shape[0], part, parts)
+    for p in range(first, stop):
         _bspline3_at(coef, index[p, 0], index[p, 1], index[p, 2], order, p, f, g, h, np.empty((3, 4), np.int64),
                      np.empty((9, 4)))
 
 
-@njit(parallel=True, fastmath=True)
-def _bspline3_segments(coef, coff, shapes, rstart, index, order, f, g, h):  # pragma: no cover - compiled
+@njit(nogil=True, fastmath=True)
+def _bspline3_segments(part, parts, coef, coff, shapes, rstart, index, order, f, g, h):  # pragma: no cover - compiled
     """:func:`_bspline3` of several coefficient volumes, each at its own segment of ``index``.
 
     Volume ``k`` is ``coef[coff[k]:coff[k + 1]]`` (flat, C order) of shape ``shapes[k]``
     (3,) and is evaluated at rows ``rstart[k]:rstart[k + 1]``.  Volumes in parallel.
     """
-    for k in numba.prange(rstart.shape[0] - 1):
+    first, stop = part_range(rstart.shape[0] - 1, part, parts)
+    for k in range(first, stop):
         volume = coef[coff[k]:coff[k + 1]].reshape((shapes[k, 0], shapes[k, 1], shapes[k, 2]))
         stencil = np.empty((3, 4), np.int64)
         weight = np.empty((9, 4))
@@ -156,13 +158,14 @@ def _bspline3_segments(coef, coff, shapes, rstart, index, order, f, g, h):  # pr
             _bspline3_at(volume, index[p, 0], index[p, 1], index[p, 2], order, p, f, g, h, stencil, weight)
 
 
-@njit(parallel=True)
-def _clipped_sdf_band(mask, band, offsets, lengths, clip, out):  # pragma: no cover - compiled
+@njit(nogil=True)
+def _clipped_sdf_band(part, parts, mask, band, offsets, lengths, clip, out):  # pragma: no cover - compiled
     """Signed distance of each voxel of ``band`` to the nearest voxel of the other kind
     (inside/outside ``mask``), scanning ``offsets`` (K, 3) in order of their ``lengths``
     (mm); ``+-clip`` where none lies within ``clip`` and everywhere outside ``band``."""
     nx, ny, nz = mask.shape
-    for i in numba.prange(nx):
+    first, stop = part_range(nx, part, parts)
+    for i in range(first, stop):
         for j in range(ny):
             for k in range(nz):
                 inside = mask[i, j, k]
@@ -180,19 +183,23 @@ def _clipped_sdf_band(mask, band, offsets, lengths, clip, out):  # pragma: no co
                 out[i, j, k] = -value if inside else value
 
 
+#: Fewest points per part of a B-spline evaluation (:func:`volreg._threads.run_parts`).
+_POINTS = 1024
+
 #: Masks from this many voxels on get :func:`euclidean_distance`'s own separable passes.
 SEPARABLE_CELLS = 1 << 21
 
 
-@njit(parallel=True)
-def _squared_distance_lines(g, axis, s2):  # pragma: no cover - compiled
+@njit(nogil=True)
+def _squared_distance_lines(part, parts, g, axis, s2):  # pragma: no cover - compiled
     """Exact 1-D squared distance transform of every line of ``g`` (3-D, float64, in place)
     along ``axis``: ``g[q] <- min_p s2 (q - p)^2 + g[p]`` over the line's finite entries
     (the lower envelope of parabolas, Felzenszwalb & Huttenlocher 2012), lines in parallel."""
     n = g.shape[axis]
     na = g.shape[1] if axis == 0 else g.shape[0]
     nb = g.shape[1] if axis == 2 else g.shape[2]
-    for a in numba.prange(na):
+    first, stop = part_range(na, part, parts)
+    for a in range(first, stop):
         f = np.empty(n)
         v = np.empty(n, dtype=np.int64)
         z = np.empty(n + 1)
@@ -268,7 +275,8 @@ def euclidean_distance(mask: np.ndarray, spacing) -> np.ndarray:
         g, spacing = g[None], np.concatenate([[1.0], spacing])
     for axis in range(3):
         if g.shape[axis] > 1:
-            _squared_distance_lines(g, axis, float(spacing[axis]) ** 2)
+            run_parts(_squared_distance_lines, g.shape[1] if axis == 0 else g.shape[0], g, axis,
+                      float(spacing[axis]) ** 2)
     return np.sqrt(g, out=g).reshape(mask.shape)
 
 
@@ -336,8 +344,8 @@ def clipped_signed_distance(mask: np.ndarray, spacing: np.ndarray, clip: float, 
     else:
         mask3, band3 = mask, band
     out = np.empty(mask3.shape, dtype=np.float32)
-    _clipped_sdf_band(np.ascontiguousarray(mask3), np.ascontiguousarray(band3), np.ascontiguousarray(offsets, dtype=np.int64),
-                      lengths.astype(np.float32), np.float32(clip), out)
+    run_parts(_clipped_sdf_band, mask3.shape[0], np.ascontiguousarray(mask3), np.ascontiguousarray(band3),
+              np.ascontiguousarray(offsets, dtype=np.int64), lengths.astype(np.float32), np.float32(clip), out)
     return out.reshape(mask.shape)
 
 
@@ -452,7 +460,7 @@ class VoxelDistance:
         f = np.empty(n)
         g = np.empty((n, 3)) if order >= 1 else np.empty((0, 3))
         h = np.empty((n, 3, 3)) if order >= 2 else np.empty((0, 3, 3))
-        _bspline3(self._coef, np.ascontiguousarray(index), int(order), f, g, h)
+        run_parts(_bspline3, n, self._coef, np.ascontiguousarray(index), int(order), f, g, h, grain=_POINTS)
         out = [f]
         d = self.dim
         if order >= 1:

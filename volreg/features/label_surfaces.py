@@ -288,7 +288,7 @@ def label_surfaces(
     # Labels on parallel threads (the blur, marching cubes and the curvature's interpolation
     # release the GIL); errors and warnings are raised here, in the labels' order.
     out: dict[int, Surface] = {}
-    results = thread_map(extract, labels, parallel_loops=False)
+    results = thread_map(extract, labels)
     try:
         for i, (lab, result) in enumerate(zip(labels, results)):
             if isinstance(result, SurfaceError):

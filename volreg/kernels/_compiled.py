@@ -13,10 +13,10 @@ cells along the last axis are one contiguous run ``[start[c0], start[c1 + 1])``.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from volreg._jit import njit
+from volreg._threads import part_range, run_parts
 from volreg.kernels.wu import wu_terms
 
 #: Queries per parallel work item of the searched loops (scratch arrays are allocated per item).
@@ -466,8 +466,8 @@ def _ranges_value_grad_hess(q, dim3, val, grad, hess, x0, x1, x2, px, py, pz, co
 # The kernel-sum loops (which serves which case: ``volreg.kernels.sums._LOOPS``)
 
 
-@njit(parallel=True, fastmath=True)
-def _blocked_sum(queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigma, val, grad):
+@njit(nogil=True, fastmath=True)
+def _blocked_sum(part, parts, queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigma, val, grad):
     """Kernel sums up to order 1 for scalar coefficients, one neighbour search per block of queries.
 
     The centres within ``sigma`` of a block's bounding box are gathered once into
@@ -494,7 +494,8 @@ def _blocked_sum(queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigm
     inv_s2 = 1.0 / (sigma * sigma)
     want_grad = grad.shape[0] == n
     n_blocks = bstarts.shape[0] - 1
-    for sb in numba.prange((n_blocks + _SUPER - 1) // _SUPER):
+    first, stop = part_range((n_blocks + _SUPER - 1) // _SUPER, part, parts)
+    for sb in range(first, stop):
         buf = np.empty((6, 256))  # gathered candidates, grown as needed
         for b in range(sb * _SUPER, min(n_blocks, (sb + 1) * _SUPER)):
             q0 = bstarts[b]
@@ -517,8 +518,8 @@ def _blocked_sum(queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigm
                     val[q, 0] += _run_value(x0, x1, x2, cx, cy, cz, ca, 0, c, inv_s2)
 
 
-@njit(parallel=True, fastmath=True)
-def _blocked_sum_hessian(queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigma, val, grad, hess):
+@njit(nogil=True, fastmath=True)
+def _blocked_sum_hessian(part, parts, queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigma, val, grad, hess):
     """:func:`_blocked_sum` at order 2: adds to ``val`` (N, 1), ``grad`` (N, 1, D) and
     ``hess`` (N, 1, D, D).
 
@@ -530,7 +531,8 @@ def _blocked_sum_hessian(queries, bstarts, px, py, pz, coef, start, lo, cell, di
     dim3 = dim == 3
     inv_s2 = 1.0 / (sigma * sigma)
     n_blocks = bstarts.shape[0] - 1
-    for sb in numba.prange((n_blocks + _SUPER - 1) // _SUPER):
+    first, stop = part_range((n_blocks + _SUPER - 1) // _SUPER, part, parts)
+    for sb in range(first, stop):
         buf = np.empty((6, 256))  # gathered candidates, grown as needed
         for b in range(sb * _SUPER, min(n_blocks, (sb + 1) * _SUPER)):
             q0 = bstarts[b]
@@ -549,8 +551,8 @@ def _blocked_sum_hessian(queries, bstarts, px, py, pz, coef, start, lo, cell, di
                                      r[8], r[9], r[10])
 
 
-@njit(parallel=True, fastmath=True)
-def _blocked_sum_vector(queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigma, val, grad):
+@njit(nogil=True, fastmath=True)
+def _blocked_sum_vector(part, parts, queries, bstarts, px, py, pz, coef, start, lo, cell, dims, sigma, val, grad):
     """:func:`_blocked_sum` for 2- or 3-vector coefficients (warps), order 0 or 1.
 
     Parameters as :func:`_blocked_sum`, with ``coef`` (M, m), ``val`` (N, m) and
@@ -565,7 +567,8 @@ def _blocked_sum_vector(queries, bstarts, px, py, pz, coef, start, lo, cell, dim
     inv_s2 = 1.0 / (sigma * sigma)
     want_grad = grad.shape[0] == n
     n_blocks = bstarts.shape[0] - 1
-    for sb in numba.prange((n_blocks + _SUPER - 1) // _SUPER):
+    first, stop = part_range((n_blocks + _SUPER - 1) // _SUPER, part, parts)
+    for sb in range(first, stop):
         buf = np.empty((6, 256))  # gathered candidates, grown as needed
         for b in range(sb * _SUPER, min(n_blocks, (sb + 1) * _SUPER)):
             q0 = bstarts[b]
@@ -650,8 +653,8 @@ def _blocked_sum_vector(queries, bstarts, px, py, pz, coef, start, lo, cell, dim
                             grad[q, 2, 2] += g22
 
 
-@njit(parallel=True, fastmath=True)
-def _searched_sum(queries, px, py, pz, coef, start, lo, cell, dims, max_runs, sigma, val, grad):
+@njit(nogil=True, fastmath=True)
+def _searched_sum(part, parts, queries, px, py, pz, coef, start, lo, cell, dims, max_runs, sigma, val, grad):
     """Kernel sums up to order 1 for scalar coefficients, one neighbour search per query.
 
     Parameters as :func:`_blocked_sum`, with ``coef`` (M,) and ``max_runs``
@@ -663,7 +666,8 @@ def _searched_sum(queries, px, py, pz, coef, start, lo, cell, dims, max_runs, si
     want_grad = grad.shape[0] == n
     dim3 = dim == 3
     n_blocks = (n + _BLOCK - 1) // _BLOCK
-    for blk in numba.prange(n_blocks):
+    first, stop = part_range(n_blocks, part, parts)
+    for blk in range(first, stop):
         ranges = np.empty((max_runs, 2), dtype=np.int64)
         for q in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
             x = queries[q]
@@ -677,15 +681,16 @@ def _searched_sum(queries, px, py, pz, coef, start, lo, cell, dims, max_runs, si
                 val[q, 0] += _ranges_value(x0, x1, x2, px, py, pz, coef, ranges, nr, inv_s2)
 
 
-@njit(parallel=True, fastmath=True)
-def _searched_sum_hessian(queries, px, py, pz, coef, start, lo, cell, dims, max_runs, sigma, val, grad, hess):
+@njit(nogil=True, fastmath=True)
+def _searched_sum_hessian(part, parts, queries, px, py, pz, coef, start, lo, cell, dims, max_runs, sigma, val, grad, hess):
     """:func:`_searched_sum` at order 2 (a loop of its own for the reason given at
     :func:`_blocked_sum_hessian`)."""
     n, dim = queries.shape
     inv_s2 = 1.0 / (sigma * sigma)
     dim3 = dim == 3
     n_blocks = (n + _BLOCK - 1) // _BLOCK
-    for blk in numba.prange(n_blocks):
+    first, stop = part_range(n_blocks, part, parts)
+    for blk in range(first, stop):
         ranges = np.empty((max_runs, 2), dtype=np.int64)
         for q in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
             x = queries[q]
@@ -696,8 +701,8 @@ def _searched_sum_hessian(queries, px, py, pz, coef, start, lo, cell, dims, max_
             _ranges_value_grad_hess(q, dim3, val, grad, hess, x0, x1, x2, px, py, pz, coef, ranges, nr, inv_s2)
 
 
-@njit(parallel=True)
-def _strict_sum(queries, gpts, gcoef, start, lo, cell, dims, max_runs, sigma, order, val, grad, hess):
+@njit(nogil=True)
+def _strict_sum(part, parts, queries, gpts, gcoef, start, lo, cell, dims, max_runs, sigma, order, val, grad, hess):
     """Kernel sums for any number of coefficient columns and any order (strict arithmetic).
 
     Parameters
@@ -720,7 +725,8 @@ def _strict_sum(queries, gpts, gcoef, start, lo, cell, dims, max_runs, sigma, or
     m = gcoef.shape[1]
     inv_s2 = 1.0 / (sigma * sigma)
     n_blocks = (n + _BLOCK - 1) // _BLOCK
-    for blk in numba.prange(n_blocks):
+    first, stop = part_range(n_blocks, part, parts)
+    for blk in range(first, stop):
         ranges = np.empty((max_runs, 2), dtype=np.int64)
         d = np.empty(dim)
         for q in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
@@ -761,8 +767,8 @@ def _strict_sum(queries, gpts, gcoef, start, lo, cell, dims, max_runs, sigma, or
 # Kernel matrices and products with matrices sharing one sparsity pattern
 
 
-@njit(parallel=True)
-def _grid_pairs(queries, gpts, gorder, start, lo, cell, dims, max_runs, sigma, indptr, indices, data, fill):
+@njit(nogil=True)
+def _grid_pairs(part, parts, queries, gpts, gorder, start, lo, cell, dims, max_runs, sigma, indptr, indices, data, fill):
     """Count or write the rows of the sparse kernel matrix ``k(|queries_i - gpts_j| / sigma)``.
 
     With ``fill`` False, writes each row's entry count into ``indptr[1:]``; with
@@ -772,7 +778,8 @@ def _grid_pairs(queries, gpts, gorder, start, lo, cell, dims, max_runs, sigma, i
     n, dim = queries.shape
     sigma2 = sigma * sigma
     n_blocks = (n + _BLOCK - 1) // _BLOCK
-    for blk in numba.prange(n_blocks):
+    first, stop = part_range(n_blocks, part, parts)
+    for blk in range(first, stop):
         ranges = np.empty((max_runs, 2), dtype=np.int64)
         for q in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
             x = queries[q]
@@ -794,18 +801,19 @@ def _grid_pairs(queries, gpts, gorder, start, lo, cell, dims, max_runs, sigma, i
                 indptr[q + 1] = w
 
 
-@njit(parallel=True)
-def _csr_matmul_shared(indptr, indices, data, x):
+@njit(nogil=True)
+def _csr_matmul_shared(part, parts, indptr, indices, data, x, out):
     """``out[i, a, b] = sum_e data[e, b] x[indices[e], a]`` over row i's entries.
 
     B <= 3 sparse matrices sharing one CSR pattern (``data`` (nnz, B)) times ``x``
-    (M, k <= 3), as (N, k, B).  Rows in parallel, nine scalar accumulators per row.
+    (M, k <= 3), into ``out`` (N, k, B): rows ``part_range(N, part, parts)``, nine scalar
+    accumulators per row.
     """
     n = indptr.shape[0] - 1
     nb = data.shape[1]
     k = x.shape[1]
-    out = np.zeros((n, k, nb))
-    for i in numba.prange(n):
+    first, stop = part_range(n, part, parts)
+    for i in range(first, stop):
         s00 = s01 = s02 = s10 = s11 = s12 = s20 = s21 = s22 = 0.0
         for e in range(indptr[i], indptr[i + 1]):
             j = indices[e]
@@ -830,21 +838,20 @@ def _csr_matmul_shared(indptr, indices, data, x):
         for a in range(k):
             for b in range(nb):
                 out[i, a, b] = acc[a][b]
-    return out
 
 
-@njit(parallel=True)
-def _csr_matmul_shared_sum(indptr, indices, data, y):
+@njit(nogil=True)
+def _csr_matmul_shared_sum(part, parts, indptr, indices, data, y, out):
     """``out[i, a] = sum_e sum_b data[e, b] y[indices[e], a, b]``, i.e. ``sum_b A_b @ y[:, :, b]``.
 
-    B <= 3 matrices sharing one CSR pattern (``data`` (nnz, B)), ``y`` (M, k <= 3, B);
-    returns (N, k).  Rows in parallel.
+    B <= 3 matrices sharing one CSR pattern (``data`` (nnz, B)), ``y`` (M, k <= 3, B), into
+    ``out`` (N, k): rows ``part_range(N, part, parts)``.
     """
     n = indptr.shape[0] - 1
     nb = data.shape[1]
     k = y.shape[1]
-    out = np.zeros((n, k))
-    for i in numba.prange(n):
+    first, stop = part_range(n, part, parts)
+    for i in range(first, stop):
         s0 = s1 = s2 = 0.0
         for e in range(indptr[i], indptr[i + 1]):
             j = indices[e]
@@ -860,16 +867,32 @@ def _csr_matmul_shared_sum(indptr, indices, data, y):
             out[i, 1] = s1
         if k > 2:
             out[i, 2] = s2
-    return out
 
 
 # --------------------------------------------------------------------------------------
 # Row permutations
 
 
-@njit(parallel=True)
-def take_rows(x, perm):
-    """``x[perm]`` for a 2-D array, in parallel.
+@njit(nogil=True)
+def _take_rows(part, parts, x, perm, out):
+    """Part ``part`` of ``parts`` of ``out[:] = x[perm]`` (:func:`take_rows`)."""
+    first, stop = part_range(perm.shape[0], part, parts)
+    for i in range(first, stop):
+        for a in range(x.shape[1]):
+            out[i, a] = x[perm[i], a]
+
+
+@njit(nogil=True)
+def _put_rows(part, parts, src, perm, out):
+    """Part ``part`` of ``parts`` of ``out[perm] = src`` (:func:`put_rows`)."""
+    first, stop = part_range(perm.shape[0], part, parts)
+    for i in range(first, stop):
+        for a in range(src.shape[1]):
+            out[perm[i], a] = src[i, a]
+
+
+def take_rows(x: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """``x[perm]`` for a 2-D array, on volreg's threads.
 
     Parameters
     ----------
@@ -881,15 +904,12 @@ def take_rows(x, perm):
     (N, k) ndarray, dtype of ``x``
     """
     out = np.empty((perm.shape[0], x.shape[1]), dtype=x.dtype)
-    for i in numba.prange(perm.shape[0]):
-        for a in range(x.shape[1]):
-            out[i, a] = x[perm[i], a]
+    run_parts(_take_rows, perm.shape[0], x, perm, out, grain=4096)
     return out
 
 
-@njit(parallel=True)
-def put_rows(src, perm):
-    """The inverse of :func:`take_rows`: ``out[perm] = src``, in parallel.
+def put_rows(src: np.ndarray, perm: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`take_rows`: ``out[perm] = src``, on volreg's threads.
 
     Parameters
     ----------
@@ -902,9 +922,7 @@ def put_rows(src, perm):
     (N, k) ndarray, dtype of ``src``
     """
     out = np.empty_like(src)
-    for i in numba.prange(perm.shape[0]):
-        for a in range(src.shape[1]):
-            out[perm[i], a] = src[i, a]
+    run_parts(_put_rows, perm.shape[0], src, perm, out, grain=4096)
     return out
 
 
@@ -912,8 +930,8 @@ def put_rows(src, perm):
 # Many scalar kernel sums, each at its own few queries, in one parallel loop
 
 
-@njit(parallel=True, fastmath=True)
-def _segmented_sums(queries, rstart, jstart, poff, soff, px, py, pz, coef, sstart, lo, cell, dims, sigma,
+@njit(nogil=True, fastmath=True)
+def _segmented_sums(part, parts, queries, rstart, jstart, poff, soff, px, py, pz, coef, sstart, lo, cell, dims, sigma,
                     max_runs, order, val, grad, hess):
     """Add kernel sums of several point sets, each at its own segment of the queries.
 
@@ -929,7 +947,8 @@ def _segmented_sums(queries, rstart, jstart, poff, soff, px, py, pz, coef, sstar
     """
     dim = queries.shape[1]
     dim3 = dim == 3
-    for f in numba.prange(rstart.shape[0] - 1):
+    first, stop = part_range(rstart.shape[0] - 1, part, parts)
+    for f in range(first, stop):
         ranges = np.empty((max_runs, 2), dtype=np.int64)
         for j in range(jstart[f], jstart[f + 1]):
             p0, p1 = poff[j], poff[j + 1]

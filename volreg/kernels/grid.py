@@ -83,8 +83,16 @@ class CellGrid:
         if not radius > 0:
             raise ValueError(f"Expected a positive `radius`, got {radius}.")
         lo, cell, dims = _cell_layout(points, float(radius) / max(1, int(subdivisions)))
-        order, start = _cell_sort(points, lo, cell, dims)
+        order, start = _cell_sort(_read_only(points), lo, cell, dims)
         return cls(points[order], order, start.astype(np.int32), lo, cell, dims, float(radius))
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """A read-only view of ``a``: the sort gets one argument type whether or not the caller's
+    array is writable, so numba compiles it once."""
+    view = a.view()
+    view.flags.writeable = False
+    return view
 
 
 def _cell_layout(points: np.ndarray, cell: float) -> tuple[np.ndarray, float, np.ndarray]:
@@ -139,4 +147,4 @@ def spatial_order(points: np.ndarray, cell: float) -> np.ndarray | None:
     if len(points) <= SORT_ABOVE or not cell > 0:
         return None
     points = np.ascontiguousarray(points, dtype=float)
-    return _cell_sort(points, *_cell_layout(points, float(cell)))[0]
+    return _cell_sort(_read_only(points), *_cell_layout(points, float(cell)))[0]

@@ -5,7 +5,11 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from volreg._threads import run_parts
 from volreg.kernels._compiled import _csr_matmul_shared, _csr_matmul_shared_sum
+
+#: Fewest matrix rows per part of a product (:func:`volreg._threads.run_parts`).
+_ROWS = 256
 
 __all__ = ["SharedPatternCSR"]
 
@@ -56,7 +60,10 @@ class SharedPatternCSR:
         (N, k, B) float ndarray
             ``out[:, :, b] = A_b @ x``.
         """
-        return _csr_matmul_shared(self.indptr, self.indices, self.data, np.ascontiguousarray(x, dtype=float))
+        x = np.ascontiguousarray(x, dtype=float)
+        out = np.zeros((len(self.indptr) - 1, x.shape[1], self.data.shape[1]))
+        run_parts(_csr_matmul_shared, len(out), self.indptr, self.indices, self.data, x, out, grain=_ROWS)
+        return out
 
     def rmatmul_sum(self, y: np.ndarray) -> np.ndarray:
         """Sum of the transposed products.
@@ -70,5 +77,8 @@ class SharedPatternCSR:
         (M, k) float ndarray
             ``sum_b A_b.T @ y[:, :, b]``.
         """
-        return _csr_matmul_shared_sum(self.t_indptr, self.t_indices, self.t_data,
-                                      np.ascontiguousarray(y, dtype=float))
+        y = np.ascontiguousarray(y, dtype=float)
+        out = np.zeros((len(self.t_indptr) - 1, y.shape[1]))
+        run_parts(_csr_matmul_shared_sum, len(out), self.t_indptr, self.t_indices, self.t_data, y, out,
+                  grain=_ROWS)
+        return out

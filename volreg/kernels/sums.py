@@ -15,7 +15,9 @@ from scipy.spatial import cKDTree
 
 from volreg.kernels._compiled import (
     _MIN_MEAN_BLOCK,
+    _BLOCK,
     _QBLOCK,
+    _SUPER,
     _blocked_sum,
     _blocked_sum_hessian,
     _blocked_sum_vector,
@@ -25,6 +27,7 @@ from volreg.kernels._compiled import (
     _searched_sum_hessian,
     _strict_sum,
 )
+from volreg._threads import run_parts
 from volreg.kernels.grid import CellGrid, max_runs
 from volreg.kernels.wu import wu_derivatives, wu_slope
 
@@ -53,6 +56,16 @@ def _as_coefficients(coeffs: np.ndarray, m_centres: int) -> tuple[np.ndarray, bo
     return (coeffs if vector else coeffs[:, None]), vector
 
 
+def _super_blocks(blocks: np.ndarray) -> int:
+    """The work items of the blocked loops: ``_SUPER`` query blocks each."""
+    return (len(blocks) - 1 + _SUPER - 1) // _SUPER
+
+
+def _query_parts(queries: np.ndarray) -> int:
+    """The work items of the searched loops: ``_BLOCK`` queries each."""
+    return (len(queries) + _BLOCK - 1) // _BLOCK
+
+
 # --------------------------------------------------------------------------------------
 # The compiled loops, called with one convention: (queries (N, D), grid, coef (M, m) in grid
 # order, sigma, order, blocks from _coherent_blocks or None, val, grad, hess)
@@ -60,36 +73,36 @@ def _as_coefficients(coeffs: np.ndarray, m_centres: int) -> tuple[np.ndarray, bo
 
 def _blocked(queries, grid, coef, sigma, order, blocks, val, grad, hess):
     px, py, pz = grid.columns
-    _blocked_sum(queries, blocks, px, py, pz, coef, grid.start, grid.lo, grid.cell, grid.dims, sigma, val, grad)
+    run_parts(_blocked_sum, _super_blocks(blocks), queries, blocks, px, py, pz, coef, grid.start, grid.lo, grid.cell, grid.dims, sigma, val, grad)
 
 
 def _blocked_vector(queries, grid, coef, sigma, order, blocks, val, grad, hess):
     px, py, pz = grid.columns
-    _blocked_sum_vector(queries, blocks, px, py, pz, coef, grid.start, grid.lo, grid.cell, grid.dims, sigma,
-                        val, grad)
+    run_parts(_blocked_sum_vector, _super_blocks(blocks), queries, blocks, px, py, pz, coef, grid.start, grid.lo,
+              grid.cell, grid.dims, sigma, val, grad)
 
 
 def _blocked_hessian(queries, grid, coef, sigma, order, blocks, val, grad, hess):
     px, py, pz = grid.columns
-    _blocked_sum_hessian(queries, blocks, px, py, pz, coef, grid.start, grid.lo, grid.cell, grid.dims, sigma,
-                         val, grad, hess)
+    run_parts(_blocked_sum_hessian, _super_blocks(blocks), queries, blocks, px, py, pz, coef, grid.start, grid.lo,
+              grid.cell, grid.dims, sigma, val, grad, hess)
 
 
 def _searched(queries, grid, coef, sigma, order, blocks, val, grad, hess):
     px, py, pz = grid.columns
-    _searched_sum(queries, px, py, pz, np.ascontiguousarray(coef[:, 0]), grid.start, grid.lo, grid.cell,
-                  grid.dims, max_runs(grid), sigma, val, grad)
+    run_parts(_searched_sum, _query_parts(queries), queries, px, py, pz, np.ascontiguousarray(coef[:, 0]),
+              grid.start, grid.lo, grid.cell, grid.dims, max_runs(grid), sigma, val, grad)
 
 
 def _searched_hessian(queries, grid, coef, sigma, order, blocks, val, grad, hess):
     px, py, pz = grid.columns
-    _searched_sum_hessian(queries, px, py, pz, np.ascontiguousarray(coef[:, 0]), grid.start, grid.lo,
-                          grid.cell, grid.dims, max_runs(grid), sigma, val, grad, hess)
+    run_parts(_searched_sum_hessian, _query_parts(queries), queries, px, py, pz, np.ascontiguousarray(coef[:, 0]),
+              grid.start, grid.lo, grid.cell, grid.dims, max_runs(grid), sigma, val, grad, hess)
 
 
 def _strict(queries, grid, coef, sigma, order, blocks, val, grad, hess):
-    _strict_sum(queries, grid.points, coef, grid.start, grid.lo, grid.cell, grid.dims, max_runs(grid), sigma,
-                order, val, grad, hess)
+    run_parts(_strict_sum, _query_parts(queries), queries, grid.points, coef, grid.start, grid.lo, grid.cell,
+              grid.dims, max_runs(grid), sigma, order, val, grad, hess)
 
 
 #: Which compiled loop serves which case of :func:`kernel_sum`:
@@ -285,12 +298,12 @@ def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float, *
     indptr = np.zeros(len(rows) + 1, dtype=np.int64)
     gorder = grid.order.astype(np.int64)
     args = (rows, grid.points, gorder, grid.start, grid.lo, grid.cell, grid.dims, max_runs(grid), float(sigma))
-    _grid_pairs(*args, indptr, np.zeros(0, np.int64), np.zeros(0), False)
+    run_parts(_grid_pairs, _query_parts(rows), *args, indptr, np.zeros(0, np.int64), np.zeros(0), False)
     np.cumsum(indptr, out=indptr)
     nnz = int(indptr[-1])
     indices = np.empty(nnz, dtype=np.int64)
     data = np.empty(nnz)
-    _grid_pairs(*args, indptr, indices, data, True)
+    run_parts(_grid_pairs, _query_parts(rows), *args, indptr, indices, data, True)
     index_dtype = np.int32 if max(nnz, len(grid.points)) < 2**31 - 1 else np.int64
     indptr, indices = indptr.astype(index_dtype), indices.astype(index_dtype)
     mat = sp.csr_matrix((data, indices, indptr), shape=(len(rows), len(grid.points)))

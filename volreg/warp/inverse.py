@@ -31,10 +31,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-import numba
 import numpy as np
 
 from volreg._jit import njit
+from volreg._threads import part_range, run_parts
 from volreg.kernels import _check_points
 from volreg.warp.linear import LinearMap
 from volreg.warp.model import _box_through, _PointMap, linear_outside
@@ -302,8 +302,8 @@ class InverseWarp(_PointMap):
 
 
 
-@njit(parallel=True, nogil=True)
-def _grid_fixed_point(u, w2i, w2i_offset, a_inv, b, y, max_iter, settle, out):
+@njit(nogil=True)
+def _grid_fixed_point(part, parts, u, w2i, w2i_offset, a_inv, b, y, max_iter, settle, out):
     """Fixed-point solve of ``x + U(x) = y`` with ``U`` the trilinear interpolation of ``u`` (in place).
 
     ``u`` (X, Y, Z, 3) mm on a grid whose continuous index is ``w2i @ x + w2i_offset``;
@@ -312,7 +312,8 @@ def _grid_fixed_point(u, w2i, w2i_offset, a_inv, b, y, max_iter, settle, out):
     not settle within ``max_iter`` steps.
     """
     nx, ny, nz = u.shape[0], u.shape[1], u.shape[2]
-    for p in numba.prange(y.shape[0]):
+    first, stop = part_range(y.shape[0], part, parts)
+    for p in range(first, stop):
         x = np.empty(3)
         r = np.empty(3)
         for a in range(3):
@@ -409,6 +410,6 @@ class GridStart:
         y3 = np.zeros((len(y), 3))
         y3[:, : self.dim] = y
         out = np.empty_like(y3)
-        _grid_fixed_point(self._u, self._w2i, self._w2i_offset, self._a_inv, self._b, y3, self.iterations,
-                          self.settle, out)
+        run_parts(_grid_fixed_point, len(y3), self._u, self._w2i, self._w2i_offset, self._a_inv, self._b, y3,
+                  self.iterations, self.settle, out, grain=256)
         return out[:, : self.dim].copy()
