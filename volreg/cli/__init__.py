@@ -187,11 +187,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     # Imported once a command runs, so that --help, --version and usage errors stay quick; with
     # SIGINT and SIGTERM held until the handlers are in place (see PRELOAD).
     held = _hold_signals()
+    helper = None
     try:
+        # The helper first: on a first run it compiles while this process imports.
+        if args.command in COMPILE_AHEAD and not getattr(args, "scheduler", None):
+            from volreg import _precompile
+
+            helper = _precompile.start()
         _preload(args.command)
         from volreg.io._atomic import kept_results
         from volreg.progress import clear_interrupt
     except BaseException:
+        if helper is not None:
+            _precompile.stop(helper)
         _release_signals(held)
         raise
 
@@ -213,13 +221,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     filters = warnings.catch_warnings()
     filters.__enter__()
     warnings.simplefilter("always", VolregWarning)  # shown (one line each) whatever the global filters say
-    helper = None
     try:
         _release_signals(held)
-        if args.command in COMPILE_AHEAD and not getattr(args, "scheduler", None):
-            from volreg import _precompile
-
-            helper = _precompile.start()
         output = getattr(args, "output", None)
         if output is not None and ".." in Path(output).parts:
             raise UsageError(
