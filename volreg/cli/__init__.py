@@ -41,8 +41,15 @@ COMMANDS = (surface, register, apply, protocols, demo, consistency, tune, regist
 #: fault), or end it by SIGINT after the interrupt was reported, instead of the clean exit
 #: status 130 or 143.
 PRELOAD = ("numpy", "scipy.ndimage", "scipy.optimize", "scipy.sparse", "numba", "SimpleITK", "nibabel",
-           "skimage.measure", "pyvista", "volreg.io", "volreg.io.report_figure", "volreg.io.protocol",
+           "skimage.measure", "volreg.io", "volreg.io.report_figure", "volreg.io.protocol",
            "volreg.progress", "volreg.register")
+
+#: pyvista (and VTK) are loaded too, in the same way, except for these commands when no argument
+#: names a VTK file (:data:`VTK_SUFFIXES`): they do not use it, and it takes about 0.25 s.
+WITHOUT_PYVISTA = ("register", "consistency", "tune")
+
+#: File suffixes that volreg reads or writes through pyvista and VTK (meshes, point sets, ``.vti``).
+VTK_SUFFIXES = (".vti", ".vtk", ".vtp", ".ply", ".stl", ".obj")
 
 
 #: The commands that register label volumes: on a first run a helper process compiles their loops
@@ -64,14 +71,17 @@ def _release_signals(mask) -> None:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
-def _preload(command: str) -> None:
-    """Import :data:`PRELOAD`, unless ``command`` is ``protocols``; for ``batch`` also Dask, where
-    it is installed (the command says what to install where it is not)."""
+def _preload(command: str, words: Sequence[str] = ()) -> None:
+    """Import :data:`PRELOAD`, unless ``command`` is ``protocols``; pyvista unless the command is one
+    of :data:`WITHOUT_PYVISTA` and none of its argument ``words`` ends in a :data:`VTK_SUFFIXES`
+    suffix; for ``batch`` also Dask, where it is installed (the command says what to install where
+    it is not)."""
     if command == "protocols":
         return
     import importlib
 
-    for name in PRELOAD:
+    vtk_file = any(str(w).lower().endswith(VTK_SUFFIXES) for w in words)
+    for name in PRELOAD + (() if command in WITHOUT_PYVISTA and not vtk_file else ("pyvista",)):
         importlib.import_module(name)
     if command == "batch":
         try:
@@ -194,7 +204,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             from volreg import _precompile
 
             helper = _precompile.start()
-        _preload(args.command)
+        _preload(args.command, sys.argv[1:] if argv is None else list(argv))
         from volreg.io._atomic import kept_results
         from volreg.progress import clear_interrupt
     except BaseException:

@@ -33,7 +33,6 @@ from volreg.errors import GeometryError, VolregIOError, VolregWarning
 from volreg.grid import Grid, LabelVolume, as_grid
 from volreg.io._atomic import atomic_output
 from volreg.io._guards import check_image_data_files, check_readable, check_vti_size, max_image_bytes
-from volreg.io.vti import read_vti
 
 __all__ = ["read_labels", "write_labels", "write_scalar", "read_image", "read_grid"]
 
@@ -440,6 +439,8 @@ def _read_sitk(
     p = Path(path)
     suffix = _check_input(p, what)
     if suffix == ".vti":
+        from volreg.io.vti import read_vti  # pyvista and VTK, imported only for .vti files
+
         check_vti_size(p, what)
         array, origin, spacing, direction = read_vti(p, what)
         return (array if voxels else array.shape), origin, spacing, direction

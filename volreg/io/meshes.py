@@ -16,12 +16,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pyvista as pv
 
+from volreg._lazy import LazyModule
 from volreg.errors import VolregIOError, VolregWarning
 from volreg.io._atomic import atomic_output
 from volreg.io._guards import check_mesh_sizes
 from volreg.io.gifti import GiftiSurfaceMeta, is_gifti, read_gifti_data, read_gifti_surface, write_gifti
+
+pv = LazyModule("pyvista")
 
 __all__ = ["write_mesh", "read_mesh", "read_surface", "write_gifti", "add_vertex_data", "SurfaceData"]
 
