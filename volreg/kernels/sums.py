@@ -298,14 +298,16 @@ def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float, *
     indptr = np.zeros(len(rows) + 1, dtype=np.int64)
     gorder = grid.order.astype(np.int64)
     args = (rows, grid.points, gorder, grid.start, grid.lo, grid.cell, grid.dims, max_runs(grid), float(sigma))
-    run_parts(_grid_pairs, _query_parts(rows), *args, indptr, np.zeros(0, np.int64), np.zeros(0), False)
+    run_parts(_grid_pairs, _query_parts(rows), *args, indptr, np.zeros(0, np.int32), np.zeros(0), False)
     np.cumsum(indptr, out=indptr)
     nnz = int(indptr[-1])
-    indices = np.empty(nnz, dtype=np.int64)
+    # Column indices written in their final type: no second copy of the largest array (tens of
+    # millions of entries at a 1 mm surface's finest level), whose fresh pages cost more than the fill.
+    index_dtype = np.int32 if max(nnz, len(grid.points)) < 2**31 - 1 else np.int64
+    indices = np.empty(nnz, dtype=index_dtype)
     data = np.empty(nnz)
     run_parts(_grid_pairs, _query_parts(rows), *args, indptr, indices, data, True)
-    index_dtype = np.int32 if max(nnz, len(grid.points)) < 2**31 - 1 else np.int64
-    indptr, indices = indptr.astype(index_dtype), indices.astype(index_dtype)
+    indptr = indptr.astype(index_dtype)
     mat = sp.csr_matrix((data, indices, indptr), shape=(len(rows), len(grid.points)))
     if sort:
         mat.sort_indices()
