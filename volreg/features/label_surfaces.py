@@ -333,7 +333,7 @@ def implicit_surfaces(
         return ImplicitSurface(surf.vertices, surf.normals, min_width=min_width, **kwargs)
 
     out = {}
-    fits = thread_map(fit, list(surfaces.values()))  # independent fits, on numba's threads
+    fits = thread_map(fit, list(surfaces.values()))  # independent fits, on volreg's threads
     try:
         for i, (lab, f) in enumerate(zip(surfaces, fits)):
             out[lab] = f

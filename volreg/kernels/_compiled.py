@@ -6,6 +6,10 @@ inlined.  Loops marked ``fastmath`` are branch-free over the candidate points
 SIMD code; their sums are reassociated by the compiler and may differ from the
 strict loops in the last bits.
 
+Loops whose first two arguments are ``part, parts`` cover part ``part`` of ``parts`` of their
+work items (the blocks, queries, rows or segments said "in parallel" below), as
+:func:`volreg._threads.run_parts` calls them, one part per call on its threads.
+
 Layout of the point sets: a :class:`~volreg.kernels.grid.CellGrid` sorts the
 centres cell by cell (row-major, last axis fastest), so the points of one row of
 cells along the last axis are one contiguous run ``[start[c0], start[c1 + 1])``.
