@@ -482,3 +482,20 @@ def test_pyvista_is_loaded_before_a_command_only_where_it_may_be_used(command, w
     run = subprocess.run([sys.executable, "-c", code, command, *words], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == [str(loaded), "True"]
+
+
+@pytest.mark.parametrize("words, status, shown", [
+    (["--version"], 0, f"volreg {volreg.__version__}"),
+    (["protocols"], 0, "default"),
+    (["register", "missing.nii.gz", "also-missing.nii.gz", "-o", "out"], 2, "does not exist"),
+])
+def test_console_command_ends_quickly_with_mains_status_output_and_exit_handlers(tmp_path, words, status, shown):
+    """The console command ends by os._exit after main: the status is main's, everything printed
+    reaches the pipe, and atexit handlers (a library's clean-up) still run, after main."""
+    code = ("import atexit, sys; atexit.register(lambda: print('exit handler ran', flush=True)); "
+            "from volreg.cli import run; sys.argv = ['volreg', *sys.argv[1:]]; run()")
+    proc = subprocess.run([sys.executable, "-c", code, *words], capture_output=True, text=True, timeout=300,
+                          cwd=tmp_path)
+    assert proc.returncode == status, proc.stderr
+    assert shown in proc.stdout + proc.stderr
+    assert proc.stdout.rstrip().endswith("exit handler ran")

@@ -1,6 +1,6 @@
 """``python -m volreg``: the same as the ``volreg`` command."""
 
-from volreg.cli import main
+from volreg.cli import run
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run()

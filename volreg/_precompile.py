@@ -2,7 +2,7 @@
 
 On a fresh install numba compiles volreg's loops the first time each is called and caches
 them on disk (:mod:`volreg._jit`); a registration calls about twenty, and compiling them took
-about 26 s of the frog demo's first run on one core.  Compiling is pure Python and holds the
+about 17 s of the frog demo's first run on one core.  Compiling is pure Python and holds the
 GIL, so threads cannot share it, but processes can share numba's on-disk cache: a command that
 registers volumes starts one helper process (:func:`start`) that compiles the loops of
 :data:`LOOPS` in reverse order (the last-needed first) into the cache, while the command goes
