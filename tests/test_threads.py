@@ -221,3 +221,17 @@ def test_kernel_sums_in_parts_equal_one_part_to_the_bit():
         numba.set_num_threads(threads)
     for a, b in zip(together, alone):
         np.testing.assert_array_equal(a, b)
+
+
+def test_library_queries_use_volregs_thread_count():
+    import numba
+
+    from volreg._threads import query_workers
+
+    threads = numba.get_num_threads()
+    assert query_workers() == threads
+    numba.set_num_threads(1)
+    try:
+        assert query_workers() == 1
+    finally:
+        numba.set_num_threads(threads)

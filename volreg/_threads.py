@@ -39,7 +39,7 @@ from threadpoolctl import threadpool_limits
 
 from volreg._jit import njit
 
-__all__ = ["part_range", "run_parts", "single_blas", "thread_map"]
+__all__ = ["part_range", "query_workers", "run_parts", "single_blas", "thread_map"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -134,6 +134,12 @@ def run_parts(loop: Callable, n: int, *args, grain: int = 1) -> None:
         wait(started)
     for h in started:
         h.result()
+
+
+def query_workers() -> int:
+    """The thread count for library calls that take one (``workers`` of scipy's k-d tree
+    queries): numba's, as for volreg's own loops."""
+    return numba.get_num_threads()
 
 
 def thread_map(func: Callable[[T], R], items: Sequence[T]) -> Generator[R, None, None]:

@@ -34,6 +34,7 @@ from scipy.spatial import cKDTree
 import scipy.sparse as sp
 
 from volreg._jit import njit
+from volreg._threads import query_workers
 from volreg.kernels import CellGrid, _check_points, kernel_matrix, kernel_sum, put_rows, spatial_order, take_rows
 from volreg.kernels.wu import wu
 
@@ -105,7 +106,7 @@ def estimate_normals(points: np.ndarray, *, k: int = 12) -> np.ndarray:
         raise ValueError(f"Expected more than {dim} points to estimate normals, got {n}.")
     k = int(min(k, n - 1))
     tree = cKDTree(points)
-    _, nbr = tree.query(points, k + 1)
+    _, nbr = tree.query(points, k + 1, workers=query_workers())
     local = points[nbr] - points[nbr].mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", local, local)
     _, vecs = np.linalg.eigh(cov)
@@ -155,7 +156,7 @@ def _offsurface(points, normals, delta, tree) -> tuple[np.ndarray, np.ndarray]:
     pts, vals = [], []
     for sign in (1.0, -1.0):
         p = points + sign * delta * normals
-        dist, _ = tree.query(p, 1)
+        dist, _ = tree.query(p, 1, workers=query_workers())
         ok = dist >= 0.9 * delta
         pts.append(p[ok])
         vals.append(np.full(int(ok.sum()), sign * delta))
@@ -311,7 +312,7 @@ class ImplicitSurface:
             raise ValueError(f"Expected at least {2 * dim + 1} `points`, got {n}.")
         normals = estimate_normals(points) if normals is None else _unit_normals(normals, n, dim)
         tree = cKDTree(points)
-        spacing = float(np.median(tree.query(points, 2)[0][:, 1]))
+        spacing = float(np.median(tree.query(points, 2, workers=query_workers())[0][:, 1]))
         self.diameter = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
         if self.diameter <= 0:
             raise ValueError("Expected `points` spanning a non-zero extent, got coincident points.")
