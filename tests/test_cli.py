@@ -499,3 +499,13 @@ def test_console_command_ends_quickly_with_mains_status_output_and_exit_handlers
     assert proc.returncode == status, proc.stderr
     assert shown in proc.stdout + proc.stderr
     assert proc.stdout.rstrip().endswith("exit handler ran")
+
+
+def test_vtk_suffixes_cover_every_format_read_through_pyvista():
+    from volreg.cli import VTK_SUFFIXES
+    from volreg.io.images import READ_SUFFIXES
+    from volreg.io.meshes import MESH_SUFFIXES
+    from volreg.io.pointsets import MESH_FORMATS
+
+    through_pyvista = set(MESH_SUFFIXES) | {s for s in MESH_FORMATS if s != ".gii"} | {".vti"} & set(READ_SUFFIXES)
+    assert through_pyvista <= set(VTK_SUFFIXES)

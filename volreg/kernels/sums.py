@@ -73,7 +73,8 @@ def _query_parts(queries: np.ndarray) -> int:
 
 def _blocked(queries, grid, coef, sigma, order, blocks, val, grad, hess):
     px, py, pz = grid.columns
-    run_parts(_blocked_sum, _super_blocks(blocks), queries, blocks, px, py, pz, coef, grid.start, grid.lo, grid.cell, grid.dims, sigma, val, grad)
+    run_parts(_blocked_sum, _super_blocks(blocks), queries, blocks, px, py, pz, coef, grid.start, grid.lo,
+              grid.cell, grid.dims, sigma, val, grad)
 
 
 def _blocked_vector(queries, grid, coef, sigma, order, blocks, val, grad, hess):
