@@ -2,7 +2,9 @@
 
 pyvista (with VTK) takes about a quarter of a second to import; ``volreg register`` on NIfTI
 volumes never uses it, so the readers and writers of meshes and ``.vti`` images refer to it
-through :class:`LazyModule` and pay the import only when they run.
+through :class:`LazyModule` and pay the import only when they run.  (The standard library's
+``importlib.util.LazyLoader`` would put a lazy module into ``sys.modules`` for every importer;
+this stand-in affects only the modules that use it.)
 """
 
 from __future__ import annotations

@@ -251,8 +251,7 @@ def euclidean_distance(mask: np.ndarray, spacing) -> np.ndarray:
     to rounding).  Masks of :data:`SEPARABLE_CELLS` voxels or more are computed by three
     separable 1-D passes of squared distances, lines in parallel: on the full-resolution
     frog's 500 x 500 x 161 mask 1.1 s on two threads against 8.1 s for scipy (one thread), the
-    same values.  Smaller ones go to scipy, which takes a fraction of a second there, so
-    that the usual first run does not wait for this loop to compile (about 2.5 s).
+    same values.  Smaller ones go to scipy, which takes a fraction of a second there.
 
     Parameters
     ----------
