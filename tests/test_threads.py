@@ -230,6 +230,8 @@ def test_library_queries_use_volregs_thread_count():
 
     threads = numba.get_num_threads()
     assert query_workers() == threads
+    if threads >= 2:  # thread_map's jobs run side by side already: one worker each
+        assert list(thread_map(lambda _: query_workers(), [0, 1])) == [1, 1]
     numba.set_num_threads(1)
     try:
         assert query_workers() == 1
