@@ -1,8 +1,8 @@
 """Tangential sliding on smooth surfaces: correspondence error on known warps, remeshed targets.
 
-Run:  python benchmarks/bench_sliding.py [--seeds 0,1,2,3] [--shapes 0,4,8] [--shear]
+Run:  python benchmarks/bench_sliding.py [--seeds 0,1,2,3] [--shapes 0,4,8,ant,cortex] [--shear]
       [--settings '{"alpha": 3}'] [--pre none|translation|affine] [--affine-penalty 0.014]
-      [--methods volreg,moments,pycpd] [--cpd-points 2000] [--diagnose]
+      [--methods volreg,moments,pycpd] [--cpd-points 2000] [--min-width MM] [--diagnose]
 
 Pairs (``--shapes``): the ellipsoid of `tests/shapes.py` (semi-axes 20 / 14 / 10 mm) with 0, 4 or 8 bumps,
 labelled on a 1 mm grid; the target is the same solid moved by a known smooth warp and labelled
@@ -11,14 +11,19 @@ not coincide with the source's images.  Warps: 6 random Gaussian bumps of 15 mm 
 maximum displacement of 15 % of the diameter (`GaussianBumps.random`, one per seed), and a
 near-linear shear (``--shear``: u = 0.15 d (sin(y/15), 0.8 sin(z/15), 0.8 sin(x/15)), d the
 diameter).  ``ant``: pyvista's ant and its image under 6 Gaussian bumps of up to 5 % of the
-diameter, the two meshes decimated separately (:func:`_ant_pair`).  Every method sees the two surfaces (vertices and normals), never the correspondence.
+diameter, the two meshes decimated separately (:func:`_ant_pair`).  ``cortex``: a folded,
+cortex-like blob (110 mm across, sulci 7 mm apart) at 10k vertices against its image under 6
+Gaussian bumps of up to 5 % of the diameter at 12k (:func:`_cortex_pair`).  Every method sees the
+two surfaces (vertices and normals), never the correspondence.
 
 Reported per pair: mean |tau(v) - truth(v)| over the source vertices as % of the diameter, the
 identity's, the mean distance of tau(v) to the target surface (mm, through the target's implicit
 surface), and the seconds of the registration alone (implicit surfaces fitted before).
 
 Methods:
-- ``volreg``: `register_surfaces`' kernel warp on the two implicit surfaces (minimum width 4 mm),
+- ``volreg``: `register_surfaces`' kernel warp on the two implicit surfaces (minimum width 4 mm; the
+  ant and the cortex as `register_surfaces` fits meshes: the smaller of 8 vertex spacings and the
+  warp's finest width / sqrt(2); ``--min-width`` sets it for both),
   with ``--settings`` as further `WarpSettings`.  ``--pre`` first fits a linear map of the target
   by the same locational cost (least squares over the finest level's samples): ``translation``,
   or ``affine`` with ``--affine-penalty`` x (d/2)^2 x |A - I|^2 per sample (d the diameter);
@@ -50,10 +55,11 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 
-from shapes import bumpy_ellipsoid_parts  # noqa: E402
-from volreg.features.implicit import ImplicitSurface  # noqa: E402
+from shapes import bumpy_ellipsoid_parts, decimated_surface, folded_blob_inside  # noqa: E402
+from volreg.features.implicit import ImplicitSurface, default_min_width  # noqa: E402
 from volreg.features.label_surfaces import label_surface  # noqa: E402
 from volreg.grid import LabelVolume  # noqa: E402
+from volreg.settings import WarpSettings  # noqa: E402
 from volreg.synthetic import GaussianBumps  # noqa: E402
 
 
@@ -94,8 +100,8 @@ def _inside(bumps: int):
     return inside
 
 
-def _surface(shape, origin, inside):
-    geom = LabelVolume(np.zeros(shape, np.uint8), origin, (1.0, 1.0, 1.0), np.eye(3))
+def _surface(shape, origin, inside, spacing: float = 1.0):
+    geom = LabelVolume(np.zeros(shape, np.uint8), origin, (spacing,) * 3, np.eye(3))
     mask = inside(geom.grid_points().reshape(-1, 3)).reshape(shape)
     return label_surface(geom.with_array(mask.astype(np.uint8)), 1)
 
@@ -129,10 +135,30 @@ def _ant_pair(seed: int):
     return out[0], out[1], truth, diameter
 
 
+def _cortex_pair(seed: int):
+    """The folded blob of `tests/shapes.py` (semi-axes 30 / 36 / 30 mm, sulci 8 mm deep and about 7 mm
+    apart; diameter about 110 mm, surface 1.6 x its envelope's) labelled at 0.75 mm and
+    decimated to 10k vertices, and its image under 6 Gaussian bumps (scale 15 %, up to 5 % of the
+    diameter, as the ant) labelled on a grid offset by a fraction of a voxel and decimated to 12k."""
+    spacing = 0.75
+    shape = tuple(int(n) for n in np.floor(2 * (np.array([30.0, 36.0, 30.0]) + 10) / spacing) + 1)
+    origin = -(np.array(shape) - 1) * spacing / 2
+    full = _surface(shape, origin, folded_blob_inside, spacing)
+    v = full.vertices
+    diameter = float(np.linalg.norm(np.ptp(v, axis=0)))
+    truth = GaussianBumps.random(v.min(0), v.max(0), max_displacement=0.05 * diameter, scale=0.15 * diameter,
+                                 count=6, rng=np.random.default_rng(seed))
+    moved = _surface(shape, origin + np.array([0.31, 0.17, 0.43]) * spacing,
+                     lambda p: folded_blob_inside(truth.inverse(p)), spacing)
+    return decimated_surface(full, 10000), decimated_surface(moved, 12000), truth, diameter
+
+
 def make_pair(bumps: int | str, seed: int | None):
     """Source surface, target surface, the true map and the diameter (mm) of one pair."""
     if bumps == "ant":
         return _ant_pair(seed)
+    if bumps == "cortex":
+        return _cortex_pair(seed)
     inside = _inside(bumps)
     source = _surface((60,) * 3, (-29.5,) * 3, inside)
     diameter = float(np.linalg.norm(np.ptp(source.vertices, axis=0)))
@@ -221,17 +247,22 @@ def run(method: str, bumps: int | str, pair, args) -> dict:
     """One method on one pair (:func:`make_pair`'s result for the shape ``bumps``)."""
     source, target, truth, diameter = pair
     v = source.vertices
-    min_width = None if bumps == "ant" else 4.0  # the ant: ImplicitSurface's default, as register_surfaces
-    f2 = ImplicitSurface(target.vertices, target.normals, min_width=min_width)
+    settings = WarpSettings(**json.loads(args.settings))
+    if args.min_width:
+        widths = (args.min_width, args.min_width)
+    elif bumps in ("ant", "cortex"):  # as register_surfaces fits meshes
+        finest = settings.resolved(float(np.linalg.norm(np.ptp(source.vertices, axis=0)))).min_width / np.sqrt(2)
+        widths = tuple(min(default_min_width(s.vertices), finest) for s in (source, target))
+    else:
+        widths = (4.0, 4.0)
+    f2 = ImplicitSurface(target.vertices, target.normals, min_width=widths[1])
     t0 = time.perf_counter()
     if method == "volreg":
         from volreg.features.mapped import LinearlyMapped
-        from volreg.settings import WarpSettings
         from volreg.warp.fit import fit_warp
         from volreg.warp.objective import FeaturePair
 
-        settings = WarpSettings(**json.loads(args.settings))
-        f1 = ImplicitSurface(v, source.normals, min_width=min_width)
+        f1 = ImplicitSurface(v, source.normals, min_width=widths[0])
         t0 = time.perf_counter()
         target_feature, pre = f2, None
         if args.pre != "none":
@@ -284,7 +315,7 @@ def run(method: str, bumps: int | str, pair, args) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("--shapes", default="0,4,8", help="bumps on the ellipsoid (any of 0, 4, 8), or ant")
+    parser.add_argument("--shapes", default="0,4,8", help="bumps on the ellipsoid (any of 0, 4, 8), ant or cortex")
     parser.add_argument("--seeds", default="0,1,2,3", help="Gaussian-bump warps (one pair per seed)")
     parser.add_argument("--shear", action="store_true", help="also the bare ellipsoid under the shear")
     parser.add_argument("--methods", default="volreg,moments")
@@ -297,10 +328,12 @@ def main() -> None:
                              "levels, weight W (paper eq. 6)")
     parser.add_argument("--landmarks", type=int, default=0,
                         help="volreg: this many random source vertices given with their true images")
+    parser.add_argument("--min-width", type=float, default=0.0,
+                        help="finest implicit-surface width (mm) for both surfaces, instead of the shape's default")
     parser.add_argument("--diagnose", action="store_true",
                         help="also print the cost terms and curvature mismatch at the fitted warp and the truth")
     args = parser.parse_args()
-    pairs = [(b if b == "ant" else int(b), int(s)) for b in args.shapes.split(",") for s in args.seeds.split(",")
+    pairs = [(b if b in ("ant", "cortex") else int(b), int(s)) for b in args.shapes.split(",") for s in args.seeds.split(",")
              if s != ""]
     if args.shear:
         pairs.append((0, None))
@@ -309,7 +342,7 @@ def main() -> None:
     summary: dict[tuple[str, str], list[float]] = {}
     diagnosed = []
     for bumps, seed in pairs:
-        shape = "ant" if bumps == "ant" else f"ellipsoid + {bumps} bumps" if bumps else "ellipsoid"
+        shape = bumps if bumps in ("ant", "cortex") else f"ellipsoid + {bumps} bumps" if bumps else "ellipsoid"
         warp = "shear" if seed is None else f"bumps, seed {seed}"
         pair = make_pair(bumps, seed)
         for method in args.methods.split(","):

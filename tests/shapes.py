@@ -109,6 +109,42 @@ def bumpy_ellipsoid(bumps: int = 8):
 
     return sdf
 
+def folded_blob_inside(points: np.ndarray, axes=(30.0, 36.0, 30.0), depth: float = 8.0,
+                       wavelength: float = 14.0, seed: int = 7) -> np.ndarray:
+    """Inside test of a folded, cortex-like blob at ``points`` (N, 3) mm.
+
+    A point x at ellipsoidal radius rho = |x / axes| projects to q = x / rho on the envelope; it
+    is inside where |x| < |q| - depth exp(-(s(q) / 0.4)^2), s a random sum of 10 plane waves of
+    ``wavelength`` mm with unit variance: sulci ``depth`` mm deep along its zero set, about half a
+    wavelength apart.
+    """
+    rng = np.random.default_rng(seed)
+    k = rng.normal(size=(10, 3))
+    k *= (2 * np.pi / wavelength) / np.linalg.norm(k, axis=1, keepdims=True)
+    phase = rng.uniform(0, 2 * np.pi, 10)
+    rho = np.maximum(np.linalg.norm(points / np.asarray(axes), axis=1), 1e-9)
+    q = points / rho[:, None]
+    fold = np.cos(q @ k.T + phase) @ np.full(10, np.sqrt(2.0 / 10))
+    dent = depth * np.exp(-((fold / 0.4) ** 2))
+    return (np.linalg.norm(points, axis=1) < np.linalg.norm(q, axis=1) - dent) | (rho < 0.5)
+
+
+def decimated_surface(surface, size: int):
+    """A marching-cubes ``surface`` (its ``vertices`` and triangles ``cells``) decimated by VTK to
+    about ``size`` vertices: ``.vertices`` (M, 3) mm and outward unit ``.normals`` (M, 3)."""
+    from types import SimpleNamespace
+
+    import pyvista as pv
+
+    from volreg.morph import surface_normals
+
+    cells = np.asarray(surface.cells)
+    mesh = pv.PolyData(surface.vertices, np.c_[np.full(len(cells), 3), cells].ravel())
+    mesh = mesh.decimate(1.0 - size / mesh.n_points).triangulate().clean()
+    pts = np.asarray(mesh.points, float)
+    return SimpleNamespace(vertices=pts, normals=surface_normals(pts, np.asarray(mesh.faces).reshape(-1, 4)[:, 1:]))
+
+
 def rotation(angle_deg: float, axis=(0.3, 0.5, 0.8)) -> np.ndarray:
     """Rotation matrix about ``axis`` (Rodrigues)."""
     a = np.asarray(axis, float)

@@ -38,13 +38,24 @@ from volreg._threads import query_workers
 from volreg.kernels import CellGrid, _check_points, kernel_matrix, kernel_sum, put_rows, spatial_order, take_rows
 from volreg.kernels.wu import wu
 
-__all__ = ["ImplicitSurface", "ImplicitLevel", "estimate_normals", "thin_points"]
+__all__ = ["ImplicitSurface", "ImplicitLevel", "default_min_width", "estimate_normals", "thin_points"]
 
 ProgressCallback = Callable[[str, int, int], None]
 
 
 # --------------------------------------------------------------------------------------
 # Point-set utilities
+
+
+def _median_spacing(tree: cKDTree) -> float:
+    """Median distance from each of the tree's points to its nearest other point, mm."""
+    return float(np.median(tree.query(tree.data, 2, workers=query_workers())[0][:, 1]))
+
+
+def default_min_width(points: np.ndarray) -> float:
+    """:class:`ImplicitSurface`'s default finest width for ``points`` (N, D) mm: 8 times the
+    median distance between neighbouring points, mm."""
+    return 8.0 * _median_spacing(cKDTree(_check_points("points", points)))
 
 
 def thin_points(points: np.ndarray, spacing: float) -> np.ndarray:
@@ -312,7 +323,7 @@ class ImplicitSurface:
             raise ValueError(f"Expected at least {2 * dim + 1} `points`, got {n}.")
         normals = estimate_normals(points) if normals is None else _unit_normals(normals, n, dim)
         tree = cKDTree(points)
-        spacing = float(np.median(tree.query(points, 2, workers=query_workers())[0][:, 1]))
+        spacing = _median_spacing(tree)
         self.diameter = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
         if self.diameter <= 0:
             raise ValueError("Expected `points` spanning a non-zero extent, got coincident points.")
