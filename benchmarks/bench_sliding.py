@@ -18,7 +18,7 @@ two surfaces (vertices and normals), never the correspondence.
 
 Reported per pair: mean |tau(v) - truth(v)| over the source vertices as % of the diameter, the
 identity's, the mean distance of tau(v) to the target surface (mm, through the target's implicit
-surface), and the seconds of the registration alone (implicit surfaces fitted before).
+surface), and the seconds of the method (volreg's with both implicit-surface fits).
 
 Methods:
 - ``volreg``: `register_surfaces`' kernel warp on the two implicit surfaces (minimum width 4 mm; the
@@ -36,7 +36,10 @@ Methods:
   can be (its distance to the target surface is printed too).
 - ``pycpd``: non-rigid coherent point drift (beta = 2, lambda = 2 in tenths of the diameter, at
   most 100 iterations) on ``--cpd-points`` random source and target vertices; its error is
-  measured on those source vertices.
+  measured on those source vertices.  ``probreg-cpd``: probreg's non-rigid CPD, the same
+  parameters; ``probreg-bcpd``: probreg's Bayesian CPD (rigid and non-rigid together; lambda 2,
+  its default kernel, at most 50 iterations); both on the same vertices (need ``pip install
+  probreg``, whose open3d needs libusb-1.0-0 on Debian).
 
 ``--diagnose`` also prints, for volreg, the locational cost's terms at the fitted warp and at the
 true map (see :func:`diagnose`): where the truth costs more than the fitted warp, the cost itself
@@ -255,7 +258,9 @@ def run(method: str, bumps: int | str, pair, args) -> dict:
         widths = tuple(min(default_min_width(s.vertices), finest) for s in (source, target))
     else:
         widths = (4.0, 4.0)
+    t0 = time.perf_counter()
     f2 = ImplicitSurface(target.vertices, target.normals, min_width=widths[1])
+    fit_f2 = time.perf_counter() - t0  # counted in volreg's time; the others use f2 only to score
     t0 = time.perf_counter()
     if method == "volreg":
         from volreg.features.mapped import LinearlyMapped
@@ -263,7 +268,6 @@ def run(method: str, bumps: int | str, pair, args) -> dict:
         from volreg.warp.objective import FeaturePair
 
         f1 = ImplicitSurface(v, source.normals, min_width=widths[0])
-        t0 = time.perf_counter()
         target_feature, pre = f2, None
         if args.pre != "none":
             pre = _pre_stage(f1, f2, diameter, settings, args.pre, args.affine_penalty)
@@ -277,7 +281,16 @@ def run(method: str, bumps: int | str, pair, args) -> dict:
         if args.landmarks:
             pick = np.random.default_rng(0).choice(len(v), args.landmarks, replace=False)
             landmarks = (v[pick], truth(v[pick]) if pre is None else pre.inverse()(truth(v[pick])))
-        warp = fit_warp(pairs, v, landmarks=landmarks, settings=settings).warp  # as register_surfaces does
+        prior = None
+        if args.symmetric:  # the backward registration first; the forward one pulled to its inverse
+            from dataclasses import replace
+
+            from volreg.warp.inverse import InverseWarp
+
+            back = fit_warp([FeaturePair(f2, f1)], target.vertices, settings=settings).warp
+            prior = InverseWarp(back)
+            settings = replace(settings, lambda_consistency=args.symmetric)
+        warp = fit_warp(pairs, v, landmarks=landmarks, settings=settings, prior=prior).warp  # as register_surfaces
         if pre is not None:
             warp = warp.then(pre)
         moved = warp(v)
@@ -291,20 +304,30 @@ def run(method: str, bumps: int | str, pair, args) -> dict:
         c1, t1 = moments(v)
         c2, t2 = moments(target.vertices)
         moved = (v - c1) @ (t2 @ np.linalg.inv(t1)).T + c2
-    elif method == "pycpd":
-        from pycpd import DeformableRegistration
-
+    elif method in ("pycpd", "probreg-cpd", "probreg-bcpd"):
         rng = np.random.default_rng(0)
         pick = rng.choice(len(v), min(args.cpd_points, len(v)), replace=False)
         tpick = rng.choice(len(target.vertices), min(args.cpd_points, len(target.vertices)), replace=False)
         v = v[pick]
-        scale = diameter / 10.0
-        reg = DeformableRegistration(X=target.vertices[tpick] / scale, Y=v / scale, alpha=2.0, beta=2.0,
-                                     max_iterations=100)
-        moved = reg.register()[0] * scale
+        scale = diameter / 10.0  # beta and lambda in tenths of the diameter
+        y, x = v / scale, target.vertices[tpick] / scale
+        if method == "pycpd":
+            from pycpd import DeformableRegistration
+
+            moved = DeformableRegistration(X=x, Y=y, alpha=2.0, beta=2.0, max_iterations=100).register()[0]
+        elif method == "probreg-cpd":
+            from probreg import cpd
+
+            res = cpd.registration_cpd(y, x, tf_type_name="nonrigid", beta=2.0, lmd=2.0, maxiter=100)
+            moved = np.asarray(res.transformation.transform(y))
+        else:
+            from probreg import bcpd
+
+            moved = np.asarray(bcpd.registration_bcpd(y, x, lmd=2.0, maxiter=50).transform(y))
+        moved = moved * scale
     else:
         raise SystemExit(f"unknown method {method}")
-    seconds = time.perf_counter() - t0
+    seconds = time.perf_counter() - t0 + (fit_f2 if method == "volreg" else 0.0)
     if method != "volreg":
         terms = None
     err = np.linalg.norm(moved - truth(v), axis=1)
@@ -328,6 +351,9 @@ def main() -> None:
                              "levels, weight W (paper eq. 6)")
     parser.add_argument("--landmarks", type=int, default=0,
                         help="volreg: this many random source vertices given with their true images")
+    parser.add_argument("--symmetric", type=float, default=0.0,
+                        help="volreg: fit the target onto the source first, then the source onto the target "
+                             "pulled towards that warp's inverse with this lambda_consistency (mm^-2)")
     parser.add_argument("--min-width", type=float, default=0.0,
                         help="finest implicit-surface width (mm) for both surfaces, instead of the shape's default")
     parser.add_argument("--diagnose", action="store_true",
