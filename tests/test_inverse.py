@@ -116,3 +116,34 @@ def test_grid_start_from_the_sampled_forward_field(dim):
     assert started.converged.all() and started.residual.max() <= 1e-6
     assert np.abs(started.points - plain.points).max() <= 2e-6
     assert started.iterations <= plain.iterations
+
+
+def test_a_start_within_tol_is_kept_without_the_jacobian():
+    """Starts already within ``tol`` of their targets are checked by one evaluation of tau alone
+    (no Jacobian) and kept as they are; starts further off go on with Newton to ``tol``."""
+    warp = smooth_warp(3)
+    y = np.random.default_rng(5).uniform(20, 80, (4000, 3))
+    exact = invert_points(warp, y).points
+    orders = []
+
+    class Counting:
+        dim = 3
+
+        def bounds(self):
+            return warp.bounds()
+
+        def evaluate(self, points, order=1):
+            orders.append(order)
+            return warp.evaluate(points, order=order)
+
+    shift = np.zeros_like(exact)
+    shift[::2] = 1e-5  # 1.7e-5 mm off: within tol
+    kept = invert_points(Counting(), y, tol=1e-4, start=lambda _: exact + shift)
+    assert orders == [0] and np.array_equal(kept.points, exact + shift)
+    assert kept.converged.all() and kept.residual.max() <= 1e-4
+    orders.clear()
+    shift[1::2] = 0.05  # 0.09 mm off: Newton
+    polished = invert_points(Counting(), y, tol=1e-4, start=lambda _: exact + shift)
+    assert orders[:2] == [0, 1]
+    assert polished.converged.all() and polished.residual.max() <= 1e-4
+    assert np.array_equal(polished.points[::2], exact[::2] + shift[::2])

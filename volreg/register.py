@@ -777,17 +777,27 @@ def _sample_on_fixed_grid(warp, fixed, moving, max_folded_fraction: float, progr
     return _FixedGridFields(grid, u, jac, points, warped)
 
 
+#: The inverse written on the moving grid holds to this fraction of the grid's smallest spacing
+#: (1 micrometre at 1 mm), checked exactly at every voxel.
+INVERSE_GRID_TOL = 1e-3
+
+
 def _inverse_on_moving_grid(warp, moving, progress, fixed=None, displacement=None):
     """The warp's inverse (:class:`~volreg.warp.inverse.InverseWarp`) and its displacement on the moving grid, mm.
 
-    Given the warp's ``displacement`` on the ``fixed`` grid, Newton's method starts from its
-    interpolated inverse (:class:`~volreg.warp.inverse.GridStart`): the same answer (to the
-    inverse's 1e-6 mm) with fewer evaluations of the warp."""
+    To :data:`INVERSE_GRID_TOL` of the moving grid's smallest spacing.  Given the warp's
+    ``displacement`` on the ``fixed`` grid, each voxel starts from its interpolated inverse
+    (:class:`~volreg.warp.inverse.GridStart`), which one exact evaluation of the warp checks;
+    Newton's method goes on only where that is not within the tolerance.
+    """
     from volreg.warp.field import displacement_on_grid
     from volreg.warp.inverse import GridStart, InverseWarp, _linear_of
 
     start = None if displacement is None else GridStart(displacement, fixed, _linear_of(warp))
-    inverse = InverseWarp(warp, start=start)
+    # The starts are within 1e-3 voxel at 96 % of the 1 mm phantom's voxels and 99 % of the 3 mm
+    # frog's (at most 0.004 and 0.007 mm): checking them costs one evaluation of tau, where
+    # polishing every voxel to 1e-6 mm took its Jacobian too and a second evaluation.
+    inverse = InverseWarp(warp, start=start, tol=INVERSE_GRID_TOL * float(np.min(moving.spacing)))
     return inverse, displacement_on_grid(inverse, moving, progress=progress, stage="invert warp")
 
 
@@ -845,7 +855,8 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
             "mean_in_labels": float(np.sqrt(np.einsum("ni,ni->n", u_in, u_in)).mean()) if inside.any() else 0.0,
         },
         "inverse": {
-            "method": "Newton iteration with the analytic Jacobian, on the moving grid",
+            "method": "fixed point on the sampled forward field, checked exactly at every voxel of the moving "
+                      "grid; Newton iteration with the analytic Jacobian where above the tolerance",
             "tolerance_mm": inverse.tol,
             "max_residual_mm": inverse.max_residual,
             "unconverged_voxels": inverse.unconverged,

@@ -117,7 +117,10 @@ def invert_points(
         ``start(y) -> x0``, (N, D) mm: starting points for Newton's method, NaN
         rows where it has none (e.g. :class:`GridStart`); those rows, and every
         row without ``start``, start from ``L^-1(y) - A^-1 u(L^-1(y))``.  A good
-        start saves evaluations; the answer is the same to within ``tol``.
+        start saves evaluations; the answer is the same to within ``tol``.  The
+        starts are checked first without the Jacobian, which is evaluated only
+        where a Newton step follows: a start within ``tol`` of its target costs
+        one evaluation of ``tau`` alone.
     progress : callable, optional
         ``progress("invert warp", done, total)`` after each chunk.
 
@@ -163,10 +166,16 @@ def invert_points(
                 z = x_all[idx[fresh]]  # L^-1(y)
                 tau_z, = warp.evaluate(z, order=0)
                 x[fresh] = z - (tau_z - yf) @ a_inv.T  # x0 = z - A^-1 u(z), as tau(z) - y = u(z) up to rounding
-        tau_x, jac = warp.evaluate(x, order=1)
+        if start is None:
+            tau_x, jac = warp.evaluate(x, order=1)
+        else:  # the Jacobian only where the start is not within tol already
+            tau_x, = warp.evaluate(x, order=0)
+            jac = np.empty((len(y), warp.dim, warp.dim))
         r = tau_x - y
         rn = np.linalg.norm(r, axis=1)
         active = np.flatnonzero(rn > tol)
+        if start is not None and active.size:
+            _, jac[active] = warp.evaluate(x[active], order=1)
         it = 0
         while active.size and it < max_iter:
             it += 1
