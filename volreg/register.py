@@ -564,7 +564,15 @@ def _implicit_pairs(s_fixed, s_moving, used: list[int], settings: SurfaceSetting
 
     def fit(job) -> ImplicitSurface:
         surface, min_width, top = job
-        return ImplicitSurface(surface.vertices, surface.normals, min_width=min_width, max_width=top, offset=top)
+        # Coordinate descent stops once a sweep changes the fitted values by 1e-3 of the finest
+        # width on average (1/25 of the tube epsilon), not ImplicitSurface's 1e-4: the 1 mm
+        # phantom's grey shell then takes 19 sweeps at its finest level instead of 47, its 99th
+        # percentile residual is 0.117 mm instead of 0.102 (tube 0.1 mm), and the endpoint error of
+        # the whole-command cases moved by at most 0.0004 mm (phantom 0.2335 / 0.538 -> 0.2335 /
+        # 0.537 mm, frog 0.542 / 0.872 -> 0.543 / 0.873, parcels 0.349 / 0.667 -> 0.350 / 0.667)
+        # with their implicit surfaces fitted in 23-28 % less time.
+        return ImplicitSurface(surface.vertices, surface.normals, min_width=min_width, max_width=top, offset=top,
+                               tol=1e-3 * min_width)
 
     # The fits are independent: on two threads (numba releases the GIL) the frog's took 1.3 s
     # instead of 2.3 s at 3 mm, with identical results.
