@@ -118,3 +118,27 @@ def test_implicit_on_grid_matches_pointwise_evaluation(size_mm):
     beyond = np.any((vol.grid_points() < lo) | (vol.grid_points() > hi), axis=-1)
     assert beyond.any() == (size_mm == 120)
     assert np.all(grid[beyond] == np.float32(f.offset))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_vertex_normals_are_the_area_weighted_mean_of_the_cell_normals(dim):
+    """Each vertex's normal is the normalised sum of its cells' area-weighted normals (a loop over
+    the cells as the reference), unit length, and radial on a sphere's label surface."""
+    from volreg.features.label_surfaces import _cell_normals, vertex_normals
+
+    rng = np.random.default_rng(dim)
+    vertices = rng.normal(size=(40, dim))
+    cells = np.array([rng.choice(40, dim, replace=False) for _ in range(150)])
+    expected = np.zeros_like(vertices)
+    for cell, normal in zip(cells, _cell_normals(vertices, cells)):
+        for v in cell:
+            expected[v] += normal
+    expected /= np.linalg.norm(expected, axis=1, keepdims=True)
+    normals = vertex_normals(vertices, cells)
+    np.testing.assert_allclose(normals, expected, atol=1e-12)
+    if dim == 3:
+        surf = label_surface(label_volume((40,) * 3, (1, 1, 1), np.eye(3), (-19.5,) * 3,
+                                          lambda p: np.linalg.norm(p, axis=1) - 12.0), 1)
+        radial = surf.vertices / np.linalg.norm(surf.vertices, axis=1, keepdims=True)
+        cosine = np.einsum("ni,ni->n", vertex_normals(surf.vertices, surf.cells), radial)
+        assert cosine.min() > 0.9 and cosine.mean() > 0.99  # outward; within the mesh's facets of radial
