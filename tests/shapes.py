@@ -109,6 +109,7 @@ def bumpy_ellipsoid(bumps: int = 8):
 
     return sdf
 
+
 def folded_blob_inside(points: np.ndarray, axes=(30.0, 36.0, 30.0), depth: float = 8.0,
                        wavelength: float = 14.0, seed: int = 7) -> np.ndarray:
     """Inside test of a folded, cortex-like blob at ``points`` (N, 3) mm.
@@ -140,7 +141,9 @@ def decimated_surface(surface, size: int):
 
     cells = np.asarray(surface.cells)
     mesh = pv.PolyData(surface.vertices, np.c_[np.full(len(cells), 3), cells].ravel())
-    mesh = mesh.decimate(1.0 - size / mesh.n_points).triangulate().clean()
+    if size < mesh.n_points:
+        mesh = mesh.decimate(1.0 - size / mesh.n_points)
+    mesh = mesh.triangulate().clean()
     pts = np.asarray(mesh.points, float)
     return SimpleNamespace(vertices=pts, normals=surface_normals(pts, np.asarray(mesh.faces).reshape(-1, 4)[:, 1:]))
 

@@ -63,6 +63,12 @@ def test_default_min_width_is_eight_vertex_spacings():
     assert default_min_width(lattice) == pytest.approx(16.0)  # 8 x the 2 mm nearest-neighbour distance
 
 
+def test_register_surfaces_refuses_tuples_other_than_points_and_normals():
+    points = np.random.default_rng(0).normal(size=(50, 3))
+    with pytest.raises(TypeError, match=r"\(points, normals\), got 3 items"):
+        register_surfaces((points, points, points), (points, points))
+
+
 def test_coarse_meshes_fitted_as_finely_as_the_warp():
     """A folded blob (74 mm across, sulci 5 mm deep about 5 mm apart) decimated to 2k vertices,
     against its image under smooth bumps of up to 3 mm, re-labelled on a shifted grid and decimated

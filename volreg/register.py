@@ -58,6 +58,8 @@ def _surface_points(surface) -> ImplicitSurface | tuple[np.ndarray, np.ndarray]:
     if isinstance(surface, ImplicitSurface):
         return surface
     if isinstance(surface, tuple):
+        if len(surface) != 2:
+            raise TypeError(f"Expected `source`/`target` tuples as (points, normals), got {len(surface)} items.")
         return tuple(np.asarray(a, float) for a in surface)
     try:
         import pyvista as pv
@@ -88,8 +90,9 @@ def register_surfaces(
     source, target : pyvista.PolyData, ImplicitSurface, (points, normals), or lists of them
         One object or several (one per label: several feature functions, (6)),
         in the same order for both.  Meshes and points are fitted as
-        :class:`~volreg.features.implicit.ImplicitSurface` (on two threads), down to the finer of
-        its default width (8 vertex spacings) and the warp's finest width / sqrt(2).
+        :class:`~volreg.features.implicit.ImplicitSurface` (in parallel, one surface per thread),
+        down to the finer of its default width (8 vertex spacings) and the warp's finest
+        width / sqrt(2), but not below 3 vertex spacings.
     landmarks : pair of (L, D) float ndarrays, optional
         Source landmark points and their target positions, mm.
     settings : WarpSettings
@@ -109,17 +112,22 @@ def register_surfaces(
     points = np.concatenate([d.points if isinstance(d, ImplicitSurface) else d[0] for d in data[:len(sources)]])
     # Surfaces given as points are fitted about as finely as the warp's finest level at least
     # (features coarser than a level cannot pin it): down to its width / sqrt(2), so that the
-    # halving widths of a target of another size also reach it.  ImplicitSurface's own default
-    # (8 vertex spacings) is coarser than that on decimated meshes: on a folded, cortex-like
-    # surface of 10k vertices (110 mm across, sulci 7 mm apart) it stopped at 13.8 mm where the
-    # warp's finest level is 6.9 mm, and left the warped vertices 0.78-0.99 % of the diameter
-    # from their partners instead of 0.22-0.24 % (`bench_sliding.py --shapes cortex`).
-    finest = settings.resolved(_diameter(points)).min_width / np.sqrt(2.0)
+    # halving widths of a target of another size also reach it, but not below 3 vertex spacings
+    # (sparser training points than that leave holes between the kernels).  ImplicitSurface's own
+    # default (8 vertex spacings) is coarser than the warp on decimated meshes: on a folded,
+    # cortex-like surface of 10k vertices (110 mm across, sulci 7 mm apart) it stopped at 13.8 mm
+    # where the warp's finest level is 6.9 mm, and left the warped vertices 0.78-0.99 % of the
+    # diameter from their partners instead of 0.22-0.24 % (`bench_sliding.py --shapes cortex`).
+    diameter = _diameter(points) if len(points) else 0.0
+    finest = settings.resolved(diameter).min_width / np.sqrt(2.0) if diameter > 0 else np.inf
 
     def fit(d) -> ImplicitSurface:
         if isinstance(d, ImplicitSurface):
             return d
-        return ImplicitSurface(*d, min_width=min(default_min_width(d[0]), finest))
+        if len(d[0]) < 2:  # ImplicitSurface says what it expects
+            return ImplicitSurface(*d)
+        default = default_min_width(d[0])  # 8 vertex spacings
+        return ImplicitSurface(*d, min_width=min(default, max(finest, 3.0 * default / 8.0)))
 
     fits = list(thread_map(fit, data))  # independent fits: numba releases the GIL
     pairs = [FeaturePair(f1, f2) for f1, f2 in zip(fits[:len(sources)], fits[len(sources):])]
@@ -568,9 +576,9 @@ def _implicit_pairs(s_fixed, s_moving, used: list[int], settings: SurfaceSetting
         # width on average (1/25 of the tube epsilon), not ImplicitSurface's 1e-4: the 1 mm
         # phantom's grey shell then takes 19 sweeps at its finest level instead of 47, its 99th
         # percentile residual is 0.117 mm instead of 0.102 (tube 0.1 mm), and the endpoint error of
-        # the whole-command cases moved by at most 0.0004 mm (phantom 0.2335 / 0.538 -> 0.2335 /
-        # 0.537 mm, frog 0.542 / 0.872 -> 0.543 / 0.873, parcels 0.349 / 0.667 -> 0.350 / 0.667)
-        # with their implicit surfaces fitted in 23-28 % less time.
+        # the whole-command cases moved by at most 0.0012 mm (phantom 0.2335 / 0.5380 -> 0.2335 /
+        # 0.5368 mm, frog 0.5424 / 0.8724 -> 0.5426 / 0.8726, parcels 0.3492 / 0.6674 -> 0.3496 /
+        # 0.6669) with their implicit surfaces fitted in 20-28 % less time.
         return ImplicitSurface(surface.vertices, surface.normals, min_width=min_width, max_width=top, offset=top,
                                tol=1e-3 * min_width)
 
@@ -863,8 +871,9 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
             "mean_in_labels": float(np.sqrt(np.einsum("ni,ni->n", u_in, u_in)).mean()) if inside.any() else 0.0,
         },
         "inverse": {
-            "method": "fixed point on the sampled forward field, checked exactly at every voxel of the moving "
-                      "grid; Newton iteration with the analytic Jacobian where above the tolerance",
+            "method": "start from a fixed point on the sampled forward field (else from the linear part's "
+                      "inverse), checked exactly at every voxel of the moving grid; Newton iteration with "
+                      "the analytic Jacobian where above the tolerance",
             "tolerance_mm": inverse.tol,
             "max_residual_mm": inverse.max_residual,
             "unconverged_voxels": inverse.unconverged,
