@@ -67,7 +67,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
+from shapes import folded_blob_inside  # noqa: E402
 from common import (
     CHUNK, LARGE, PEERS, add_run_options, grid_text, last_line, print_header, run_env, run_peer, score_field,
     smooth_bumps, timed,
@@ -87,23 +89,12 @@ MARGIN = 6.0  # mm of background around the envelope
 # ----------------------------------------------------------------------------- the cases
 
 
-def _fold_pattern(p: np.ndarray, seed: int) -> np.ndarray:
-    """A random sum of 10 plane waves of FOLD_WAVELENGTH, unit variance, at points ``p`` (N, 3) mm:
-    its zero set is a labyrinth of lines about half a wavelength apart."""
-    rng = np.random.default_rng(seed)
-    k = rng.normal(size=(10, 3))
-    k *= (2 * np.pi / FOLD_WAVELENGTH) / np.linalg.norm(k, axis=1, keepdims=True)
-    phase = rng.uniform(0, 2 * np.pi, 10)
-    return np.cos(p @ k.T + phase) @ np.full(10, np.sqrt(2.0 / 10))
-
-
 def cortex_phantom(spacing: float, *, seed: int = 7):
     """The folded two-label phantom on an axis-aligned grid of ``spacing`` mm (origin at the centre).
 
-    A point x at ellipsoidal radius rho = |x / BRAIN_AXES| projects to p = x / rho on the envelope;
-    it is brain where |x| < |p| - SULCUS_DEPTH exp(-(s(p) / 0.4)^2), s the fold pattern (sulci along
-    its zero set). Brain within CORTEX mm of the outside (Euclidean distance transform) is grey (1),
-    the rest white (2).
+    Brain is `tests/shapes.py`'s folded blob (:func:`folded_blob_inside`) with semi-axes BRAIN_AXES,
+    sulci SULCUS_DEPTH deep along the zero set of a fold pattern of FOLD_WAVELENGTH. Brain within
+    CORTEX mm of the outside (Euclidean distance transform) is grey (1), the rest white (2).
 
     Returns
     -------
@@ -121,10 +112,7 @@ def cortex_phantom(spacing: float, *, seed: int = 7):
     ii, jj = np.meshgrid(np.arange(shape[1]), np.arange(shape[2]), indexing="ij")
     for i in range(shape[0]):  # slab by slab: 6 M points at 1 mm
         x = origin + spacing * np.stack([np.full(ii.shape, i), ii, jj], axis=-1).reshape(-1, 3)
-        rho = np.maximum(np.linalg.norm(x / BRAIN_AXES, axis=1), 1e-9)
-        p = x / rho[:, None]
-        dent = SULCUS_DEPTH * np.exp(-((_fold_pattern(p, seed) / 0.4) ** 2))
-        inside = (np.linalg.norm(x, axis=1) < np.linalg.norm(p, axis=1) - dent) | (rho < 0.5)  # p undefined at 0
+        inside = folded_blob_inside(x, axes=BRAIN_AXES, depth=SULCUS_DEPTH, wavelength=FOLD_WAVELENGTH, seed=seed)
         brain[i] = inside.reshape(ii.shape)
     depth = ndimage.distance_transform_edt(brain, sampling=spacing)
     labels = np.where(brain, np.where(depth <= CORTEX, 1, 2), 0).astype(np.uint8)

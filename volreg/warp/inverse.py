@@ -120,7 +120,9 @@ def invert_points(
         start saves evaluations; the answer is the same to within ``tol``.  The
         starts are checked first without the Jacobian, which is evaluated only
         where a Newton step follows: a start within ``tol`` of its target costs
-        one evaluation of ``tau`` alone.
+        one evaluation of ``tau`` alone, one further off one evaluation more
+        than without the check (so a start pays where it is mostly within
+        ``tol``, as :class:`GridStart`'s are at 1e-3 voxel).
     progress : callable, optional
         ``progress("invert warp", done, total)`` after each chunk.
 
