@@ -96,7 +96,8 @@ def vertex_normals(vertices: np.ndarray, cells: np.ndarray) -> np.ndarray:
     """Unit vertex normals: area-weighted mean of the incident cell normals, (N, D)."""
     fn = _cell_normals(vertices, cells)
     # Each cell's normal added to its corners' sums: bincount over the flattened corners, one
-    # column at a time (np.add.at took 0.2-0.3 s for a 480k-vertex surface, this 0.03 s).
+    # column at a time (on a 480k-vertex surface the whole function took 0.19 s with np.add.at,
+    # 0.11 s with this; the cell normals are most of what is left).
     corners = cells.ravel()
     n = len(vertices)
     vn = np.stack([np.bincount(corners, weights=np.repeat(fn[:, d], cells.shape[1]), minlength=n)
