@@ -22,8 +22,8 @@ surface), and the seconds of the method (volreg's with both implicit-surface fit
 
 Methods:
 - ``volreg``: `register_surfaces`' kernel warp on the two implicit surfaces (minimum width 4 mm; the
-  ant and the cortex as `register_surfaces` fits meshes: the smaller of 8 vertex spacings and the
-  warp's finest width / sqrt(2); ``--min-width`` sets it for both),
+  ant and the cortex as `register_surfaces` fits meshes, `mesh_min_width`; ``--min-width`` sets it
+  for both),
   with ``--settings`` as further `WarpSettings`.  ``--pre`` first fits a linear map of the target
   by the same locational cost (least squares over the finest level's samples): ``translation``,
   or ``affine`` with ``--affine-penalty`` x (d/2)^2 x |A - I|^2 per sample (d the diameter);
@@ -59,7 +59,8 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 
 from shapes import bumpy_ellipsoid_parts, decimated_surface, folded_blob_inside  # noqa: E402
-from volreg.features.implicit import ImplicitSurface, default_min_width  # noqa: E402
+from volreg.features.implicit import ImplicitSurface  # noqa: E402
+from volreg.register import mesh_min_width  # noqa: E402
 from volreg.features.label_surfaces import label_surface  # noqa: E402
 from volreg.grid import LabelVolume  # noqa: E402
 from volreg.settings import WarpSettings  # noqa: E402
@@ -255,7 +256,7 @@ def run(method: str, bumps: int | str, pair, args) -> dict:
         widths = (args.min_width, args.min_width)
     elif bumps in ("ant", "cortex"):  # as register_surfaces fits meshes
         finest = settings.resolved(float(np.linalg.norm(np.ptp(source.vertices, axis=0)))).min_width / np.sqrt(2)
-        widths = tuple(min(default_min_width(s.vertices), finest) for s in (source, target))
+        widths = tuple(mesh_min_width(s.vertices, finest) for s in (source, target))
     else:
         widths = (4.0, 4.0)
     t0 = time.perf_counter()
@@ -359,6 +360,9 @@ def main() -> None:
     parser.add_argument("--diagnose", action="store_true",
                         help="also print the cost terms and curvature mismatch at the fitted warp and the truth")
     args = parser.parse_args()
+    if args.symmetric and (args.pre != "none" or args.landmarks or args.coarse_features):
+        parser.error("--symmetric fits the plain pair both ways; it does not combine with --pre, --landmarks "
+                     "or --coarse-features")
     pairs = [(b if b in ("ant", "cortex") else int(b), int(s)) for b in args.shapes.split(",") for s in args.seeds.split(",")
              if s != ""]
     if args.shear:

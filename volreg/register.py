@@ -42,6 +42,7 @@ __all__ = [
     "despeckle",
     "estimated_peak_gb",
     "feature_unit",
+    "mesh_min_width",
     "register_both_ways",
     "register_labels",
     "register_surfaces",
@@ -126,12 +127,19 @@ def register_surfaces(
             return d
         if len(d[0]) < 2:  # ImplicitSurface says what it expects
             return ImplicitSurface(*d)
-        default = default_min_width(d[0])  # 8 vertex spacings
-        return ImplicitSurface(*d, min_width=min(default, max(finest, 3.0 * default / 8.0)))
+        return ImplicitSurface(*d, min_width=mesh_min_width(d[0], finest))
 
     fits = list(thread_map(fit, data))  # independent fits: numba releases the GIL
     pairs = [FeaturePair(f1, f2) for f1, f2 in zip(fits[:len(sources)], fits[len(sources):])]
     return fit_warp(pairs, points, landmarks=landmarks, settings=settings, progress=progress)
+
+
+def mesh_min_width(points: np.ndarray, finest: float) -> float:
+    """The finest implicit-surface width (mm) :func:`register_surfaces` fits a mesh's ``points``
+    (N, D) mm down to: ``finest`` (the warp's finest width / sqrt(2)), clipped to 3-8 vertex
+    spacings (8 is :class:`~volreg.features.implicit.ImplicitSurface`'s default)."""
+    default = default_min_width(points)  # 8 vertex spacings
+    return min(default, max(finest, 3.0 * default / 8.0))
 
 
 def _diameter(points: np.ndarray) -> float:
