@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from shapes import Disc2D, Ellipsoid, Torus, label_volume, rotation
-from volreg.features.implicit import ImplicitSurface, estimate_normals
+from volreg.features.implicit import ImplicitSurface, estimate_normals, thin_points
 from volreg.features.label_surfaces import implicit_surfaces, label_surfaces, voxel_size
 
 ELLIPSOID = Ellipsoid((20, 15, 11), (0.37, -0.21, 0.13))
@@ -159,3 +159,19 @@ def test_bad_arguments():
         ImplicitSurface(np.full((50, 3), np.nan), np.ones((50, 3)))
     with pytest.raises(ValueError, match="non-zero `normals`"):
         ImplicitSurface(pts, np.zeros((50, 3)))
+
+
+@pytest.mark.parametrize("seed, dim, spacing", [(0, 3, 1.0), (1, 3, 0.37), (2, 2, 0.5), (3, 3, 50.0)])
+def test_thinning_keeps_the_point_nearest_each_cell_centre(seed, dim, spacing):
+    rng = np.random.default_rng(seed)
+    # Half the points on a lattice (equal distances in many cells: the lowest index wins), half random.
+    points = np.concatenate([rng.integers(0, 6, (400, dim)) * 0.5, rng.uniform(0, 3, (400, dim))])
+    kept = thin_points(points, spacing)
+    lo = points.min(axis=0)
+    cell = np.floor((points - lo) / spacing).astype(np.int64)
+    dist = np.sum(((points - lo) / spacing - cell - 0.5) ** 2, axis=1)
+    expected = {}
+    for i, (c, d) in enumerate(zip(map(tuple, cell), dist)):
+        if c not in expected or d < dist[expected[c]]:
+            expected[c] = i
+    assert kept.tolist() == sorted(expected.values())
