@@ -390,12 +390,16 @@ def _distance_map(volume, label: int, box: tuple, factors: np.ndarray, margin_mm
         mask = 2 * votes >= int(np.prod(f))
     if mask.all() or not mask.any():
         return None
-    inside = euclidean_distance(mask, step)
-    outside = euclidean_distance(~mask, step)
     half = 0.5 * float(step.min())
-    dist = np.where(mask, half - inside, outside - half)
-    grads = np.gradient(dist, *step) if dist.ndim > 1 else [np.gradient(dist, step[0])]
-    values = np.stack([dist, *grads], axis=-1)
+    dist = euclidean_distance(~mask, step)
+    dist -= half
+    dist[mask] = half - euclidean_distance(mask, step)[mask]
+    # Single precision (a millionth of a mm at these distances): a 1 mm brain-size label's map
+    # is then 140 MB instead of 280, and the linear stage's two such maps are made in less time.
+    values = np.empty(dist.shape + (dist.ndim + 1,), dtype=np.float32)
+    values[..., 0] = dist
+    for a in range(dist.ndim):
+        values[..., a + 1] = np.gradient(dist, step[a], axis=a)
     return start + (f - 1) / 2.0, step, values
 
 
