@@ -95,3 +95,8 @@ def test_objective_with_the_batch_equals_one_feature_at_a_time(kw):
         np.testing.assert_allclose(g1, g2, rtol=1e-10, atol=1e-10 * np.abs(g2).max())
         for name in ("distance", "gradient"):
             assert batched.last_terms[name] == pytest.approx(single.last_terms[name], rel=1e-10, abs=1e-300)
+        # The Gauss-Newton blocks too, and with them the same value and gradient.
+        (e3, g3, b1), (_, _, b2) = batched.gauss_newton(c), single.gauss_newton(c)
+        assert (e3, g3.tolist()) == (e1, g1.tolist())
+        assert np.abs(b2).max() > 0
+        np.testing.assert_allclose(b1, b2, rtol=1e-10, atol=1e-10 * np.abs(b2).max())

@@ -266,3 +266,11 @@ def test_bad_inputs_raise(kwargs, name):
 def test_morton_bad_inputs_raise(points, cell, name):
     with pytest.raises(ValueError, match=f"`{name}`"):
         morton_order(points, cell)
+
+
+def test_a_shared_tree_gives_the_same_samples(sphere):
+    tree = cKDTree(sphere)
+    for width in (40.0, 10.0, 4.0):
+        np.testing.assert_array_equal(octree_sample(sphere, 3.0, width, tree=tree), octree_sample(sphere, 3.0, width))
+    with pytest.raises(ValueError, match="`tree`"):
+        octree_sample(sphere[:-1], 3.0, 10.0, tree=tree)

@@ -257,6 +257,77 @@ class LevelObjective:
 
     def __call__(self, flat: np.ndarray) -> tuple[float, np.ndarray]:
         """Objective and gradient at flattened coefficients (M * D,), for scipy.optimize."""
+        return self._evaluate(flat, None)
+
+    @property
+    def gauss_newton_ready(self) -> bool:
+        """Whether :meth:`gauss_newton` applies: no fold-barrier rows are active (the barrier
+        is the one term without a Gauss-Newton model here)."""
+        return self.lambda_fold <= 0 or self.fold_base is None or len(self.fold_base) == 0
+
+    def gauss_newton(self, flat: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """Objective, gradient, and the Gauss-Newton model of the sample terms' curvature.
+
+        The locational cost's residuals are linearised in ``tau`` (for the pseudo-Huber loss,
+        its iteratively reweighted least-squares weight ``1 / sqrt(1 + (r / robust)^2)``):
+        per sample, the (D, D) block ``B_x`` such that the model's Hessian in ``tau(x)`` is
+        ``B_x`` (with the consistency term's ``2 lambda_target / N I``).
+        :meth:`gauss_newton_matrix` turns the blocks into the model's Hessian in the
+        coefficients.
+
+        Parameters
+        ----------
+        flat : (M * D,) float ndarray
+
+        Returns
+        -------
+        value : float
+        gradient : (M * D,) float ndarray
+        blocks : (N, D, D) float ndarray, per sample
+
+        Raises
+        ------
+        ValueError
+            If the fold barrier has active rows (:attr:`gauss_newton_ready` is False).
+        """
+        if not self.gauss_newton_ready:
+            raise ValueError("Expected no active fold-barrier rows for a Gauss-Newton model.")
+        blocks = np.zeros((len(self.samples), self.dim, self.dim))
+        value, grad = self._evaluate(flat, blocks)
+        return value, grad, blocks
+
+    def gauss_newton_matrix(self, blocks: np.ndarray) -> np.ndarray:
+        """The Gauss-Newton model's Hessian in the coefficients, dense (M * D, M * D).
+
+        ``H[(j, a), (k, b)] = sum_x K_xj K_xk B_x[a, b] + delta_ab (K_cc[j, k] +
+        2 lambda_p (K_l^T K_l)[j, k])``: the regulariser (10) and the landmark term (8) are
+        quadratic, so theirs is exact.  Dense: for the small coarse levels only.
+
+        Parameters
+        ----------
+        blocks : (N, D, D) float ndarray
+            From :meth:`gauss_newton`.
+        """
+        k = self.kernel.toarray()
+        m, d = self.n_centres, self.dim
+        h = np.zeros((m, d, m, d))
+        for a in range(d):
+            for b in range(a, d):
+                part = k.T @ (blocks[:, a, b, None] * k)
+                h[:, a, :, b] = part
+                if b != a:
+                    h[:, b, :, a] = part.T
+        common = self.kernel_centres.toarray()
+        if self.lambda_p > 0:
+            lk = self.landmark_kernel.toarray()
+            common = common + 2.0 * self.lambda_p * (lk.T @ lk)
+        for a in range(d):
+            h[:, a, :, a] += common
+        return h.reshape(m * d, m * d)
+
+    def _evaluate(self, flat: np.ndarray, blocks: np.ndarray | None) -> tuple[float, np.ndarray]:
+        """Objective and gradient; with ``blocks`` (N, D, D) (zeros), also the Gauss-Newton
+        blocks of :meth:`gauss_newton`, added into it."""
         c = flat.reshape(self.n_centres, self.dim)
         kc = self._kernel_centres.matmul(c)[:, :, 0]
         reg = 0.5 * float(np.einsum("md,md->", c, kc))
@@ -269,11 +340,12 @@ class LevelObjective:
         scale = self.lambda_loc / (n * len(self.offsets))
         order = 2 if self.alpha > 0 else 1
         if self._batch is not None:
-            dist_term, grad_term = self._batched_terms(tau, g_tau, order, 2 * scale)
+            dist_term, grad_term = self._batched_terms(tau, g_tau, order, 2 * scale, blocks)
         else:
             for pair, f1_list, idx in zip(self.features, self._f1, self._subsets):
-                dists, grads, g_l = _feature_terms(pair, f1_list, idx, tau=tau, offsets=self.offsets, order=order,
-                                                   alpha=self.alpha, robust=self.robust, factor=2 * scale)
+                dists, grads, g_l, b_l = _feature_terms(pair, f1_list, idx, tau=tau, offsets=self.offsets,
+                                                        order=order, alpha=self.alpha, robust=self.robust,
+                                                        factor=2 * scale, curvature=blocks is not None)
                 for value in dists:
                     dist_term += value
                 for value in grads:
@@ -282,11 +354,18 @@ class LevelObjective:
                     g_tau += g_l
                 else:
                     g_tau[idx] += g_l  # the indices of one feature are distinct
+                if blocks is not None:
+                    if idx is None:
+                        blocks += b_l
+                    else:
+                        blocks[idx] += b_l
         consistency = 0.0
         if self.lambda_target > 0:
             resid = tau - self.sample_targets
             consistency = self.lambda_target * float(np.einsum("nd,nd->", resid, resid)) / n
             g_tau += (2.0 * self.lambda_target / n) * resid
+            if blocks is not None:
+                blocks += (2.0 * self.lambda_target / n) * np.eye(self.dim)
         grad += self._kernel.rmatmul_sum(g_tau[:, :, None])
         loc = scale * (dist_term + grad_term)
         land = 0.0
@@ -307,36 +386,50 @@ class LevelObjective:
                                gradient=scale * grad_term, folding=fold, consistency=consistency)
         return reg + land + loc + fold + consistency, grad.ravel()
 
-    def _batched_terms(self, tau: np.ndarray, g_tau: np.ndarray, order: int, factor: float) -> tuple[float, float]:
+    def _batched_terms(self, tau: np.ndarray, g_tau: np.ndarray, order: int, factor: float,
+                       blocks: np.ndarray | None = None) -> tuple[float, float]:
         """The locational cost's distance and gradient sums (unscaled) over all feature pairs
         at once (:class:`~volreg.features.batch.FeatureBatch`); adds their derivative with
-        respect to ``tau`` (scaled by ``factor / 2``) to ``g_tau`` (N, D) in place."""
+        respect to ``tau`` (scaled by ``factor / 2``) to ``g_tau`` (N, D) in place, and with
+        ``blocks`` (N, D, D) their Gauss-Newton blocks (:meth:`gauss_newton`)."""
         w = self._row_weight
         dist_term = 0.0
         grad_term = 0.0
         g_rows = np.zeros((len(self._rows), self.dim))
+        b_rows = None if blocks is None else np.zeros((len(self._rows), self.dim, self.dim))
         tau_rows = tau[self._rows]
         for dx, f1 in zip(self.offsets, self._f1_rows):
             out = self._batch.evaluate(tau_rows + dx, self._starts, order=order)
             r = f1[0] - out[0]  # (R,)
+            reweight = 1.0
             if self.robust > 0:
                 root = np.sqrt(1.0 + (r / self.robust) ** 2)
                 dist_term += 2.0 * self.robust**2 * float(w @ (root - 1.0))
                 r = r / root  # d/dr of the loss, halved: r / sqrt(1 + (r / robust)^2)
+                reweight = 1.0 / root
             else:
                 dist_term += float(w @ (r * r))
             g_rows -= (factor * w * r)[:, None] * out[1]
+            if b_rows is not None:
+                b_rows += (factor * w * reweight)[:, None, None] * out[1][:, :, None] * out[1][:, None, :]
             if self.alpha > 0:
                 rg = f1[1] - out[1]  # (R, D)
                 grad_term += self.alpha * float(w @ np.einsum("nd,nd->n", rg, rg))
                 g_rows -= (factor * self.alpha * w)[:, None] * np.einsum("nab,nb->na", out[2], rg)
+                if b_rows is not None:
+                    b_rows += (factor * self.alpha * w)[:, None, None] * np.einsum("nca,ncb->nab", out[2], out[2])
         for d in range(self.dim):
             g_tau[:, d] += np.bincount(self._rows, weights=g_rows[:, d], minlength=len(tau))
+        if b_rows is not None:
+            flat = blocks.reshape(len(tau), self.dim * self.dim)
+            for e, column in enumerate(b_rows.reshape(len(self._rows), self.dim * self.dim).T):
+                flat[:, e] += np.bincount(self._rows, weights=column, minlength=len(tau))
         return dist_term, grad_term
 
 
 def _feature_terms(pair: FeaturePair, f1_list: list, idx: np.ndarray | None, *, tau: np.ndarray, offsets: np.ndarray,
-                   order: int, alpha: float, robust: float, factor: float) -> tuple[list[float], list[float], np.ndarray]:
+                   order: int, alpha: float, robust: float, factor: float,
+                   curvature: bool = False) -> tuple[list[float], list[float], np.ndarray, np.ndarray | None]:
     """One feature pair's share of the locational cost (3)-(6) and its gradient.
 
     Parameters
@@ -358,6 +451,8 @@ def _feature_terms(pair: FeaturePair, f1_list: list, idx: np.ndarray | None, *, 
         Pseudo-Huber scale of the distance term, 0 for squares.
     factor : float
         ``2 lambda_loc / (N K)``: the scale of the gradient.
+    curvature : bool
+        Also return the pair's Gauss-Newton blocks (:meth:`LevelObjective.gauss_newton`).
 
     Returns
     -------
@@ -365,25 +460,35 @@ def _feature_terms(pair: FeaturePair, f1_list: list, idx: np.ndarray | None, *, 
         The pair's weighted distance and gradient sums per offset (unscaled).
     g_l : (N_l, D) float ndarray
         Derivative of the scaled cost with respect to ``tau`` at the pair's samples.
+    b_l : (N_l, D, D) float ndarray or None
+        With ``curvature``, the Gauss-Newton blocks at the pair's samples.
     """
     tau_l = tau if idx is None else tau[idx]
     g_l = np.zeros_like(tau_l)
+    b_l = np.zeros(tau_l.shape + tau_l.shape[1:]) if curvature else None
     dists, grads = [], []
     for dx, f1 in zip(offsets, f1_list):
         out = pair.f2.evaluate(tau_l + dx, order=order)
         r = f1[0] - out[0]  # (N_l,)
+        reweight = 1.0
         if robust > 0:
             root = np.sqrt(1.0 + (r / robust) ** 2)
             dists.append(pair.weight * 2.0 * robust**2 * float(np.sum(root - 1.0)))
             r = r / root  # d/dr of the loss, halved: r / sqrt(1 + (r / robust)^2)
+            reweight = 1.0 / root
         else:
             dists.append(pair.weight * float(r @ r))
         g_l -= (factor * pair.weight) * r[:, None] * out[1]
+        if curvature:
+            b_l += (factor * pair.weight * np.broadcast_to(reweight, r.shape))[:, None, None] * \
+                out[1][:, :, None] * out[1][:, None, :]
         if alpha > 0:
             rg = f1[1] - out[1]  # (N_l, D)
             grads.append(pair.weight * alpha * float(np.einsum("nd,nd->", rg, rg)))
             g_l -= (factor * pair.weight * alpha) * np.einsum("nab,nb->na", out[2], rg)
-    return dists, grads, g_l
+            if curvature:
+                b_l += (factor * pair.weight * alpha) * np.einsum("nca,ncb->nab", out[2], out[2])
+    return dists, grads, g_l, b_l
 
 
 def _det_cofactor(jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

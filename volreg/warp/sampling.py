@@ -26,6 +26,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from volreg._threads import query_workers
 from volreg.settings import WarpSettings
 
 __all__ = ["octree_sample", "morton_order"]
@@ -130,6 +131,7 @@ def octree_sample(
     *,
     fraction: float = WarpSettings.fraction,
     bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    tree: cKDTree | None = None,
 ) -> np.ndarray:
     """Training points of one kernel level: centres of octree boxes in X.
 
@@ -172,6 +174,10 @@ def octree_sample(
         Axis-aligned box to sample instead of the padded bounding box of the
         surface points (e.g. the image's field of view).  The root cube
         covers it; samples outside ``[lo, hi]`` are dropped.
+    tree : scipy.spatial.cKDTree, optional
+        A k-d tree of ``surface_points`` (the same array), to share between the levels of
+        one fit: on a 1 mm brain-size surface pair (720k vertices) building it takes 0.24 s,
+        as long as sampling a coarse level.
 
     Returns
     -------
@@ -246,7 +252,12 @@ def octree_sample(
             f"{root:g} mm: {levels} octree levels needed, at most {max_levels} supported."
         )
 
-    tree = cKDTree(pts)
+    if tree is None:
+        tree = cKDTree(pts)
+    elif tree.n != len(pts) or tree.m != dim:
+        raise ValueError(f"Expected `tree` built on `surface_points` ({len(pts)} points in {dim}-D), "
+                         f"got one of {tree.n} points in {tree.m}-D.")
+    workers = query_workers()
     offsets = np.indices((2,) * dim).reshape(dim, -1).T.astype(np.int64)  # (2^D, D)
     idx = np.zeros((1, dim), dtype=np.int64)
     # Boxes wholly within `pad` of the surface points (dist(c) + h <= pad): every point of
@@ -263,7 +274,8 @@ def octree_sample(
         keep = inside.copy()
         ask = np.flatnonzero(~inside)
         # Any neighbour within `reach` decides; the bound prunes the search.
-        dist, _ = tree.query(centres[ask], k=1, distance_upper_bound=reach * (1 + 1e-12) + 1e-12)
+        dist, _ = tree.query(centres[ask], k=1, distance_upper_bound=reach * (1 + 1e-12) + 1e-12,
+                             workers=workers)
         keep[ask] = dist <= reach
         if not last:
             inside[ask] = dist < pad - half_diagonal - 1e-9 * pad
