@@ -142,3 +142,24 @@ def test_vertex_normals_are_the_area_weighted_mean_of_the_cell_normals(dim):
         radial = surf.vertices / np.linalg.norm(surf.vertices, axis=1, keepdims=True)
         cosine = np.einsum("ni,ni->n", vertex_normals(surf.vertices, surf.cells), radial)
         assert cosine.min() > 0.9 and cosine.mean() > 0.99  # outward; within the mesh's facets of radial
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_edge_sampler_interpolates_as_map_coordinates(dim):
+    from scipy import ndimage
+    from skimage import measure
+
+    from volreg.features.label_surfaces import _edge_sampler
+
+    rng = np.random.default_rng(dim)
+    field = ndimage.gaussian_filter(rng.random((24,) * dim).astype(np.float32), 1.5)
+    level = float(np.median(field))
+    if dim == 3:
+        at = measure.marching_cubes(field, level=level)[0]  # some of Lewiner's vertices lie inside cubes
+    else:
+        at = np.concatenate(measure.find_contours(field, level))
+    at = np.concatenate([at, [[0.5] + [0.0] * (dim - 1)]])  # on the array's edge: interpolated the general way
+    sample = _edge_sampler(field, at)
+    for offset in np.array(list(np.ndindex(*([3] * dim)))) - 1:
+        ref = ndimage.map_coordinates(field, (at + offset).T, order=1, mode="nearest")
+        np.testing.assert_array_equal(sample(offset.astype(float)), ref)
