@@ -216,3 +216,21 @@ def test_shared_pattern_products_match_scipy():
     other = sp.random(300, 200, density=0.05, random_state=9, format="csr")
     with pytest.raises(ValueError, match="share one sparsity pattern"):
         SharedPatternCSR([mats[0], other])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_column_bounds_and_rows_within_equal_numpy_reductions(dim):
+    from volreg.kernels.grid import column_bounds, rows_within
+
+    rng = np.random.default_rng(dim)
+    points = rng.normal(size=(1000, dim))
+    lo, hi = column_bounds(points)
+    np.testing.assert_array_equal(lo, points.min(axis=0))
+    np.testing.assert_array_equal(hi, points.max(axis=0))
+    box_lo, box_hi = np.full(dim, -0.5), np.full(dim, 0.7)
+    points[:5] = box_lo  # on the box's faces: inside
+    expected = np.all((points >= box_lo) & (points <= box_hi), axis=1)
+    assert expected.any() and not expected.all()
+    np.testing.assert_array_equal(rows_within(points, box_lo, box_hi), expected)
+    points[7, 0] = np.nan
+    assert np.isnan(column_bounds(points)[0][0]) and not rows_within(points, box_lo, box_hi)[7]

@@ -28,6 +28,7 @@ from volreg import __version__
 from volreg._memory import available_bytes
 from volreg._threads import single_blas, thread_map
 from volreg.features.implicit import ImplicitSurface, default_min_width
+from volreg.kernels.grid import column_bounds
 from volreg.warp.objective import FeaturePair
 from volreg.errors import RegistrationInputError
 from volreg.settings import Protocol, SurfaceSettings, WarpSettings
@@ -144,7 +145,8 @@ def mesh_min_width(points: np.ndarray, finest: float) -> float:
 
 def _diameter(points: np.ndarray) -> float:
     """Diagonal of the bounding box of ``points``, mm."""
-    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    lo, hi = column_bounds(points)
+    return float(np.linalg.norm(hi - lo))
 
 
 #: A label drives the warp by default when at least this fraction of its voxels lies in

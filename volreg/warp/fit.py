@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 from volreg._memory import available_bytes
 from volreg._threads import single_blas
 from volreg.kernels import CellGrid, SharedPatternCSR, _check_points, kernel_gradient_matrices, kernel_matrix, kernel_sum
+from volreg.kernels.grid import column_bounds
 from volreg.warp.objective import FeaturePair, LevelObjective, simplex_vertices
 from volreg.warp.sampling import octree_sample
 from volreg.warp.model import KernelWarp, WarpLevel, jacobian_det
@@ -264,7 +265,8 @@ def _check_inputs(features, source_points, landmarks, settings: WarpSettings, pr
     if len(pts) < 2:
         raise ValueError(f"Expected at least 2 `source_points`, got {len(pts)}.")
     dim = pts.shape[1]
-    diameter = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    lo, hi = column_bounds(pts)
+    diameter = float(np.linalg.norm(hi - lo))
     if not diameter > 0:
         raise ValueError(f"Expected `source_points` of positive extent, got {len(pts)} copies of one point.")
     if landmarks is not None:

@@ -36,6 +36,7 @@ import numpy as np
 from volreg._jit import njit
 from volreg._threads import part_range, run_parts
 from volreg.kernels import _check_points
+from volreg.kernels.grid import rows_within
 from volreg.warp.linear import LinearMap
 from volreg.warp.model import _box_through, _PointMap, linear_outside
 
@@ -70,7 +71,7 @@ def _in_box(points: np.ndarray, bounds) -> np.ndarray:
     if bounds is None:
         return np.zeros(len(points), dtype=bool)
     lo, hi = bounds
-    return np.all((points >= lo) & (points <= hi), axis=1)
+    return rows_within(points, lo, hi)
 
 
 def _linear_of(warp) -> LinearMap:
@@ -158,7 +159,7 @@ def invert_points(
         idx = inside[s : s + chunk]
         y = y_all[idx]
         x = np.full_like(y, np.nan) if start is None else np.asarray(start(y), dtype=float).reshape(y.shape)
-        fresh = np.flatnonzero(~np.all(np.isfinite(x), axis=1))
+        fresh = np.flatnonzero(~np.isfinite(x @ np.ones(x.shape[1])))  # rows holding NaN or Inf
         if fresh.size:
             yf = y[fresh]
             if affine is None:

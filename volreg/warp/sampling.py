@@ -27,6 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from volreg._threads import query_workers
+from volreg.kernels.grid import column_bounds
 from volreg.settings import WarpSettings
 
 __all__ = ["octree_sample", "morton_order"]
@@ -113,7 +114,7 @@ def morton_order(points: np.ndarray, cell: float | np.ndarray) -> np.ndarray:
         raise ValueError(f"Expected a positive `cell` (scalar or shape ({dim},)), got {cell!r}.")
     if pts.shape[0] == 0:
         return np.zeros(0, dtype=np.intp)
-    qf = np.floor((pts - pts.min(axis=0)) / cell_arr)
+    qf = np.floor((pts - column_bounds(pts)[0]) / cell_arr)
     bits = _CODE_BITS // dim
     if not qf.max() < 2.0**bits:
         raise ValueError(
@@ -220,8 +221,8 @@ def octree_sample(
     dim = pts.shape[1]
 
     if bounds is None:
-        box_lo = pts.min(axis=0) - pad
-        box_hi = pts.max(axis=0) + pad
+        box_lo, box_hi = column_bounds(pts)
+        box_lo, box_hi = box_lo - pad, box_hi + pad
         clip = None
     else:
         try:
