@@ -234,3 +234,17 @@ def test_column_bounds_and_rows_within_equal_numpy_reductions(dim):
     np.testing.assert_array_equal(rows_within(points, box_lo, box_hi), expected)
     points[7, 0] = np.nan
     assert np.isnan(column_bounds(points)[0][0]) and not rows_within(points, box_lo, box_hi)[7]
+
+
+def test_spatial_order_threshold_is_a_parameter():
+    from volreg.kernels.grid import SORT_ABOVE, spatial_order
+
+    points = np.random.default_rng(0).uniform(0, 50, (500, 3))
+    assert 500 <= SORT_ABOVE and spatial_order(points, 5.0) is None
+    perm = spatial_order(points, 5.0, above=100)
+    assert sorted(perm.tolist()) == list(range(500))
+    cells = np.floor((points[perm] - points.min(axis=0)) / 5.0).astype(int)
+    # Visited cell by cell: each cell's points are consecutive.
+    keys = [tuple(c) for c in cells]
+    runs = sum(1 for a, b in zip(keys, keys[1:]) if a != b) + 1
+    assert runs == len(set(keys))

@@ -153,7 +153,7 @@ def max_runs(grid: CellGrid) -> int:
     return per_axis ** (grid.points.shape[1] - 1)
 
 
-def spatial_order(points: np.ndarray, cell: float) -> np.ndarray | None:
+def spatial_order(points: np.ndarray, cell: float, *, above: int = SORT_ABOVE) -> np.ndarray | None:
     """A permutation visiting points cell by cell, or None when there are too few points for it to pay.
 
     Neighbouring queries share kernel centres, which then stay in cache.
@@ -163,13 +163,15 @@ def spatial_order(points: np.ndarray, cell: float) -> np.ndarray | None:
     points : (N, D) float ndarray, mm
     cell : float, mm
         Cell edge.
+    above : int
+        The fewest points worth sorting, less one (default :data:`SORT_ABOVE`).
 
     Returns
     -------
     (N,) int64 ndarray or None
-        None when ``N <= SORT_ABOVE`` or ``cell`` is not positive.
+        None when ``N <= above`` or ``cell`` is not positive.
     """
-    if len(points) <= SORT_ABOVE or not cell > 0:
+    if len(points) <= above or not cell > 0:
         return None
     points = np.ascontiguousarray(points, dtype=float)
     return _cell_sort(_read_only(points), *_cell_layout(points, float(cell)))[0]
