@@ -36,6 +36,7 @@ import scipy.sparse as sp
 from volreg._jit import njit
 from volreg._threads import query_workers
 from volreg.kernels import CellGrid, _check_points, kernel_matrix, kernel_sum, put_rows, spatial_order, take_rows
+from volreg.kernels.grid import column_bounds
 from volreg.kernels.wu import wu
 
 __all__ = ["ImplicitSurface", "ImplicitLevel", "default_min_width", "estimate_normals", "thin_points"]
@@ -73,11 +74,11 @@ def thin_points(points: np.ndarray, spacing: float) -> np.ndarray:
         nearest the cell centre is kept.
     """
     points = np.asarray(points, dtype=float)
-    lo = points.min(axis=0)
+    lo = column_bounds(points)[0]
     rel = (points - lo) / spacing
     cell = np.floor(rel).astype(np.int64)
     dist = np.einsum("nd,nd->n", rel - cell - 0.5, rel - cell - 0.5)
-    dims = cell.max(axis=0) + 1
+    dims = column_bounds(cell)[1] + 1
     if np.prod(dims.astype(float)) < 2**62:
         key = np.ravel_multi_index(cell.T, dims)
     else:
@@ -333,7 +334,8 @@ class ImplicitSurface:
         normals = estimate_normals(points) if normals is None else _unit_normals(normals, n, dim)
         tree = cKDTree(points)
         spacing = _median_spacing(tree)
-        self.diameter = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+        lo, hi = column_bounds(points)
+        self.diameter = float(np.linalg.norm(hi - lo))
         if self.diameter <= 0:
             raise ValueError("Expected `points` spanning a non-zero extent, got coincident points.")
         if min_width is None:

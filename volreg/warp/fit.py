@@ -235,8 +235,8 @@ class _Inputs:
     prior : callable or None
     valid : callable or None
         ``valid(samples) -> (N,) bool``: where the locational cost may count.
-    tree : scipy.spatial.cKDTree or None
-        A k-d tree of ``points`` once :meth:`surface_tree` has built it.
+    tree : scipy.spatial.cKDTree
+        A k-d tree of ``points``, shared by every level's octree sampling.
     """
 
     features: Sequence[FeaturePair]
@@ -248,12 +248,6 @@ class _Inputs:
     prior: Callable[[np.ndarray], np.ndarray] | None
     valid: Callable[[np.ndarray], np.ndarray] | None = None
     tree: cKDTree | None = field(default=None, compare=False, repr=False)
-
-    def surface_tree(self) -> cKDTree:
-        """A k-d tree of ``points``, built once and shared by every level's octree sampling."""
-        if self.tree is None:
-            object.__setattr__(self, "tree", cKDTree(self.points))  # a cache: the inputs stay as checked
-        return self.tree
 
 
 def _check_inputs(features, source_points, landmarks, settings: WarpSettings, prior, valid=None) -> _Inputs:
@@ -279,7 +273,8 @@ def _check_inputs(features, source_points, landmarks, settings: WarpSettings, pr
             )
         landmarks = (src_l, dst_l)
     neighbourhood = simplex_vertices(dim, settings.neighbourhood) if settings.neighbourhood > 0 else None
-    return _Inputs(features, pts, diameter, landmarks, settings.resolved(diameter), neighbourhood, prior, valid)
+    return _Inputs(features, pts, diameter, landmarks, settings.resolved(diameter), neighbourhood, prior, valid,
+                   cKDTree(pts))
 
 
 #: Bytes of memory per locational-cost sample of a level's fit (features, neighbour lists,
@@ -409,7 +404,7 @@ class _SampleSet:
         """Samples at octree size ``step`` (mm) under the coarser levels ``warp``."""
         s = inputs.settings
         dim = inputs.points.shape[1]
-        samples = octree_sample(inputs.points, s.pad, step, fraction=s.fraction, tree=inputs.surface_tree())
+        samples = octree_sample(inputs.points, s.pad, step, fraction=s.fraction, tree=inputs.tree)
         # Fold-check points: the samples and their octree children, a lattice of at most half
         # min_width; samples that dense (sample_scale <= 0.5) are checked as they are.
         check = samples if step <= 0.5 * s.min_width * (1 + 1e-9) else _with_children(samples)
@@ -750,7 +745,7 @@ def _fit_level(level: int, width: float, samples: _SampleSet, warp: KernelWarp,
     # Centres: octree boxes of half the width (Section 3.5), plus the source landmarks
     # (the representer theorem puts kernels at every training point, so landmarks
     # away from X can be fitted too).
-    centres = octree_sample(inputs.points, s.pad, width, fraction=s.fraction, tree=inputs.surface_tree())
+    centres = octree_sample(inputs.points, s.pad, width, fraction=s.fraction, tree=inputs.tree)
     if inputs.landmarks is not None:
         centres = np.concatenate([centres, inputs.landmarks[0]])
     grid = CellGrid.build(centres, width)
