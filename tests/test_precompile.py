@@ -158,3 +158,42 @@ def test_helper_ends_soon_after_its_command_is_killed(tmp_path):
     else:
         pytest.fail("the helper outlived its killed command by 30 s")
     assert len(list(cache.rglob("*.nbi"))) < len(LOOPS) // 2  # it stopped long before compiling them all
+
+
+def test_first_index_is_looked_up_where_numba_would_write_it(tmp_path, monkeypatch):
+    from numba.core.caching import _CacheLocator
+
+    import volreg
+
+    package = tmp_path / "site" / "volreg"
+    (package / "warp").mkdir(parents=True)
+    monkeypatch.setattr(volreg, "__file__", str(package / "__init__.py"))
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "home-cache"))
+    monkeypatch.setattr("tempfile.tempdir", str(tmp_path / "tmp"))
+    assert not _precompile._first_index_seen()
+    # numba's own name for the folder of a source file's cache under NUMBA_CACHE_DIR
+    sub = _CacheLocator.get_suitable_cache_subpath(str(package / "warp" / "inverse.py"))
+    (tmp_path / "cache" / sub).mkdir(parents=True)
+    (tmp_path / "cache" / sub / "inverse._newton_steps-123.py311.nbi").write_bytes(b"")
+    assert _precompile._first_index_seen()
+    # Without NUMBA_CACHE_DIR: beside the source (numba's default), and volreg's fallback folder.
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    assert not _precompile._first_index_seen()
+    (package / "warp" / "__pycache__").mkdir()
+    (package / "warp" / "__pycache__" / "inverse._newton_steps-9.py311.nbi").write_bytes(b"")
+    assert _precompile._first_index_seen()
+    (package / "warp" / "__pycache__" / "inverse._newton_steps-9.py311.nbi").unlink()
+    fallback = tmp_path / "tmp" / f"volreg-numba-cache-{os.getuid()}" / sub
+    fallback.mkdir(parents=True)
+    (fallback / "inverse._newton_steps-9.py311.nbi").write_bytes(b"")
+    assert _precompile._first_index_seen()
+
+
+def test_helper_started_for_a_fresh_cache_compiles_every_cold_loop(tmp_path):
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    proc = subprocess.run([sys.executable, "-m", "volreg._precompile", "cold"], timeout=600,
+                          env=_env(NUMBA_CACHE_DIR=str(cache)))
+    assert proc.returncode == 0
+    assert _cold_in(cache) == []

@@ -11,7 +11,9 @@ cached, numba loads it instead of compiling it.  The two meet in the middle; the
 stopped when the command ends (:func:`stop`), and what it cached stays for the next run.
 
 The helper is started only where the cache can be written and at least two of these loops
-are not cached yet, so a warm run costs only the check (a few small index reads).
+are not cached yet, so a warm run costs only the check (a few small index reads).  On a fresh
+install, where no index file of the helper's first loop exists anywhere, the helper starts
+before that check and makes it itself, so that it compiles while the command still imports.
 ``VOLREG_COMPILE_AHEAD=0`` turns it off.  Results do not depend on it: a loop loaded from the
 cache is the one the next (warm) run uses anyway.
 """
@@ -145,8 +147,46 @@ def cold_loops() -> list[int] | None:
     return cold
 
 
+def _first_index_seen() -> bool:
+    """Whether an index file of the helper's first loop (the last of :data:`LOOPS`) lies in any
+    folder where numba or :mod:`volreg._jit` would cache it, for any version of the source.
+
+    Looked up without importing numba or the loop's module (which takes 0.6 s): under
+    ``NUMBA_CACHE_DIR`` where it is set (numba then caches nowhere else), otherwise beside the
+    source, under the user's cache folder and under volreg's fallback folder in the temporary
+    directory (numba's subfolder there is named after the source folder and a SHA-1 of its path).
+    """
+    import glob
+    import hashlib
+    import tempfile
+
+    import volreg
+
+    module, name, _ = LOOPS[-1]
+    parts = module.split(".")[1:]
+    source_dir = os.path.join(os.path.dirname(os.path.abspath(volreg.__file__)), *parts[:-1])
+    pattern = f"{parts[-1]}.{name}-*.nbi"
+    sub = f"{os.path.basename(source_dir)}_{hashlib.sha1(source_dir.encode()).hexdigest()}"
+    user_cache = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    try:
+        uid = os.getuid()
+    except AttributeError:  # pragma: no cover - not on POSIX
+        uid = "user"
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        folders = [os.path.join(os.environ["NUMBA_CACHE_DIR"], sub)]
+    else:
+        folders = [os.path.join(source_dir, "__pycache__"), os.path.join(user_cache, "numba", sub),
+                   os.path.join(tempfile.gettempdir(), f"volreg-numba-cache-{uid}", sub)]
+    return any(glob.glob(os.path.join(glob.escape(folder), pattern)) for folder in folders)
+
+
 def start() -> subprocess.Popen | None:
     """Start the helper process that compiles the cold loops into the cache, last-needed first.
+
+    Where no index file of the helper's first loop exists yet (a fresh install), the helper
+    starts at once and finds the cold loops itself, so that it compiles while this process
+    imports (a first run on the frog: 13.9 -> 13.3 s, medians of 6, against 7.6 s warm); otherwise this process checks the
+    cache first (:func:`cold_loops`) and starts a helper only for two cold loops or more.
 
     Returns
     -------
@@ -157,10 +197,14 @@ def start() -> subprocess.Popen | None:
     """
     if os.environ.get("VOLREG_COMPILE_AHEAD", "1").strip() == "0":
         return None
-    cold = cold_loops()
-    if cold is None or len(cold) < 2:
-        return None
-    command = [sys.executable, "-m", "volreg._precompile", *(str(i) for i in reversed(cold))]
+    if _first_index_seen():
+        cold = cold_loops()
+        if cold is None or len(cold) < 2:
+            return None
+        words = [str(i) for i in reversed(cold)]
+    else:
+        words = ["cold"]
+    command = [sys.executable, "-m", "volreg._precompile", *words]
     try:
         return subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL, close_fds=True)
@@ -196,7 +240,8 @@ def _on_sigterm(signum, frame) -> None:
 
 
 def _main(argv: list[str]) -> int:
-    """The helper: compile the :data:`LOOPS` entries whose indices ``argv`` gives, in that order.
+    """The helper: compile the :data:`LOOPS` entries whose indices ``argv`` gives, in that order
+    (or, given the one word ``cold``, those not cached yet, last-needed first).
 
     SIGTERM stops it: at once where Python runs, else (inside a ctypes callback of LLVM, where
     the exception is only reported) after the loop being compiled.  So does the end of the
@@ -212,6 +257,9 @@ def _main(argv: list[str]) -> int:
     except (AttributeError, OSError):  # pragma: no cover - not on POSIX
         pass
     parent = os.getppid()
+    if argv == ["cold"]:  # started at once: find the cold loops here
+        cold = cold_loops()
+        argv = [str(i) for i in reversed(cold or [])]
     try:
         for word in argv:
             if _stopping or os.getppid() != parent:  # stopped, or the command was killed outright
