@@ -42,11 +42,9 @@ def _probe() -> bool:
 
 def _temporary_cache() -> str | None:
     """A per-user numba cache folder under the system's temporary directory, if one can be made."""
-    try:
-        uid = os.getuid()
-    except AttributeError:  # pragma: no cover - not on POSIX
-        uid = "user"
-    path = os.path.join(tempfile.gettempdir(), f"volreg-numba-cache-{uid}")
+    from volreg._precompile import fallback_cache_folder
+
+    path = fallback_cache_folder()
     try:
         os.makedirs(path, mode=0o700, exist_ok=True)
         with tempfile.TemporaryFile(dir=path):

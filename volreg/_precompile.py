@@ -147,6 +147,19 @@ def cold_loops() -> list[int] | None:
     return cold
 
 
+def fallback_cache_folder() -> str:
+    """The per-user folder under the system's temporary directory where :mod:`volreg._jit` has
+    numba cache when neither the package's folder nor the user's cache folder can be written
+    (here, so that it is known without importing numba)."""
+    import tempfile
+
+    try:
+        uid = os.getuid()
+    except AttributeError:  # pragma: no cover - not on POSIX
+        uid = "user"
+    return os.path.join(tempfile.gettempdir(), f"volreg-numba-cache-{uid}")
+
+
 def _first_index_seen() -> bool:
     """Whether an index file of the helper's first loop (the last of :data:`LOOPS`) lies in any
     folder where numba or :mod:`volreg._jit` would cache it, for any version of the source.
@@ -158,7 +171,6 @@ def _first_index_seen() -> bool:
     """
     import glob
     import hashlib
-    import tempfile
 
     import volreg
 
@@ -168,15 +180,11 @@ def _first_index_seen() -> bool:
     pattern = f"{parts[-1]}.{name}-*.nbi"
     sub = f"{os.path.basename(source_dir)}_{hashlib.sha1(source_dir.encode()).hexdigest()}"
     user_cache = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    try:
-        uid = os.getuid()
-    except AttributeError:  # pragma: no cover - not on POSIX
-        uid = "user"
     if os.environ.get("NUMBA_CACHE_DIR"):
         folders = [os.path.join(os.environ["NUMBA_CACHE_DIR"], sub)]
     else:
         folders = [os.path.join(source_dir, "__pycache__"), os.path.join(user_cache, "numba", sub),
-                   os.path.join(tempfile.gettempdir(), f"volreg-numba-cache-{uid}", sub)]
+                   os.path.join(fallback_cache_folder(), sub)]
     return any(glob.glob(os.path.join(glob.escape(folder), pattern)) for folder in folders)
 
 
@@ -185,8 +193,9 @@ def start() -> subprocess.Popen | None:
 
     Where no index file of the helper's first loop exists yet (a fresh install), the helper
     starts at once and finds the cold loops itself, so that it compiles while this process
-    imports (a first run on the frog: 13.9 -> 13.3 s, medians of 6, against 7.6 s warm); otherwise this process checks the
-    cache first (:func:`cold_loops`) and starts a helper only for two cold loops or more.
+    imports (a first run on the frog: 13.9 -> 13.3 s, medians of 6, against 7.6 s warm);
+    otherwise this process checks the cache first (:func:`cold_loops`) and starts a helper
+    only for two cold loops or more.
 
     Returns
     -------

@@ -165,6 +165,7 @@ class LevelObjective:
     batched: bool = True
     _f1: list = field(default_factory=list, init=False, repr=False)
     last_terms: dict = field(default_factory=dict, init=False, repr=False)
+    _dense: tuple | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.kernel = sp.csr_matrix(self.kernel)
@@ -308,7 +309,13 @@ class LevelObjective:
         blocks : (N, D, D) float ndarray
             From :meth:`gauss_newton`.
         """
-        k = self.kernel.toarray()
+        if self._dense is None:  # the same at every step: made once
+            common = self.kernel_centres.toarray()
+            if self.lambda_p > 0:
+                lk = self.landmark_kernel.toarray()
+                common = common + 2.0 * self.lambda_p * (lk.T @ lk)
+            self._dense = (self.kernel.toarray(), common)
+        k, common = self._dense
         m, d = self.n_centres, self.dim
         h = np.zeros((m, d, m, d))
         for a in range(d):
@@ -317,10 +324,6 @@ class LevelObjective:
                 h[:, a, :, b] = part
                 if b != a:
                     h[:, b, :, a] = part.T
-        common = self.kernel_centres.toarray()
-        if self.lambda_p > 0:
-            lk = self.landmark_kernel.toarray()
-            common = common + 2.0 * self.lambda_p * (lk.T @ lk)
         for a in range(d):
             h[:, a, :, a] += common
         return h.reshape(m * d, m * d)
