@@ -42,7 +42,7 @@ def _probe() -> bool:
 
 def _temporary_cache() -> str | None:
     """A per-user numba cache folder under the system's temporary directory, if one can be made."""
-    from volreg._precompile import fallback_cache_folder
+    from volreg._cache_folder import fallback_cache_folder
 
     path = fallback_cache_folder()
     try:

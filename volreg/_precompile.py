@@ -147,19 +147,6 @@ def cold_loops() -> list[int] | None:
     return cold
 
 
-def fallback_cache_folder() -> str:
-    """The per-user folder under the system's temporary directory where :mod:`volreg._jit` has
-    numba cache when neither the package's folder nor the user's cache folder can be written
-    (here, so that it is known without importing numba)."""
-    import tempfile
-
-    try:
-        uid = os.getuid()
-    except AttributeError:  # pragma: no cover - not on POSIX
-        uid = "user"
-    return os.path.join(tempfile.gettempdir(), f"volreg-numba-cache-{uid}")
-
-
 def _first_index_seen() -> bool:
     """Whether an index file of the helper's first loop (the last of :data:`LOOPS`) lies in any
     folder where numba or :mod:`volreg._jit` would cache it, for any version of the source.
@@ -173,6 +160,7 @@ def _first_index_seen() -> bool:
     import hashlib
 
     import volreg
+    from volreg._cache_folder import fallback_cache_folder
 
     module, name, _ = LOOPS[-1]
     parts = module.split(".")[1:]
