@@ -146,3 +146,36 @@ def test_consistency_pairs(cohort, tmp_path):
     reviews = [d["review"] for d in json.loads((pair / "consistency.json").read_text())["directions"].values()]
     assert len(reviews) == 2
     assert (row["review"] == "ok") == all(r["plausible"] for r in reviews)
+
+
+def test_an_interrupt_waits_for_worker_processes_being_launched_then_ends_them(monkeypatch):
+    """A worker process whose launch an interrupt catches is let receive its start-up data and is
+    then ended by SIGTERM, silently; a parent exiting mid-launch made it print ``EOFError``."""
+    import multiprocessing
+    import multiprocessing.popen_spawn_posix as popen
+    import time
+
+    from volreg.cli import batch
+
+    launched, release = threading.Event(), threading.Event()
+    spawn = popen.util.spawnv_passfds
+
+    def held_spawn(*args, **kwargs):
+        launched.set()
+        release.wait(30)
+        return spawn(*args, **kwargs)
+
+    monkeypatch.setattr(popen.util, "spawnv_passfds", held_spawn)
+    assert not batch._launching_a_process()
+    child = multiprocessing.get_context("spawn").Process(target=time.sleep, args=(60,))
+    starter = threading.Thread(target=child.start)
+    starter.start()
+    assert launched.wait(30)
+    assert batch._launching_a_process()  # the thread is inside multiprocessing's launch
+    threading.Timer(0.5, release.set).start()
+    t0 = time.monotonic()
+    batch._stop_worker_processes(wait_s=30)
+    starter.join()
+    assert 0.4 < time.monotonic() - t0 < 25
+    assert not child.is_alive() and child.exitcode == -signal.SIGTERM
+    assert not batch._launching_a_process()

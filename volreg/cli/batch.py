@@ -19,6 +19,7 @@ import logging
 import re
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -287,6 +288,35 @@ def _close_started_clusters() -> None:
     atexit.unregister(spec.close_clusters)
 
 
+def _launching_a_process() -> bool:
+    """Whether another thread is inside multiprocessing's spawn of a child (Dask starts its
+    workers' processes on threads of its own), found from the threads' current frames."""
+    me = threading.get_ident()
+    for ident, frame in sys._current_frames().items():
+        while ident != me and frame is not None:
+            code = frame.f_code
+            if code.co_name == "_launch" and "popen_" in Path(code.co_filename).name:
+                return True
+            frame = frame.f_back
+    return False
+
+
+def _stop_worker_processes(wait_s: float = 5.0) -> None:
+    """Let the worker processes that Dask's threads are launching receive their start-up data, then
+    end every child process and wait for it.  A child whose parent exits while it reads that data
+    prints ``EOFError: Ran out of input`` after the one-line report; one ended now prints nothing."""
+    import multiprocessing
+
+    end = time.monotonic() + wait_s
+    while _launching_a_process() and time.monotonic() < end:
+        time.sleep(0.02)
+    children = multiprocessing.active_children()
+    for child in children:
+        child.terminate()
+    for child in children:
+        child.join(timeout=max(0.1, end - time.monotonic()))
+
+
 def run(args: argparse.Namespace) -> int:
     """``volreg batch MANIFEST -o OUTDIR``: every pair as a Dask task; exit status 1 if any failed."""
     try:
@@ -344,11 +374,16 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt as exc:
         # Finished pairs are complete results and stay; say so rather than "outputs removed".
         name = str(exc) or "SIGINT"
-        # workers stopped first, so that their farewells do not follow the one line below
-        logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        # workers stopped first, so that their farewells do not follow the one line below; what
+        # Dask's threads still say while the process ends (a nanny that failed to start, through
+        # asyncio's or tornado's loggers or an exception ending a thread) adds nothing to it
+        for logger in ("distributed", "asyncio", "tornado"):
+            logging.getLogger(logger).setLevel(logging.CRITICAL)
+        threading.excepthook = lambda hooked: None
         _close(client, cluster)
         client = cluster = None
         _close_started_clusters()
+        _stop_worker_processes()
         finished = sum(1 for r in rows if r.get("status") == "done")
         print(f"{PROG} batch: interrupted by {name}; {finished} of {len(pairs)} pairs finished and are kept in "
               f"`{outdir / 'pairs'}` (a rerun skips them); the {len(pairs) - finished} others are unfinished and a "
