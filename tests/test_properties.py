@@ -101,6 +101,34 @@ def test_label_resampling_follows_its_definition(volume, block, seed):
     assert np.array_equal(out, expected)
 
 
+@pytest.mark.parametrize("shape", [(7, 5), (6, 5, 4)])
+def test_single_valued_stencils_are_those_whose_corners_agree(shape):
+    """A point's linear stencil (its 2^D voxels, clamped at the image's edges) holds one value
+    exactly when every corner does; those points get it, the others are returned in order."""
+    from itertools import product
+
+    from volreg.warp.resample import _mixed_stencils
+
+    rng = np.random.default_rng(len(shape))
+    array = rng.integers(0, 2, shape).astype(np.int16) * rng.integers(1, 3, shape).astype(np.int16)
+    array[: shape[0] // 2] = 1  # a block of one value: single-valued stencils
+    index = rng.uniform(-0.5, np.array(shape) - 0.5, (4000, len(shape)))
+    rows = np.arange(0, 4000, 2)
+    out = np.zeros(4000, np.int16)
+    mixed = _mixed_stencils(array, index, rows, out, chunk=700)
+    expected_mixed = []
+    for r in rows:
+        low = np.floor(index[r]).astype(int)
+        corners = {int(array[tuple(np.clip(low + np.array(c), 0, np.array(shape) - 1))])
+                   for c in product((0, 1), repeat=len(shape))}
+        if len(corners) > 1:
+            expected_mixed.append(r)
+        else:
+            assert out[r] == corners.pop()
+    assert np.array_equal(mixed, expected_mixed) and 0 < len(mixed) < len(rows)
+    assert not out[1::2].any()
+
+
 @FAST
 @given(smooth_warps())
 def test_composition_with_the_inverse_is_near_identity(warp):

@@ -95,21 +95,31 @@ def _mixed_stencils(array: np.ndarray, index: np.ndarray, points: np.ndarray, ou
     (K,) int ndarray
         The rows of ``points`` whose stencil holds two values or more, in their order.
     """
-    size = np.array(array.shape)
-    corners = np.array(np.meshgrid(*[[0, 1]] * array.ndim, indexing="ij")).reshape(array.ndim, -1).T[1:]
-    # Each corner's voxels are taken by flat position (np.ravel_multi_index) rather than
-    # gathered by D index arrays: 8 M random points on the full frog's grid, 1.6 s instead of 3.2 s.
+    shape = array.shape
+    strides = [int(np.prod(shape[d + 1:], dtype=np.int64)) for d in range(array.ndim)]  # C order, in voxels
+    # Each corner's voxel is taken by its flat position: the lowest corner's, plus per axis a step
+    # of one stride or none (clamped at the image's edges, as the interpolation is). Integer sums
+    # of columns instead of gathering D index arrays per corner: the 3 mm frog's 1.8 M points in
+    # 0.09 s instead of 0.19 s.
     values = np.ascontiguousarray(array).reshape(-1)
     mixed = []
     for s in range(0, len(points), chunk):
         rows = points[s : s + chunk]
-        low = np.floor(index[rows]).astype(np.int64)
-        high = np.clip(low + 1, 0, size - 1)  # clamped at the image's edges, as the interpolation is
-        np.clip(low, 0, size - 1, out=low)
-        first = values.take(np.ravel_multi_index(tuple(low.T), array.shape))
+        idx = index[rows]
+        flat = np.zeros(len(rows), dtype=np.int64)
+        offsets: list = [None]  # of the 2^D corners from the lowest one; None: the lowest itself
+        for d in range(array.ndim):
+            low = np.floor(idx[:, d]).astype(np.int64)
+            high = np.minimum(low + 1, shape[d] - 1)
+            np.maximum(high, 0, out=high)
+            np.clip(low, 0, shape[d] - 1, out=low)
+            flat += low * strides[d]
+            step = (high - low) * strides[d]
+            offsets += [step if o is None else o + step for o in offsets]
+        first = values.take(flat)
         same = np.ones(len(rows), dtype=bool)
-        for corner in corners:
-            same &= values.take(np.ravel_multi_index(tuple(np.where(corner, high, low).T), array.shape)) == first
+        for o in offsets[1:]:
+            same &= values.take(flat + o) == first
         out[rows[same]] = first[same]
         mixed.append(rows[~same])
     return np.concatenate(mixed) if mixed else points
