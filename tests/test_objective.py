@@ -91,6 +91,64 @@ def test_fold_barrier_gradient_matches_finite_differences(dim):
     np.testing.assert_allclose(grad[idx], fd, rtol=1e-5, atol=1e-7 * np.abs(grad).max())
 
 
+def test_a_repeated_point_is_evaluated_once_until_the_barrier_changes(monkeypatch):
+    """The same coefficients twice give the same value, gradient and terms from one evaluation
+    (a caller changing the returned gradient changes nothing kept); new coefficients, or new
+    fold-barrier rows, evaluate again."""
+    rng = np.random.default_rng(8)
+    obj = _objective(3, rng, lambda_loc=3.0, alpha=1.0, lambda_fold=10.0, fold_margin=0.9,
+                     fold_gradients=kernel_gradient_matrices(rng.uniform(-6, 6, (40, 3)),
+                                                             rng.uniform(-6, 6, (50, 3)), 5.0),
+                     fold_base=np.repeat(np.eye(3)[None], 40, axis=0))
+    calls = []
+    evaluate = obj._evaluate
+    monkeypatch.setattr(obj, "_evaluate", lambda flat, blocks: calls.append(1) or evaluate(flat, blocks))
+    c = rng.normal(0, 0.05, obj.n_centres * 3)
+    value, grad = obj(c)
+    terms = dict(obj.last_terms)
+    grad[:] = 0.0
+    again, grad2 = obj(c.copy())
+    assert len(calls) == 1 and again == value and np.any(grad2 != 0) and obj.last_terms == terms
+    obj(c + 1e-3)
+    assert len(calls) == 2 and obj.last_terms != terms
+    assert obj(c)[0] == value and obj(c)[0] == value and len(calls) == 3 and obj.last_terms == terms
+    obj.set_fold(obj._fold, obj.fold_base)
+    obj(c)
+    assert len(calls) == 4
+
+
+@pytest.mark.parametrize("batched", [True, False])
+def test_objectives_on_shared_samples_evaluate_the_fixed_features_once(batched):
+    """A second objective on the same samples and features (another level: other centres)
+    reuses the first's fixed features at the samples and equals one made on its own."""
+    rng = np.random.default_rng(9)
+    samples = rng.uniform(-6, 6, (150, 3))
+    calls = []
+
+    class Counted(SphereSDF):
+        def evaluate(self, x, *, order=1):
+            calls.append(len(x))
+            return super().evaluate(x, order=order)
+
+    feats = [FeaturePair(Counted(np.zeros(3), 4.0), SphereSDF(np.full(3, 0.7), 4.5))]
+    shared = {}
+
+    def objective(centres, sigma, shared):
+        return LevelObjective(kernel=kernel_matrix(samples, centres, sigma),
+                              kernel_centres=kernel_matrix(centres, centres, sigma), base=samples + 0.1,
+                              samples=samples, features=feats, lambda_loc=2.0, alpha=1.0, batched=batched,
+                              shared=shared)
+
+    objective(samples[::3], 5.0, shared)
+    assert len(calls) == 1
+    second = objective(samples[::5], 3.0, shared)
+    assert len(calls) == 1
+    alone = objective(samples[::5], 3.0, None)
+    assert len(calls) == 2
+    c = rng.normal(0, 0.1, second.n_centres * 3)
+    assert second(c)[0] == alone(c)[0] and np.array_equal(second(c)[1], alone(c)[1])
+
+
 def test_kernel_gradient_matrices_give_the_warp_jacobian():
     rng = np.random.default_rng(5)
     centres = rng.uniform(0, 5, (60, 3))

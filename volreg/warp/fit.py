@@ -388,6 +388,8 @@ class _SampleSet:
         ``d tau_prev / dx`` at ``check``.
     valid_count : int or None
         Number of samples where ``valid`` holds; ``None`` without ``valid``.
+    shared : dict
+        What the levels' objectives on these samples share (``LevelObjective.shared``).
     """
 
     step: float
@@ -398,6 +400,7 @@ class _SampleSet:
     base: np.ndarray
     jacobian: np.ndarray
     valid_count: int | None = None
+    shared: dict = field(default_factory=dict, repr=False)
 
     @classmethod
     def build(cls, inputs: _Inputs, step: float, warp: KernelWarp) -> _SampleSet:
@@ -510,7 +513,7 @@ def _level_objective(width: float, centres: np.ndarray, grid: CellGrid, samples:
     objective = LevelObjective(kernel=k_xc, kernel_centres=k_cc, base=samples.base, samples=samples.points,
                                features=inputs.features, lambda_loc=s.lambda_loc, alpha=s.alpha,
                                neighbourhood=inputs.neighbourhood, feature_samples=samples.subsets, robust=s.robust,
-                               **samples.consistency, **kw)
+                               shared=samples.shared, **samples.consistency, **kw)
     return objective, c0
 
 

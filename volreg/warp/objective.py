@@ -139,6 +139,10 @@ class LevelObjective:
         pass (:class:`~volreg.features.batch.FeatureBatch`) where they support it
         (implicit surfaces and voxel distance maps, through one common linear map).
         ``False``: one feature at a time; the two agree up to rounding.
+    shared : dict, optional
+        Kept across the objectives of one sample set (the levels of a fit that share their
+        samples): the first fills it with the features' batches and the fixed features at the
+        samples, which the others then reuse, given the same samples, features and offsets.
     """
 
     kernel: sp.spmatrix
@@ -166,6 +170,8 @@ class LevelObjective:
     _f1: list = field(default_factory=list, init=False, repr=False)
     last_terms: dict = field(default_factory=dict, init=False, repr=False)
     _dense: tuple | None = field(default=None, init=False, repr=False)
+    _memo: tuple | None = field(default=None, init=False, repr=False)
+    shared: dict | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         self.kernel = sp.csr_matrix(self.kernel)
@@ -187,6 +193,41 @@ class LevelObjective:
         if len(subsets) != len(self.features):
             raise ValueError(f"Expected one entry of `feature_samples` per feature, got {len(subsets)} for {len(self.features)}.")
         self._subsets = [None if s is None else np.asarray(s, dtype=np.intp) for s in subsets]
+        # Levels that share their samples and features share what follows (the fixed features at
+        # the samples: an evaluation of every feature, and the batches' layout).
+        key = (tuple(id(pair) for pair in self.features), tuple(id(s) for s in subsets), id(self.samples),
+               order, offsets.tobytes(), self.batched)
+        if self.shared is not None and self.shared.get("key") == key:
+            (self._batch, self._f1, self._rows, self._starts, self._row_weight,
+             self._f1_rows) = self.shared["features"]
+        else:
+            self._prepare_features(n, order)
+            if self.shared is not None:
+                self.shared.update(key=key, keep=(self.features, subsets, self.samples),
+                                   features=(self._batch, self._f1, self._rows, self._starts, self._row_weight,
+                                             self._f1_rows))
+        if self.lambda_p > 0:
+            if self.landmark_kernel is None or self.landmark_base is None or self.landmark_targets is None:
+                raise ValueError("Expected `landmark_kernel`, `landmark_base` and `landmark_targets` when `lambda_p` > 0.")
+            self.landmark_kernel = sp.csr_matrix(self.landmark_kernel)
+            self.landmark_kernel_t = self.landmark_kernel.T.tocsr()
+        self.n_centres = m
+        if not (np.isfinite(self.robust) and self.robust >= 0):
+            raise ValueError(f"Expected `robust` >= 0 (mm), got {self.robust}.")
+        if self.lambda_target > 0 and (self.sample_targets is None or np.shape(self.sample_targets) != self.samples.shape):
+            raise ValueError(f"Expected `sample_targets` of shape {self.samples.shape} when `lambda_target` > 0.")
+        if self.lambda_fold > 0:
+            if self.fold_gradients is None or self.fold_base is None:
+                raise ValueError("Expected `fold_gradients` and `fold_base` when `lambda_fold` > 0.")
+            if self.fold_margin is None:
+                raise ValueError("Expected `fold_margin` (the determinant below which the barrier acts) "
+                                 "when `lambda_fold` > 0.")
+            self.set_fold(self.fold_gradients, self.fold_base, self.fold_count)
+
+    def _prepare_features(self, n: int, order: int) -> None:
+        """The features' batches and the fixed features (f1, up to ``order``) at the ``n`` samples."""
+        offsets = self.offsets
+        self._rows = self._starts = self._row_weight = self._f1_rows = None
         # With many labels each feature sits at a few dozen samples: evaluated one by one, the
         # calls cost far more than the arithmetic.  The batch evaluates all at once.
         self._batch = FeatureBatch.build([pair.f2 for pair in self.features]) if self.batched and self.features else None
@@ -210,23 +251,6 @@ class LevelObjective:
             else:
                 self._f1_rows = [tuple(np.concatenate([f1[k][j] for f1 in self._f1]) for j in range(order + 1))
                                  for k in range(len(offsets))]
-        if self.lambda_p > 0:
-            if self.landmark_kernel is None or self.landmark_base is None or self.landmark_targets is None:
-                raise ValueError("Expected `landmark_kernel`, `landmark_base` and `landmark_targets` when `lambda_p` > 0.")
-            self.landmark_kernel = sp.csr_matrix(self.landmark_kernel)
-            self.landmark_kernel_t = self.landmark_kernel.T.tocsr()
-        self.n_centres = m
-        if not (np.isfinite(self.robust) and self.robust >= 0):
-            raise ValueError(f"Expected `robust` >= 0 (mm), got {self.robust}.")
-        if self.lambda_target > 0 and (self.sample_targets is None or np.shape(self.sample_targets) != self.samples.shape):
-            raise ValueError(f"Expected `sample_targets` of shape {self.samples.shape} when `lambda_target` > 0.")
-        if self.lambda_fold > 0:
-            if self.fold_gradients is None or self.fold_base is None:
-                raise ValueError("Expected `fold_gradients` and `fold_base` when `lambda_fold` > 0.")
-            if self.fold_margin is None:
-                raise ValueError("Expected `fold_margin` (the determinant below which the barrier acts) "
-                                 "when `lambda_fold` > 0.")
-            self.set_fold(self.fold_gradients, self.fold_base, self.fold_count)
 
     def set_fold(self, gradients, base: np.ndarray, count: int | None = None) -> None:
         """Replace the fold barrier's check points (``lambda_fold`` stays).
@@ -242,6 +266,7 @@ class LevelObjective:
         """
         # The D gradient matrices share one pattern: each product reads it once.  Only
         # the shared copy is kept (these are the largest matrices of a level).
+        self._memo = None  # the objective changes
         self._fold = gradients if isinstance(gradients, SharedPatternCSR) else SharedPatternCSR(gradients)
         self.fold_gradients = None
         self.fold_base = np.asarray(base, dtype=float)
@@ -257,8 +282,20 @@ class LevelObjective:
         return self.base + self._kernel.matmul(coeffs)[:, :, 0]
 
     def __call__(self, flat: np.ndarray) -> tuple[float, np.ndarray]:
-        """Objective and gradient at flattened coefficients (M * D,), for scipy.optimize."""
-        return self._evaluate(flat, None)
+        """Objective and gradient at flattened coefficients (M * D,), for scipy.optimize.
+
+        The last call's result is kept: a level evaluates its start before L-BFGS does, and its
+        end again for the log, each an evaluation of every feature at every sample.
+        """
+        flat = np.asarray(flat, dtype=float)
+        key = flat.tobytes()
+        if self._memo is not None and self._memo[0] == key:
+            _, value, grad, terms = self._memo
+            self.last_terms = dict(terms)
+            return value, grad.copy()
+        value, grad = self._evaluate(flat, None)
+        self._memo = (key, value, grad.copy(), dict(self.last_terms))
+        return value, grad
 
     @property
     def gauss_newton_ready(self) -> bool:
