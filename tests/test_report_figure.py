@@ -177,3 +177,20 @@ def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
     with pytest.raises(VolregIOError, match=r"could not be written: No space left on device"):
         _write(tmp_path / "report.png", _case(ndim=2))
     _only(tmp_path)
+
+
+def test_a_displacement_in_mm_with_its_matrix_draws_as_the_same_in_voxels(tmp_path):
+    """``to_voxels`` turns a displacement in LPS mm into voxels on the drawn slices: the figure
+    equals the one drawn from the displacement converted beforehand."""
+    case = _case(moved=True)
+    direction = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    spacing = np.array(case["fixed_spacing"])
+    to_voxels = direction / spacing
+    mm = case["displacement"] @ np.linalg.inv(to_voxels)
+    _write(tmp_path / "voxels.png", case)
+    _write(tmp_path / "mm.png", dict(case, displacement=mm), to_voxels=to_voxels)
+    _write(tmp_path / "raw.png", dict(case, displacement=mm))
+    voxels, converted, raw = (_read_png(tmp_path / n) for n in ("voxels.png", "mm.png", "raw.png"))
+    assert np.array_equal(voxels, converted) and not np.array_equal(voxels, raw)
+    with pytest.raises(VolregIOError, match="to_voxels"):
+        _write(tmp_path / "bad.png", case, to_voxels=np.eye(2))

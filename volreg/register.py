@@ -917,7 +917,6 @@ def _write_fields(folder, fixed, moving, warp, fields: _FixedGridFields, u_inver
 
     paths = {name: folder.path / name for name in REGISTRATION_OUTPUTS}
     warped = fields.warped.astype(moving.array.dtype, copy=False)
-    u_index = (fields.displacement @ fixed.direction) / fixed.spacing  # LPS mm -> index units of the fixed grid
     title = (f"volreg register: mean Dice {report['mean_dice']['before']:.3f} -> "
              f"{report['mean_dice']['after']:.3f}")
 
@@ -938,9 +937,11 @@ def _write_fields(folder, fixed, moving, warp, fields: _FixedGridFields, u_inver
         *([lambda: [job() for job in h5]] if itk_h5 else []),
         output("jacobian.nii.gz", lambda p: write_scalar(fields.jacobian, fixed, p, force=force)),
         output("warped.nii.gz", lambda p: write_labels(fixed.with_array(warped), p, force=force)),
-        output("report.png", lambda p: write_report_figure(p, fixed.array, moving.array, fields.warped, u_index,
-                                                           fixed_spacing=fixed.spacing,
-                                                           moving_spacing=moving.spacing, force=force, title=title)),
+        # The displacement in LPS mm, turned into the fixed grid's voxels on the drawn slices only
+        output("report.png", lambda p: write_report_figure(p, fixed.array, moving.array, fields.warped,
+                                                           fields.displacement, fixed_spacing=fixed.spacing,
+                                                           moving_spacing=moving.spacing, force=force, title=title,
+                                                           to_voxels=fixed.direction / fixed.spacing)),
         output("model.npz", lambda p: warp.save(p, force=force)),
         output("linear.tfm", lambda p: write_itk_linear(p, warp.linear, force=force)),
     ]

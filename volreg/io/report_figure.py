@@ -172,6 +172,7 @@ def write_report_figure(
     moving_spacing: Sequence[float] | npt.ArrayLike,
     force: bool = False,
     title: str | None = None,
+    to_voxels: npt.ArrayLike | None = None,
 ) -> None:
     """Write a PNG showing the labels, the warped moving labels and the deformed grid.
 
@@ -199,7 +200,8 @@ def write_report_figure(
         Moving labels resampled onto the fixed grid.
     displacement : array_like of float, shape (X, Y, Z, 3) or (X, Y, 2)
         Displacement ``u(x)`` at each fixed voxel, in fixed-grid voxels along
-        ``i, j, k``: voxel ``x`` maps to ``x + u(x)``.
+        ``i, j, k``: voxel ``x`` maps to ``x + u(x)``; or in other units, with
+        ``to_voxels``.
     fixed_spacing, moving_spacing : sequence of float, length 3 (or 2)
         Voxel sizes (mm) of the fixed and moving grids, used for each panel's
         aspect ratio.
@@ -207,6 +209,10 @@ def write_report_figure(
         Overwrite an existing ``path``.
     title : str, optional
         Figure title.
+    to_voxels : array_like of float, shape (3, 3) or (2, 2), optional
+        The matrix ``M`` that turns ``displacement`` into fixed-grid voxels,
+        ``u M`` (for a displacement in LPS mm, the fixed grid's direction with
+        each column divided by its spacing).  Applied to the drawn slices only.
 
     Raises
     ------
@@ -241,7 +247,10 @@ def write_report_figure(
         )
     if disp.dtype.kind not in "fiu":
         raise VolregIOError(f"Expected `displacement` of real dtype (voxels), got {disp.dtype}.")
-    disp = disp.astype(float, copy=False)
+    if to_voxels is not None:
+        to_voxels = np.asarray(to_voxels, dtype=float)
+        if to_voxels.shape != (ndim, ndim) or not np.all(np.isfinite(to_voxels)):
+            raise VolregIOError(f"Expected `to_voxels` of shape ({ndim}, {ndim}), finite, got shape {to_voxels.shape}.")
     fsp = _spacing("fixed_spacing", fixed_spacing, ndim)
     msp = _spacing("moving_spacing", moving_spacing, ndim)
     if title is not None and not isinstance(title, str):
@@ -290,7 +299,10 @@ def write_report_figure(
             fix_sl = _take(fix, axis, fc[axis] if axis is not None else 0)
             mov_sl = _take(mov, axis, mc[axis] if axis is not None else 0)
             war_sl = _take(war, axis, fc[axis] if axis is not None else 0)
-            disp_sl = _take(disp, axis, fc[axis] if axis is not None else 0)[..., [ah, av]]
+            disp_sl = _take(disp, axis, fc[axis] if axis is not None else 0).astype(float, copy=False)
+            if to_voxels is not None:
+                disp_sl = disp_sl @ to_voxels
+            disp_sl = disp_sl[..., [ah, av]]
             axes = [fig.add_subplot(grid[row, col]) for col in range(4)]
 
             _draw_labels(axes[0], fix_sl, fix_aspect)
