@@ -197,6 +197,23 @@ def test_identity_registration(tmp_path, capsys):
     assert np.allclose(nib.load(tmp_path / "out" / "jacobian.nii.gz").get_fdata(), 1.0)
 
 
+def test_mean_dice_is_over_the_labels_both_volumes_hold(tmp_path, capsys):
+    """A one-voxel label that only the moving volume holds has Dice 0 whatever the warp: it is
+    scored on its own but left out of the mean Dice, and the summary line says so."""
+    vol = blob_volume()
+    speck = vol.array.copy()
+    speck[1, 1, 1] = 7
+    write_labels(vol, tmp_path / "a.nii.gz")
+    write_labels(vol.with_array(speck), tmp_path / "b.nii.gz")
+    assert run(["register", tmp_path / "a.nii.gz", tmp_path / "b.nii.gz", "-o", tmp_path / "out"]) == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["labels"]["7"]["after"]["dice"] == 0.0 and report["mean_dice"]["labels"] == [1, 2]
+    for when in ("before", "after"):
+        both = np.mean([report["labels"][v][when]["dice"] for v in ("1", "2")])
+        assert report["mean_dice"][when] == pytest.approx(both) and report["mean_dice"][when] > 0.95
+    assert "over 2 labels in both volumes (1 in one only)" in capsys.readouterr().out
+
+
 def test_interior_label_carried(tmp_path):
     """Only the outer blob drives the warp; the inner sphere, moved 3 voxels with it, is carried (Dice >= 0.9)."""
     fixed = blob_volume()

@@ -129,7 +129,10 @@ def _summary_line(command: str, report: dict, outdir: Path) -> str:
     from volreg.register import ITK_H5_OUTPUTS, REGISTRATION_OUTPUTS
 
     d = report["mean_dice"]
-    line = (f"{PROG} {command}: mean Dice {d['before']:.3f} -> {d['after']:.3f} over {len(report['labels'])} labels, "
+    shared = len(d.get("labels", report["labels"]))
+    alone = len(report["labels"]) - shared
+    over = f"{shared} labels" + (f" in both volumes ({alone} in one only)" if alone else "")
+    line = (f"{PROG} {command}: mean Dice {d['before']:.3f} -> {d['after']:.3f} over {over}, "
             f"folded {100 * report['jacobian']['folded_fraction']:.3f} %")
     if "endpoint_error_mm" in report:
         e = report["endpoint_error_mm"]
