@@ -90,7 +90,8 @@ def _bspline3_at(coef, i0, i1, i2, order, p, f, g, h, index, weight):  # pragma:
     _axis(i2, nz, iz, wz, dz, sz)
     # Separably, axis by axis (z, then y, then x): the 64 coefficients are read once and each
     # derivative is a sum over the x weights of sums over y of sums over z, 3 x 64 + 6 x 16 + 10 x 4
-    # products instead of up to 10 x 64, and a loop that LLVM compiles in a third of the time.
+    # products instead of up to 10 x 64 (order 2 at 1 M random points: 0.21 s instead of 0.28 s),
+    # and less code to compile (this loop and _bspline3_segments: 1.27 s instead of 1.53 s).
     v = 0.0
     gx = 0.0
     gy = 0.0
