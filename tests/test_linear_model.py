@@ -21,6 +21,7 @@ from volreg.morph import linear_path, morph_vertices
 from volreg.warp.field import (
     displacement_on_grid,
     fields_on_grid,
+    indices_through,
     jacobian_determinant_on_grid,
     linear_displacement_on_grid,
     support_slices,
@@ -34,7 +35,7 @@ from volreg.warp.model import (
     jacobian_det,
     linear_outside,
 )
-from volreg.warp.resample import resample_labels
+from volreg.warp.resample import resample_labels, resample_labels_at
 
 from shapes import rotation
 from test_register import blob_volume, run
@@ -261,6 +262,29 @@ def oblique_grid(shape=(30, 28, 26), spacing=(14.0, 14.5, 15.0)) -> LabelVolume:
     kernels' supports (about [-40, 140] mm in fixed space, [-85, 210] mm in moving space)."""
     direction = rotation(20.0, axis=(0.2, 1.0, 0.3))
     return LabelVolume(np.zeros(shape, np.uint8), (-180.0, -200.0, -190.0), spacing, direction)
+
+
+def test_indices_through_a_displacement_are_those_of_the_displaced_world_points():
+    """The moving grid's indices of x + u(x) at every fixed voxel centre, summed axis by axis,
+    equal ``world_to_index`` of the world points (oblique grids of other spacings), and the
+    labels there equal those of :func:`resample_labels` at the world points."""
+    warp = linear_warp(3, seed=17)
+    fixed = oblique_grid()
+    moving = blob_volume(direction=rotation(25, (0.2, -0.5, 0.8)), origin=(-33.0, -29.0, -35.0),
+                         spacing=np.array([1.3, 0.9, 1.6]))
+    u = fields_on_grid(warp, fixed, chunk=4000)[0]
+    points = fixed.grid_points() + u
+    index = indices_through(fixed, u, moving)
+    assert index.shape == (fixed.grid_points().size // 3, 3)
+    np.testing.assert_allclose(index, moving.world_to_index(points.reshape(-1, 3)), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(indices_through(fixed, None, moving),
+                               moving.world_to_index(fixed.grid_points().reshape(-1, 3)), rtol=0, atol=1e-10)
+    for method in ("label", "nearest"):
+        at_points = resample_labels(moving, points, method=method)
+        assert np.array_equal(resample_labels_at(moving, index, method=method).reshape(fixed.shape), at_points)
+        assert len(np.unique(at_points)) >= 2  # a label and the background are met
+    with pytest.raises(ValueError, match="displacement"):
+        indices_through(fixed, u[:-1], moving)
 
 
 def test_grid_fields_outside_the_support_are_linear():

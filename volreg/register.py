@@ -781,10 +781,8 @@ def _stage(name: str, t0: float) -> dict:
 class _FixedGridFields(NamedTuple):
     """The warp sampled at the voxel centres of the fixed grid, (X, Y, Z[, 3]) arrays."""
 
-    grid: np.ndarray  # voxel centres x, mm
     displacement: np.ndarray  # u(x) = tau(x) - x, mm
     jacobian: np.ndarray  # det d tau / dx
-    points: np.ndarray  # tau(x), mm
     warped: np.ndarray  # the moving labels at tau(x)
 
 
@@ -792,15 +790,15 @@ def _sample_on_fixed_grid(warp, fixed, moving, max_folded_fraction: float, progr
     """The warp's displacement and Jacobian determinant on the fixed grid, checked for folding
     (:func:`~volreg.warp.fit.check_folding`), and the moving labels resampled through it
     (label-preserving)."""
-    from volreg.warp.field import fields_on_grid
-    from volreg.warp.resample import resample_labels
+    from volreg.warp.field import fields_on_grid, indices_through
+    from volreg.warp.resample import resample_labels_at
 
-    grid = fixed.grid_points()  # (X, Y, Z, 3) mm, used below for every comparison
     u, jac = fields_on_grid(warp, fixed, progress=progress)
-    points = grid + u
     check_folding(warp, fixed, jac, max_folded_fraction)  # before more work
-    warped = resample_labels(moving, points, method="label", progress=progress)
-    return _FixedGridFields(grid, u, jac, points, warped)
+    # The moving labels at tau(x), from their indices there: no world points of the grid
+    index = indices_through(fixed, u, moving)
+    warped = resample_labels_at(moving, index, method="label", progress=progress).reshape(fixed.shape)
+    return _FixedGridFields(u, jac, warped)
 
 
 #: The inverse written on the moving grid holds to this fraction of the grid's smallest spacing
@@ -835,11 +833,13 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
     from volreg.evaluation.metrics import folded_fraction, label_scores
     from volreg.evaluation.review import findings_summary, judged_labels, label_voxel_counts, review_registration
     from volreg.io.summary import package_versions
-    from volreg.warp.resample import resample_labels
+    from volreg.warp.field import indices_through
+    from volreg.warp.resample import resample_labels_at
 
-    grid, u, jac, points, warped_array = fields
+    u, jac, warped_array = fields
     # On one grid, nearest neighbour at the fixed voxel centres is the moving array itself.
-    before = moving.array if moving.same_geometry(fixed) else resample_labels(moving, grid, method="nearest")
+    before = (moving.array if moving.same_geometry(fixed) else
+              resample_labels_at(moving, indices_through(fixed, None, moving), method="nearest").reshape(fixed.shape))
     labels = sorted(set(fixed.labels().tolist()) | set(moving.labels().tolist()))
     scores_before = label_scores(fixed.array, before, labels, fixed.spacing)
     scores_after = label_scores(fixed.array, warped_array, labels, fixed.spacing)
@@ -900,8 +900,8 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
         "versions": package_versions(),
     }
     if truth is not None:
-        gp = grid[inside]
-        err = np.linalg.norm(points[inside] - truth(gp), axis=1)
+        gp = fixed.grid_points()[inside]
+        err = np.linalg.norm(gp + u[inside] - truth(gp), axis=1)
         err0 = np.linalg.norm(truth(gp) - gp, axis=1)
         report["endpoint_error_mm"] = {
             "mean": float(err.mean()), "p95": float(np.percentile(err, 95)), "max": float(err.max()),

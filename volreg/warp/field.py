@@ -18,13 +18,14 @@ from typing import Callable
 import numpy as np
 
 from volreg._threads import single_blas
-from volreg.grid import Grid, GridLike, as_grid
+from volreg.grid import Grid, GridLike, apply_affine, as_grid
 from volreg.warp.linear import LinearMap
 from volreg.warp.model import jacobian_det, linear_outside
 
 __all__ = [
     "displacement_on_grid",
     "fields_on_grid",
+    "indices_through",
     "jacobian_determinant_on_grid",
     "linear_displacement_on_grid",
     "support_slices",
@@ -102,6 +103,51 @@ def linear_displacement_on_grid(linear: LinearMap | None, reference: GridLike) -
         shape[d] = n
         out += (np.arange(n, dtype=float)[:, None] * steps[:, d]).reshape(shape)
     return out
+
+
+def indices_through(reference: GridLike, displacement: np.ndarray | None, target: GridLike) -> np.ndarray:
+    """Continuous voxel indices in ``target`` of ``x + u(x)`` at every voxel centre ``x`` of ``reference``.
+
+    The indices of the voxel centres themselves are affine in their own indices, so they are
+    summed axis by axis like :meth:`~volreg.grid.Grid.grid_points`, and only the displacement
+    goes through a product: no world points are formed (on the 1 mm phantom's 5.7 M voxels,
+    two arrays of 137 MB fewer than ``target.world_to_index(grid_points + u)``).
+
+    Parameters
+    ----------
+    reference : Grid, LabelVolume or (shape, affine)
+        The grid whose voxel centres ``x`` are displaced (e.g. the fixed grid).
+    displacement : (*reference.shape, D) float ndarray, LPS mm, or None
+        ``u(x)``; ``None``: zero (the voxel centres themselves).
+    target : Grid, LabelVolume or (shape, affine)
+        The grid whose indices are returned (e.g. the moving volume's).
+
+    Returns
+    -------
+    (N, D) float64 ndarray
+        N = the number of voxels of ``reference``, in C order.
+    """
+    reference = as_grid(reference, "reference")
+    target = as_grid(target, "target")
+    dim = reference.ndim
+    if target.ndim != dim:
+        raise ValueError(f"Expected a `target` grid of dimension {dim}, got {target.ndim}.")
+    to_index = target.direction.T / target.spacing[:, None]  # world (LPS mm) -> target index, linear part
+    steps = to_index @ (reference.direction * reference.spacing[None, :])  # column d: per index step along d
+    offset = to_index @ (reference.origin - target.origin)
+    if displacement is None:
+        out = np.empty((*reference.shape, dim))
+        out[...] = offset
+    else:
+        u = np.asarray(displacement, dtype=float)
+        if u.shape != (*reference.shape, dim):
+            raise ValueError(f"Expected `displacement` of shape {(*reference.shape, dim)}, got {u.shape}.")
+        out = apply_affine(u.reshape(-1, dim), to_index, offset).reshape(*reference.shape, dim)
+    for d, n in enumerate(reference.shape):
+        shape = [1] * dim + [dim]
+        shape[d] = n
+        out += (np.arange(n, dtype=float)[:, None] * steps[:, d]).reshape(shape)
+    return out.reshape(-1, dim)
 
 
 def _on_grid(warp, reference: GridLike, order: int, chunk: int, progress: ProgressCallback | None, stage: str):

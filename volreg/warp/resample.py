@@ -33,7 +33,7 @@ from scipy import ndimage
 from volreg.features.distance_maps import clipped_signed_distance
 from volreg.grid import Grid, GridLike, LabelVolume, as_grid
 
-__all__ = ["resample_labels", "resample_image", "signed_distance_map"]
+__all__ = ["resample_labels", "resample_labels_at", "resample_image", "signed_distance_map"]
 
 ProgressCallback = Callable[[str, int, int], None]
 
@@ -155,10 +155,41 @@ def resample_labels(
     ndarray of ``points.shape[:-1]``, ``image.array.dtype``
         Only values present in ``image`` (and 0) occur.
     """
+    shape = np.shape(points)[:-1]
     if method not in ("label", "nearest"):
         raise ValueError(f"Expected `method` 'label' or 'nearest', got {method!r}.")
-    shape = np.shape(points)[:-1]
-    index = _indices(image, points)
+    return resample_labels_at(image, _indices(image, points), method=method, margin=margin,
+                              progress=progress).reshape(shape)
+
+
+def resample_labels_at(
+    image: LabelVolume,
+    index: np.ndarray,
+    *,
+    method: Literal["label", "nearest"] = "label",
+    margin: int = 2,
+    progress: ProgressCallback | None = None,
+) -> np.ndarray:
+    """:func:`resample_labels` at continuous voxel indices of ``image`` rather than world points.
+
+    Parameters
+    ----------
+    image : LabelVolume
+    index : (N, D) float ndarray
+        Continuous indices into ``image`` (voxel ``i`` is centred at ``i``), e.g. from
+        :func:`volreg.warp.field.indices_through`.
+    method, margin, progress
+        As :func:`resample_labels`.
+
+    Returns
+    -------
+    (N,) ndarray, ``image.array.dtype``
+    """
+    if method not in ("label", "nearest"):
+        raise ValueError(f"Expected `method` 'label' or 'nearest', got {method!r}.")
+    index = np.asarray(index, dtype=float)
+    if index.ndim != 2 or index.shape[1] != image.ndim:
+        raise ValueError(f"Expected `index` of shape (N, {image.ndim}), got {index.shape}.")
     array = image.array
     # The image covers its voxels: continuous indices in [-1/2, n - 1/2] (as ITK).
     size = np.array(image.shape)
@@ -167,7 +198,7 @@ def resample_labels(
         nearest = np.clip(np.floor(index[valid] + 0.5).astype(np.int64), 0, size - 1)
         out = np.zeros(len(index), dtype=array.dtype)
         out[valid] = array[tuple(nearest.T)]
-        return out.reshape(shape)
+        return out
 
     out = np.zeros(len(index), dtype=array.dtype)
     best = np.zeros(len(index), dtype=np.float32)  # a point is a label's only where its distance < 0
@@ -211,7 +242,7 @@ def resample_labels(
             out[sel] = value
         if progress is not None:
             progress("resample labels", n + 1, len(labels))
-    return out.reshape(shape)
+    return out
 
 
 def resample_image(
