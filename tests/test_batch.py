@@ -148,9 +148,9 @@ def test_consistency_pairs(cohort, tmp_path):
     assert (row["review"] == "ok") == all(r["plausible"] for r in reviews)
 
 
-def test_an_interrupt_waits_for_worker_processes_being_launched_then_ends_them(monkeypatch):
-    """A worker process whose launch an interrupt catches is let receive its start-up data and is
-    then ended by SIGTERM, silently; a parent exiting mid-launch made it print ``EOFError``."""
+def test_an_interrupt_waits_for_worker_processes_being_launched(monkeypatch):
+    """A worker process whose launch an interrupt catches is let receive its start-up data before
+    the report: a parent exiting mid-launch made it print ``EOFError``."""
     import multiprocessing
     import multiprocessing.popen_spawn_posix as popen
     import time
@@ -174,8 +174,11 @@ def test_an_interrupt_waits_for_worker_processes_being_launched_then_ends_them(m
     assert batch._launching_a_process()  # the thread is inside multiprocessing's launch
     threading.Timer(0.5, release.set).start()
     t0 = time.monotonic()
-    batch._stop_worker_processes(wait_s=30)
+    batch._await_worker_launches(wait_s=30)
+    waited = time.monotonic() - t0
+    assert not batch._launching_a_process() and 0.4 < waited < 25
     starter.join()
-    assert 0.4 < time.monotonic() - t0 < 25
-    assert not child.is_alive() and child.exitcode == -signal.SIGTERM
-    assert not batch._launching_a_process()
+    assert child.is_alive()  # launched, with its data
+    child.terminate()
+    child.join(30)
+    assert child.exitcode == -signal.SIGTERM

@@ -178,6 +178,36 @@ def test_run_parts_on_one_thread_is_one_part_on_the_caller():
     assert out.tolist() == [1, 0, 0, 0] and callers == [threading.get_ident()]
 
 
+def test_a_loops_first_call_runs_its_first_part_alone_on_the_caller():
+    """The first call of a loop runs part 0 on the calling thread before any helper starts (the
+    call that compiles the loop, so that no helper waits for llvmlite's lock meanwhile); later
+    calls share the parts from the start.  Every part runs once either way."""
+    import threading
+
+    import numba
+
+    if numba.get_num_threads() < 2:
+        pytest.skip("one thread: a single part")
+    events = []
+    lock = threading.Lock()
+
+    def loop(part, parts, out):
+        with lock:
+            events.append(("start", part, threading.get_ident()))
+        out[part] += 1
+        with lock:
+            events.append(("end", part, threading.get_ident()))
+
+    for call in range(2):
+        events.clear()
+        out = np.zeros(64, np.int64)
+        run_parts(loop, 1000, out)
+        parts = sum(1 for e in events if e[0] == "start")
+        assert parts >= 2 and np.all(out[:parts] == 1) and not out[parts:].any()
+        if call == 0:
+            assert events[:2] == [("start", 0, threading.get_ident()), ("end", 0, threading.get_ident())]
+
+
 def test_run_parts_raises_a_parts_error_after_every_started_part_ended():
     import threading
     import time

@@ -89,6 +89,10 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_pool)
 
 
+#: The loops :func:`run_parts` has called in this process (compiled or loaded by then).
+_RUN_BEFORE: set = set()
+
+
 def run_parts(loop: Callable, n: int, *args, grain: int = 1) -> None:
     """Run a compiled loop's parts (see the module notes) on the calling thread and the helpers.
 
@@ -108,7 +112,8 @@ def run_parts(loop: Callable, n: int, *args, grain: int = 1) -> None:
     -----
     With ``t`` threads the loop is split into ``min(n // grain, PARTS_PER_THREAD * t)`` parts,
     taken in order by the calling thread and ``t - 1`` helpers; one part, on the calling thread
-    alone, where that is one or ``t`` is 1.  Results do not depend on the
+    alone, where that is one or ``t`` is 1.  A loop's first call in the process runs its first
+    part on the calling thread before the helpers start (which compiles the loop there).  Results do not depend on the
     split: each part writes its own items.  An error in any part is raised here once every
     part that started has ended.
     """
@@ -117,7 +122,16 @@ def run_parts(loop: Callable, n: int, *args, grain: int = 1) -> None:
     if threads < 2 or parts < 2:
         loop(0, 1, *args)
         return
-    taken = itertools.count()
+    first = 0
+    if loop not in _RUN_BEFORE:
+        # A loop's first call compiles it or loads it from numba's cache: done here, alone.  A
+        # helper compiling meanwhile waits for llvmlite's lock, which an interrupt caught inside
+        # llvmlite's Python code can leave held by this thread (re-entrant for it alone): the
+        # command then hung with the helper waiting and this thread waiting for the helper.
+        loop(0, parts, *args)
+        _RUN_BEFORE.add(loop)
+        first = 1
+    taken = itertools.count(first)
 
     def drain():
         for part in iter(taken.__next__, None):

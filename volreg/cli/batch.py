@@ -301,20 +301,17 @@ def _launching_a_process() -> bool:
     return False
 
 
-def _stop_worker_processes(wait_s: float = 5.0) -> None:
-    """Let the worker processes that Dask's threads are launching receive their start-up data, then
-    end every child process and wait for it.  A child whose parent exits while it reads that data
-    prints ``EOFError: Ran out of input`` after the one-line report; one ended now prints nothing."""
-    import multiprocessing
+def _await_worker_launches(wait_s: float = 5.0) -> None:
+    """Wait (at most ``wait_s``) until no thread is inside multiprocessing's launch of a child.
 
+    Dask launches its workers' processes on threads of its own.  A child whose parent exits while
+    it still waits for its start-up data prints ``EOFError: Ran out of input`` after the one-line
+    report; one that has its data starts, finds its parent gone and exits silently.  (Ending the
+    children instead left the resource tracker warning about their semaphores after the report.)
+    """
     end = time.monotonic() + wait_s
     while _launching_a_process() and time.monotonic() < end:
         time.sleep(0.02)
-    children = multiprocessing.active_children()
-    for child in children:
-        child.terminate()
-    for child in children:
-        child.join(timeout=max(0.1, end - time.monotonic()))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -383,7 +380,7 @@ def run(args: argparse.Namespace) -> int:
         _close(client, cluster)
         client = cluster = None
         _close_started_clusters()
-        _stop_worker_processes()
+        _await_worker_launches()
         finished = sum(1 for r in rows if r.get("status") == "done")
         print(f"{PROG} batch: interrupted by {name}; {finished} of {len(pairs)} pairs finished and are kept in "
               f"`{outdir / 'pairs'}` (a rerun skips them); the {len(pairs) - finished} others are unfinished and a "
