@@ -155,11 +155,10 @@ def resample_labels(
     ndarray of ``points.shape[:-1]``, ``image.array.dtype``
         Only values present in ``image`` (and 0) occur.
     """
-    shape = np.shape(points)[:-1]
-    if method not in ("label", "nearest"):
+    if method not in ("label", "nearest"):  # before the indices are computed
         raise ValueError(f"Expected `method` 'label' or 'nearest', got {method!r}.")
     return resample_labels_at(image, _indices(image, points), method=method, margin=margin,
-                              progress=progress).reshape(shape)
+                              progress=progress).reshape(np.shape(points)[:-1])
 
 
 def resample_labels_at(
