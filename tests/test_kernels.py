@@ -17,7 +17,7 @@ from volreg.kernels import (
     wu_derivatives,
 )
 from volreg.kernels._compiled import _MIN_MEAN_BLOCK, _QBLOCK, _query_blocks
-from volreg.kernels.sums import _LOOPS
+from volreg.kernels.sums import _BLOCKED
 from volreg.kernels.wu import wu_slope
 
 
@@ -49,9 +49,26 @@ def test_wu_slope_is_the_derivative_over_r():
     assert np.all(wu_slope(np.array([1.0, 2.0])) == 0.0)
 
 
-def test_every_case_has_a_compiled_loop():
-    assert set(_LOOPS) == {(kind, order) for kind in ("scalar", "vector", "wide") for order in (0, 1, 2)}
-    assert all(searched is not None for _, searched in _LOOPS.values())
+def test_the_blocked_loops_serve_scalars_to_order_2_and_vectors_to_order_1():
+    assert set(_BLOCKED) == {("scalar", 0), ("scalar", 1), ("scalar", 2), ("vector", 0), ("vector", 1)}
+
+
+@pytest.mark.parametrize("n", [0, 1, 37, 3000])
+@pytest.mark.parametrize("order", [0, 1, 2])
+@pytest.mark.parametrize("m", [None, 3])
+def test_unsorted_queries_are_summed_in_their_own_order(n, order, m):
+    # Queries in random order (no blocks of nearby ones) are sorted for the blocked loops and
+    # their sums added back row by row, into what `out` already holds.
+    rng = np.random.default_rng(7)
+    centres = rng.uniform(0, 10, (700, 3))
+    coeffs = rng.normal(size=700 if m is None else (700, m))
+    queries = rng.uniform(-2, 12, (n, 3))
+    slow = [a[:n] for a in kernel_sum_reference(queries if n else np.zeros((1, 3)), centres, coeffs, 2.3, order=order)]
+    out = tuple(np.ones(a.shape) for a in slow)
+    fast = kernel_sum(queries, centres, coeffs, 2.3, order=order, out=out)
+    for a, b in zip(fast, slow):
+        assert a.shape == b.shape
+        np.testing.assert_allclose(a, b + 1.0, rtol=0, atol=1e-11)
 
 
 @pytest.mark.parametrize("dim", [2, 3])

@@ -24,7 +24,8 @@ from test_register import blob_volume
 #: signature that any of volreg's compiled loops holds (the cache is warm or not: loaded
 #: signatures count as well as compiled ones).  The small pair's implicit fits take their
 #: residuals one query at a time; on larger surfaces (the frog) they come in blocks of nearby
-#: queries, which one scalar kernel sum on a grid stands for here.
+#: queries, which one scalar kernel sum on a grid stands for here, as a large mask's distances
+#: stand for the linear stage's on larger volumes.
 _CALLED = """
 import json, sys
 import numpy as np
@@ -36,6 +37,11 @@ axes = [np.linspace(0.0, 20.0, 30), np.linspace(0.0, 20.0, 30), np.linspace(0.0,
 grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # rows within a block's width
 centres = np.ascontiguousarray(grid[::7])
 kernel_sum(grid, centres, np.ones((len(centres), 1)), 6.0, order=1)
+# The linear stage's distances of a mask as large as the frog's take separable passes.
+from volreg.features.distance_maps import SEPARABLE_CELLS, euclidean_distance
+mask = np.ones((SEPARABLE_CELLS // 16384 + 1, 128, 128), bool)
+mask[0] = False
+euclidean_distance(mask, (1.0, 1.0, 1.0))
 called = []
 for name, module in sorted(sys.modules.items()):
     if name.startswith("volreg"):
@@ -60,16 +66,30 @@ def test_loops_are_exactly_those_a_registration_calls(tmp_path):
     moving = deform_labels(fixed, truth)
     write_labels(fixed, tmp_path / "fixed.nii.gz")
     write_labels(moving, tmp_path / "moving.nii.gz")
-    proc = subprocess.run([sys.executable, "-c", _CALLED, str(tmp_path / "fixed.nii.gz"),
-                           str(tmp_path / "moving.nii.gz"), str(tmp_path / "out")],
-                          capture_output=True, text=True, timeout=600, env=_env(VOLREG_COMPILE_AHEAD="0"))
-    assert proc.returncode == 0, proc.stderr
+    # Twice: a loop compiled (not loaded from the cache) also compiles the loops it calls, which
+    # then hold signatures of their own; the second run loads the first's from the cache.
+    for run in ("warm-up", "listed"):
+        proc = subprocess.run([sys.executable, "-c", _CALLED, str(tmp_path / "fixed.nii.gz"),
+                               str(tmp_path / "moving.nii.gz"), str(tmp_path / run)],
+                              capture_output=True, text=True, timeout=600, env=_env(VOLREG_COMPILE_AHEAD="0"))
+        assert proc.returncode == 0, proc.stderr
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert result["status"] == 0
     called = {(m, f, tuple(sig)) for m, f, sig in result["called"]}
     listed = {(m, f, tuple(str(t) for t in argument_types(spec))) for m, f, spec in LOOPS}
     assert listed == called
     assert len(listed) == len(LOOPS)  # no entry twice
+
+
+def test_helper_compiles_the_later_stages_first_then_the_earlier_from_the_last_back():
+    k = _precompile.HELPER_FROM
+    assert 0 < k < len(LOOPS) - 1
+    cold = list(range(len(LOOPS)))
+    order = _precompile.helper_order(cold[::-1])
+    assert sorted(order) == cold  # each once
+    assert order == list(range(k, len(LOOPS))) + list(range(k - 1, -1, -1))
+    assert _precompile.helper_order([k - 2, k + 3, k - 1, k]) == [k, k + 3, k - 1, k - 2]
+    assert _precompile.helper_order([]) == []
 
 
 def test_argument_types_are_those_numba_infers():

@@ -4,15 +4,16 @@ On a fresh install numba compiles volreg's loops the first time each is called a
 them on disk (:mod:`volreg._jit`); a registration calls about twenty, and compiling them took
 about 17 s of the frog demo's first run on one core.  Compiling is pure Python and holds the
 GIL, so threads cannot share it, but processes can share numba's on-disk cache: a command that
-registers volumes starts one helper process (:func:`start`) that compiles the loops of
-:data:`LOOPS` in reverse order (the last-needed first) into the cache, while the command goes
-on and compiles the first-needed ones itself.  When the command reaches a loop the helper has
-cached, numba loads it instead of compiling it.  The two meet in the middle; the helper is
-stopped when the command ends (:func:`stop`), and what it cached stays for the next run.
+registers volumes starts one helper process (:func:`start`) that compiles the loops of the
+later stages (from :data:`HELPER_FROM` on) into the cache, then the earlier ones from the last
+back (:func:`helper_order`), while the command goes on and compiles the first-needed ones
+itself.  When the command reaches a loop the helper has cached, numba loads it instead of
+compiling it.  The two meet among the early loops; the helper is stopped when the command ends
+(:func:`stop`), and what it cached stays for the next run.
 
 The helper is started only where the cache can be written and at least two of these loops
 are not cached yet, so a warm run costs only the check (a few small index reads).  On a fresh
-install, where no index file of the helper's first loop exists anywhere, the helper starts
+install, where no index file of the last of :data:`LOOPS` exists anywhere, the helper starts
 before that check and makes it itself, so that it compiles while the command still imports.
 ``VOLREG_COMPILE_AHEAD=0`` turns it off.  Results do not depend on it: a loop loaded from the
 cache is the one the next (warm) run uses anyway.
@@ -27,13 +28,14 @@ import signal
 import subprocess
 import sys
 
-__all__ = ["LOOPS", "argument_types", "cold_loops", "start", "stop"]
+__all__ = ["HELPER_FROM", "LOOPS", "argument_types", "cold_loops", "helper_order", "start", "stop"]
 
 #: The compiled loops of a 3-D label-volume registration (``register``, ``consistency``,
 #: ``tune``), in the order a run first calls them, with the argument types it calls them with:
 #: ``float64[2]`` a C-contiguous 2-D float64 array, ``ro:`` a read-only one, a bare name a
 #: scalar.  ``tests/test_precompile.py`` checks that a registration calls each with exactly these.
 LOOPS = (
+    ("volreg.features.distance_maps", "_squared_distance_lines", "int64 int64 float64[3] int64 float64"),
     ("volreg.kernels._compiled", "_cell_sort", "ro:float64[2] float64[1] float64 int64[1]"),
     ("volreg.kernels._compiled", "_grid_pairs",
      "int64 int64 float64[2] float64[2] int64[1] int32[1] float64[1] float64 int64[1] int64 float64 "
@@ -42,9 +44,6 @@ LOOPS = (
      "int32[1] int32[1] float32[1] float64[1] float64[1] float64 float64 float64[1] float64[1] int64 "
      "float64"),
     ("volreg.kernels._compiled", "_query_blocks", "float64[2] float64 int64"),
-    ("volreg.kernels._compiled", "_searched_sum",
-     "int64 int64 float64[2] float64[1] float64[1] float64[1] float64[1] int32[1] float64[1] float64 "
-     "int64[1] int64 float64 float64[2] float64[3]"),
     ("volreg.kernels._compiled", "_blocked_sum",
      "int64 int64 float64[2] int64[1] float64[1] float64[1] float64[1] float64[2] int32[1] float64[1] "
      "float64 int64[1] float64 float64[2] float64[3]"),
@@ -66,9 +65,6 @@ LOOPS = (
     ("volreg.kernels._compiled", "_blocked_sum_vector",
      "int64 int64 float64[2] int64[1] float64[1] float64[1] float64[1] float64[2] int32[1] float64[1] "
      "float64 int64[1] float64 float64[2] float64[3]"),
-    ("volreg.kernels._compiled", "_strict_sum",
-     "int64 int64 float64[2] float64[2] float64[2] int32[1] float64[1] float64 int64[1] int64 float64 "
-     "int64 float64[2] float64[3] float64[4]"),
     ("volreg.kernels._compiled", "_take_rows", "int64 int64 float64[2] int64[1] float64[2]"),
     ("volreg.kernels._compiled", "_put_rows", "int64 int64 float64[2] int64[1] float64[2]"),
     ("volreg.warp.inverse", "_grid_fixed_point",
@@ -76,6 +72,13 @@ LOOPS = (
      "float64[2]"),
     ("volreg.warp.inverse", "_newton_steps", "float64[3] float64[2] float64 float64[2] float64[2]"),
 )
+
+#: The first of :data:`LOOPS` that the helper compiles: the first one needed after the implicit
+#: surfaces.  The command reaches the implicit surfaces' loops (on the frog, 2.5 s after it starts)
+#: before a helper started with it could have compiled them, so it compiles those itself while the
+#: helper compiles the later stages' loops in the order they are needed, and then the earlier ones
+#: from the last back, until the two meet (:func:`helper_order`).
+HELPER_FROM = next(i for i, (_, name, _) in enumerate(LOOPS) if name == "_clipped_sdf_band")
 
 _WORD = re.compile(r"(ro:)?(bool|int32|int64|float32|float64)(?:\[([1-4])\])?")
 
@@ -113,6 +116,27 @@ def argument_types(spec: str) -> tuple:
     return tuple(out)
 
 
+def helper_order(cold: list[int]) -> list[int]:
+    """The order in which the helper compiles the cold loops (indices into :data:`LOOPS`).
+
+    Those from :data:`HELPER_FROM` on in the order a run needs them, then the earlier ones
+    from the last back.  All from the last back, the helper met the command in the warp fit's
+    largest loop, which both then compiled: the frog's first run took 5.4 s longer than a
+    warm one, in this order 4.5 s (medians of 3).
+
+    Parameters
+    ----------
+    cold : list of int
+        Indices into :data:`LOOPS`, in any order.
+
+    Returns
+    -------
+    list of int
+    """
+    ordered = sorted(set(cold))
+    return [i for i in ordered if i >= HELPER_FROM] + [i for i in reversed(ordered) if i < HELPER_FROM]
+
+
 def _dispatcher(index: int):
     module, name, _ = LOOPS[index]
     return getattr(importlib.import_module(module), name)
@@ -148,7 +172,7 @@ def cold_loops() -> list[int] | None:
 
 
 def _first_index_seen() -> bool:
-    """Whether an index file of the helper's first loop (the last of :data:`LOOPS`) lies in any
+    """Whether an index file of the last of :data:`LOOPS` lies in any
     folder where numba or :mod:`volreg._jit` would cache it, for any version of the source.
 
     Looked up without importing numba or the loop's module (which takes 0.6 s): under
@@ -177,9 +201,9 @@ def _first_index_seen() -> bool:
 
 
 def start() -> subprocess.Popen | None:
-    """Start the helper process that compiles the cold loops into the cache, last-needed first.
+    """Start the helper process that compiles the cold loops into the cache (:func:`helper_order`).
 
-    Where no index file of the helper's first loop exists yet (a fresh install), the helper
+    Where no index file of the last of :data:`LOOPS` exists yet (a fresh install), the helper
     starts at once and finds the cold loops itself, so that it compiles while this process
     imports (a first run on the frog: 13.9 -> 13.3 s, medians of 6, against 7.6 s warm);
     otherwise this process checks the cache first (:func:`cold_loops`) and starts a helper
@@ -198,7 +222,7 @@ def start() -> subprocess.Popen | None:
         cold = cold_loops()
         if cold is None or len(cold) < 2:
             return None
-        words = [str(i) for i in reversed(cold)]
+        words = [str(i) for i in helper_order(cold)]
     else:
         words = ["cold"]
     command = [sys.executable, "-m", "volreg._precompile", *words]
@@ -238,7 +262,7 @@ def _on_sigterm(signum, frame) -> None:
 
 def _main(argv: list[str]) -> int:
     """The helper: compile the :data:`LOOPS` entries whose indices ``argv`` gives, in that order
-    (or, given the one word ``cold``, those not cached yet, last-needed first).
+    (or, given the one word ``cold``, those not cached yet, in :func:`helper_order`).
 
     SIGTERM stops it: at once where Python runs, else (inside a ctypes callback of LLVM, where
     the exception is only reported) after the loop being compiled.  So does the end of the
@@ -256,7 +280,7 @@ def _main(argv: list[str]) -> int:
     parent = os.getppid()
     if argv == ["cold"]:  # started at once: find the cold loops here
         cold = cold_loops()
-        argv = [str(i) for i in reversed(cold or [])]
+        argv = [str(i) for i in helper_order(cold or [])]
     try:
         for word in argv:
             if _stopping or os.getppid() != parent:  # stopped, or the command was killed outright

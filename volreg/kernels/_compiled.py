@@ -23,7 +23,7 @@ from volreg._jit import njit
 from volreg._threads import part_range, run_parts
 from volreg.kernels.wu import wu_terms
 
-#: Queries per parallel work item of the searched loops (scratch arrays are allocated per item).
+#: Queries per parallel work item of the loops with one neighbour search per query (scratch arrays are allocated per item).
 _BLOCK = 512
 
 #: Most queries of one block of the blocked loop (queries sharing one gathered candidate list).
@@ -467,7 +467,7 @@ def _ranges_value_grad_hess(q, dim3, val, grad, hess, x0, x1, x2, px, py, pz, co
 
 
 # --------------------------------------------------------------------------------------
-# The kernel-sum loops (which serves which case: ``volreg.kernels.sums._LOOPS``)
+# The kernel-sum loops (which serves which case: ``volreg.kernels.sums._BLOCKED``)
 
 
 @njit(nogil=True, fastmath=True)
@@ -655,54 +655,6 @@ def _blocked_sum_vector(part, parts, queries, bstarts, px, py, pz, coef, start, 
                         grad[q, 2, 1] += g21
                         if dim3:
                             grad[q, 2, 2] += g22
-
-
-@njit(nogil=True, fastmath=True)
-def _searched_sum(part, parts, queries, px, py, pz, coef, start, lo, cell, dims, max_runs, sigma, val, grad):
-    """Kernel sums up to order 1 for scalar coefficients, one neighbour search per query.
-
-    Parameters as :func:`_blocked_sum`, with ``coef`` (M,) and ``max_runs``
-    (:func:`volreg.kernels.grid.max_runs`) instead of blocks.  Queries in
-    parallel, ``_BLOCK`` per work item.
-    """
-    n, dim = queries.shape
-    inv_s2 = 1.0 / (sigma * sigma)
-    want_grad = grad.shape[0] == n
-    dim3 = dim == 3
-    n_blocks = (n + _BLOCK - 1) // _BLOCK
-    first, stop = part_range(n_blocks, part, parts)
-    for blk in range(first, stop):
-        ranges = np.empty((max_runs, 2), dtype=np.int64)
-        for q in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
-            x = queries[q]
-            nr = _candidate_ranges(x, lo, cell, dims, sigma, start, ranges)
-            x0 = x[0]
-            x1 = x[1]
-            x2 = x[2] if dim3 else 0.0
-            if want_grad:
-                _ranges_value_grad(q, dim3, val, grad, x0, x1, x2, px, py, pz, coef, ranges, nr, inv_s2)
-            else:
-                val[q, 0] += _ranges_value(x0, x1, x2, px, py, pz, coef, ranges, nr, inv_s2)
-
-
-@njit(nogil=True, fastmath=True)
-def _searched_sum_hessian(part, parts, queries, px, py, pz, coef, start, lo, cell, dims, max_runs, sigma, val, grad, hess):
-    """:func:`_searched_sum` at order 2 (a loop of its own for the reason given at
-    :func:`_blocked_sum_hessian`)."""
-    n, dim = queries.shape
-    inv_s2 = 1.0 / (sigma * sigma)
-    dim3 = dim == 3
-    n_blocks = (n + _BLOCK - 1) // _BLOCK
-    first, stop = part_range(n_blocks, part, parts)
-    for blk in range(first, stop):
-        ranges = np.empty((max_runs, 2), dtype=np.int64)
-        for q in range(blk * _BLOCK, min(n, (blk + 1) * _BLOCK)):
-            x = queries[q]
-            nr = _candidate_ranges(x, lo, cell, dims, sigma, start, ranges)
-            x0 = x[0]
-            x1 = x[1]
-            x2 = x[2] if dim3 else 0.0
-            _ranges_value_grad_hess(q, dim3, val, grad, hess, x0, x1, x2, px, py, pz, coef, ranges, nr, inv_s2)
 
 
 @njit(nogil=True)
@@ -944,8 +896,8 @@ def _segmented_sums(part, parts, queries, rstart, jstart, poff, soff, px, py, pz
     ``poff[j]:poff[j + 1]`` of ``px``, ``py``, ``pz`` with coefficients ``coef`` (in
     grid order), cell starts ``sstart[soff[j]:soff[j + 1]]`` (relative to ``poff[j]``),
     corner ``lo[j]``, cell edge ``cell[j]``, cells ``dims[j]`` and width ``sigma[j]``.
-    Per query the sums are those of :func:`_searched_sum` and
-    :func:`_searched_sum_hessian` (one neighbour search per query and job).  Segments
+    Per query the sums are those of :func:`_blocked_sum` and
+    :func:`_blocked_sum_hessian`, with one neighbour search per query and job.  Segments
     in parallel; ``val`` (N, 1), ``grad`` (N, 1, D) and ``hess`` (N, 1, D, D) as there
     (``order`` 0, 1 or 2 says which are filled).
     """

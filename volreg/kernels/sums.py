@@ -2,7 +2,7 @@
 
 :func:`kernel_sum` is the fast path: it bins the centres on a
 :class:`~volreg.kernels.grid.CellGrid` and runs a compiled loop (chosen from
-:data:`_LOOPS`) that visits only the centres within ``sigma`` of each query.
+:data:`_BLOCKED`) that visits only the centres within ``sigma`` of each query.
 :func:`kernel_sum_reference` computes the same with scipy only and is the test
 oracle and benchmark baseline.
 """
@@ -23,12 +23,10 @@ from volreg.kernels._compiled import (
     _blocked_sum_vector,
     _grid_pairs,
     _query_blocks,
-    _searched_sum,
-    _searched_sum_hessian,
     _strict_sum,
 )
 from volreg._threads import run_parts
-from volreg.kernels.grid import CellGrid, max_runs
+from volreg.kernels.grid import CellGrid, max_runs, put_rows, spatial_order, take_rows
 from volreg.kernels.wu import wu_derivatives, wu_slope
 
 __all__ = ["kernel_gradient_matrices", "kernel_matrix", "kernel_sum", "kernel_sum_reference"]
@@ -62,7 +60,7 @@ def _super_blocks(blocks: np.ndarray) -> int:
 
 
 def _query_parts(queries: np.ndarray) -> int:
-    """The work items of the searched loops: ``_BLOCK`` queries each."""
+    """The work items of the loops with one neighbour search per query: ``_BLOCK`` queries each."""
     return (len(queries) + _BLOCK - 1) // _BLOCK
 
 
@@ -89,38 +87,22 @@ def _blocked_hessian(queries, grid, coef, sigma, order, blocks, val, grad, hess)
               grid.cell, grid.dims, sigma, val, grad, hess)
 
 
-def _searched(queries, grid, coef, sigma, order, blocks, val, grad, hess):
-    px, py, pz = grid.columns
-    run_parts(_searched_sum, _query_parts(queries), queries, px, py, pz, np.ascontiguousarray(coef[:, 0]),
-              grid.start, grid.lo, grid.cell, grid.dims, max_runs(grid), sigma, val, grad)
-
-
-def _searched_hessian(queries, grid, coef, sigma, order, blocks, val, grad, hess):
-    px, py, pz = grid.columns
-    run_parts(_searched_sum_hessian, _query_parts(queries), queries, px, py, pz, np.ascontiguousarray(coef[:, 0]),
-              grid.start, grid.lo, grid.cell, grid.dims, max_runs(grid), sigma, val, grad, hess)
-
-
 def _strict(queries, grid, coef, sigma, order, blocks, val, grad, hess):
     run_parts(_strict_sum, _query_parts(queries), queries, grid.points, coef, grid.start, grid.lo, grid.cell,
               grid.dims, max_runs(grid), sigma, order, val, grad, hess)
 
 
-#: Which compiled loop serves which case of :func:`kernel_sum`:
-#: (coefficients, order) -> (loop when the queries come in blocks of nearby ones, or None;
-#: loop with one neighbour search per query).  Coefficients are "scalar" (m = 1, implicit
-#: surfaces), "vector" (m = 2 or 3, warps) or "wide" (m > 3).  The blocked and searched
-#: loops are branch-free SIMD code (fastmath); the strict one serves every other case.
-_LOOPS = {
-    ("scalar", 0): (_blocked, _searched),
-    ("scalar", 1): (_blocked, _searched),
-    ("scalar", 2): (_blocked_hessian, _searched_hessian),
-    ("vector", 0): (_blocked_vector, _strict),
-    ("vector", 1): (_blocked_vector, _strict),
-    ("vector", 2): (None, _strict),
-    ("wide", 0): (None, _strict),
-    ("wide", 1): (None, _strict),
-    ("wide", 2): (None, _strict),
+#: The blocked loop serving each case of :func:`kernel_sum` that has one: (coefficients, order)
+#: -> loop.  Coefficients are "scalar" (m = 1, implicit surfaces), "vector" (m = 2 or 3, warps)
+#: or "wide" (m > 3).  The blocked loops are branch-free SIMD code (fastmath) over the centres
+#: gathered once per block of nearby queries; queries that do not come in such blocks are sorted
+#: cell by cell first.  The strict loop (one neighbour search per query) serves every other case.
+_BLOCKED = {
+    ("scalar", 0): _blocked,
+    ("scalar", 1): _blocked,
+    ("scalar", 2): _blocked_hessian,
+    ("vector", 0): _blocked_vector,
+    ("vector", 1): _blocked_vector,
 }
 
 
@@ -139,6 +121,22 @@ def _coherent_blocks(queries: np.ndarray, sigma: float) -> np.ndarray | None:
     if n < _MIN_MEAN_BLOCK * (len(blocks) - 1):
         return None
     return blocks
+
+
+def _blocked_in_order(blocked, queries, grid, coef, sigma, order, val, grad, hess):
+    """Run a blocked loop on queries that do not come in blocks of nearby ones: sorted cell by
+    cell first (:func:`~volreg.kernels.grid.spatial_order`), the sums added back in the
+    callers' order.  Sorting costs less than a neighbour search per query, and the
+    registration's compiled loops then need no per-query variant."""
+    n = queries.shape[0]
+    perm = spatial_order(queries, 0.5 * sigma, above=0)
+    sorted_queries = take_rows(queries, perm)
+    blocks = _query_blocks(sorted_queries, 0.5 * sigma, _QBLOCK)
+    outs = [val, grad, hess][: order + 1]
+    sums = [np.zeros(o.shape) for o in outs]
+    blocked(sorted_queries, grid, coef, sigma, order, blocks, *(sums + [grad, hess][order:]))
+    for o, s in zip(outs, sums):
+        o += put_rows(s.reshape(n, -1), perm).reshape(o.shape)
 
 
 def kernel_sum(
@@ -180,7 +178,7 @@ def kernel_sum(
     -----
     Queries given in spatial order (for instance by
     :func:`~volreg.kernels.grid.spatial_order`) are evaluated in blocks of nearby
-    queries that share one neighbour search; see :data:`_LOOPS` for which
+    queries that share one neighbour search; see :data:`_BLOCKED` for which
     compiled loop serves which case.
     """
     if order not in (0, 1, 2):
@@ -205,10 +203,15 @@ def kernel_sum(
     val = bufs[0]
     grad = bufs[1] if order >= 1 else np.zeros((0, 1, dim))
     hess = bufs[2] if order >= 2 else np.zeros((1, 1, 1, 1))
-    blocked, searched = _LOOPS[_coefficient_kind(m), order]
-    blocks = _coherent_blocks(queries, sigma) if blocked is not None else None
-    loop = searched if blocks is None else blocked
-    loop(queries, grid, coef, float(sigma), order, blocks, val, grad, hess)
+    blocked = _BLOCKED.get((_coefficient_kind(m), order))
+    if blocked is None:
+        _strict(queries, grid, coef, float(sigma), order, None, val, grad, hess)
+    elif n > 0:
+        blocks = _coherent_blocks(queries, sigma)
+        if blocks is not None:
+            blocked(queries, grid, coef, float(sigma), order, blocks, val, grad, hess)
+        else:
+            _blocked_in_order(blocked, queries, grid, coef, float(sigma), order, val, grad, hess)
     result = [val, grad, hess][: order + 1]
     if not vector:
         result = [a.reshape((n,) + a.shape[2:]) for a in result]
