@@ -38,7 +38,8 @@ from `wait4` in a small launcher, see `common.py`), 2 threads each:
 volreg's runs share one numba cache (NUMBA_CACHE_DIR in the work folder), filled by an untimed run on
 `frog` first; a run that still compiled something (new files in the cache) is marked. With
 `--first-run`, the volreg command on `frog` with an empty numba cache (a fresh folder each time) against
-the same command right after it (cache warm), `--repeats` times.
+the same command right after it (cache warm), `--repeats` times; and the same for `volreg batch` of
+the frog's two volumes registered both ways on 2 local workers.
 
 Scores, from the field each method writes on the fixed grid (LPS mm): endpoint error |tau(x) -
 tau_true(x)| at the fixed voxel centres inside the labels (mean, 95th percentile, mm); mean Dice over
@@ -216,6 +217,22 @@ def run_volreg(case: Case, paths: dict, out: Path, args, cache: Path, *, score: 
     return result
 
 
+def run_volreg_batch(paths: dict, out: Path, args, cache: Path) -> dict:
+    """One timed `volreg batch` of the case's two volumes registered both ways on 2 local workers,
+    with numba's cache in ``cache``: wall seconds, peak RSS, new cache files."""
+    out.mkdir(parents=True)
+    manifest = out / "manifest.csv"
+    manifest.write_text(f"id,path\nfixed,{paths['fixed']}\nmoving,{paths['moving']}\n")
+    log = out.parent / f"{out.name}.log"
+    command = shlex.split(args.volreg_command) + ["batch", str(manifest), "-o", str(out / "batch"), "--pairs", "all",
+                                                  "--workers", "2", "--quiet"]
+    before = _cache_files(cache)
+    rc, seconds, rss = timed(command, log, out, args.timeout, env=run_env(NUMBA_CACHE_DIR=str(cache)))
+    if rc != 0 or not (out / "batch" / "batch.csv").exists():
+        return {"failed": last_line(log, rc, seconds)}
+    return {"seconds": seconds, "peak_rss_gb": rss, "compiled": _cache_files(cache) - before}
+
+
 def run_peer_timed(case: Case, method: str, paths: dict, out: Path, args) -> dict:
     """One timed peer run (this script with ``--peer`` in ``--peer-python``) and its scores."""
     out.mkdir(parents=True)
@@ -345,19 +362,26 @@ def main() -> None:
 
         if args.first_run:
             case, paths = built["frog"]
-            cold, warm = [], []
+            cold, warm, batch_cold, batch_warm = [], [], [], []
             for r in range(1 if "first-run" in once else args.repeats):
                 fresh = work / f"numba-cold-{r}"
                 cold.append(run_volreg(case, paths, work / f"first_cold_{r}", args, fresh, score=False))
                 warm.append(run_volreg(case, paths, work / f"first_warm_{r}", args, fresh, score=False))
-            record["first_run"] = {"cold": cold, "warm": warm}
+                fresh = work / f"numba-cold-batch-{r}"
+                batch_cold.append(run_volreg_batch(paths, work / f"first_batch_cold_{r}", args, fresh))
+                batch_warm.append(run_volreg_batch(paths, work / f"first_batch_warm_{r}", args, fresh))
+            record["first_run"] = {"cold": cold, "warm": warm, "batch_cold": batch_cold, "batch_warm": batch_warm}
             save()
-            if any("failed" in r for r in cold + warm):
-                print("First run: failed: " + next(r["failed"] for r in cold + warm if "failed" in r))
+            every = cold + warm + batch_cold + batch_warm
+            if any("failed" in r for r in every):
+                print("First run: failed: " + next(r["failed"] for r in every if "failed" in r))
             else:
                 print("| volreg on `frog` | wall s, median (runs) | peak RSS GB | numba cache files written |")
                 print("|---|---|---|---|")
-                for title, runs in (("empty numba cache (first run)", cold), ("warm cache (the run after)", warm)):
+                for title, runs in (("`register`, empty numba cache (first run)", cold),
+                                    ("`register`, warm cache (the run after)", warm),
+                                    ("`batch`, both ways on 2 workers, empty cache", batch_cold),
+                                    ("`batch`, both ways on 2 workers, warm cache", batch_warm)):
                     print(f"| {title} | {_median(runs, 'seconds'):.1f} ("
                           + ", ".join(f"{r['seconds']:.1f}" for r in runs) + f") | {_median(runs, 'peak_rss_gb'):.2f} "
                           f"| {int(np.median([r['compiled'] for r in runs]))} |")

@@ -182,3 +182,37 @@ def test_an_interrupt_waits_for_worker_processes_being_launched(monkeypatch):
     child.terminate()
     child.join(30)
     assert child.exitcode == -signal.SIGTERM
+
+
+def test_a_first_run_submits_its_tasks_once_the_compiling_helpers_have_ended(cohort, tmp_path, monkeypatch, capsys):
+    # Stand-in helpers (the cache here is warm): one process that ends 1.5 s later.
+    import subprocess
+    import sys
+    import time
+
+    from volreg import _precompile
+
+    d, _ = cohort
+    shares, events = [], []
+    helpers = []
+
+    def start(n=1):
+        shares.append(n)
+        helpers.append(subprocess.Popen([sys.executable, "-c", "import time; time.sleep(1.5)"]))
+        return list(helpers)
+
+    submit = distributed.Client.submit
+
+    def recorded_submit(self, *args, **kwargs):
+        events.append(("submit", time.monotonic(), all(h.poll() is not None for h in helpers)))
+        return submit(self, *args, **kwargs)
+
+    monkeypatch.setattr(_precompile, "start", start)
+    monkeypatch.setattr(distributed.Client, "submit", recorded_submit)
+    (d / "two.csv").write_text("id,path\ns1,s1.nii.gz\ns5,s5.nii.gz\n")
+    assert main(["batch", str(d / "two.csv"), "-o", str(tmp_path / "out"), "--pairs", "consecutive",
+                 "--protocol", str(d / "p.toml"), "--workers", "2"]) == 0
+    assert shares == [min(2, os.cpu_count() or 1)]  # one helper per local worker
+    assert "compiling the registration's loops once for the workers" in capsys.readouterr().err
+    assert events and all(ended for _, _, ended in events)  # every task submitted after the helpers ended
+    assert (tmp_path / "out" / "pairs" / "s1__s5" / "warp.nii.gz").is_file()

@@ -135,7 +135,7 @@ def test_stopped_helper_ends_promptly_and_leaves_no_partial_file(tmp_path):
     time.sleep(4.0)  # imported, and compiling
     assert helper.poll() is None
     t0 = time.perf_counter()
-    _precompile.stop(helper)
+    _precompile.stop([helper])
     assert time.perf_counter() - t0 < 10.0
     assert helper.returncode == 0
     with helper.stderr:
@@ -145,12 +145,12 @@ def test_stopped_helper_ends_promptly_and_leaves_no_partial_file(tmp_path):
 
 def test_no_helper_when_turned_off_or_warm(monkeypatch):
     monkeypatch.setenv("VOLREG_COMPILE_AHEAD", "0")
-    assert _precompile.start() is None
+    assert _precompile.start() == []
     monkeypatch.delenv("VOLREG_COMPILE_AHEAD")
     for i, (_, _, spec) in enumerate(LOOPS):  # this process's cache now holds them all
         _precompile._dispatcher(i).compile(argument_types(spec))
     assert _precompile.cold_loops() == []
-    assert _precompile.start() is None
+    assert _precompile.start() == []
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc to tell an ended process")
@@ -213,10 +213,60 @@ def test_first_index_is_looked_up_where_numba_would_write_it(tmp_path, monkeypat
     assert _precompile._first_index_seen()
 
 
-def test_helper_started_for_a_fresh_cache_compiles_every_cold_loop(tmp_path):
+def test_helpers_started_for_a_fresh_cache_compile_their_shares_of_every_cold_loop(tmp_path):
     cache = tmp_path / "cache"
     cache.mkdir()
+    order = _precompile.helper_order(list(range(len(LOOPS))))
+    proc = subprocess.run([sys.executable, "-m", "volreg._precompile", "cold", "1/2"], timeout=600,
+                          env=_env(NUMBA_CACHE_DIR=str(cache)))
+    assert proc.returncode == 0
+    assert _cold_in(cache) == sorted(order[0::2])  # the other share's
     proc = subprocess.run([sys.executable, "-m", "volreg._precompile", "cold"], timeout=600,
                           env=_env(NUMBA_CACHE_DIR=str(cache)))
     assert proc.returncode == 0
     assert _cold_in(cache) == []
+
+
+class _Started:
+    """Stands for subprocess.Popen: records the command lines of the helpers started."""
+
+    commands: list = []
+
+    def __init__(self, command, **kwargs) -> None:
+        self.commands.append(command[command.index("volreg._precompile") + 1:])
+
+
+def test_helpers_for_a_batch_share_the_cold_loops_between_them(monkeypatch):
+    monkeypatch.setenv("VOLREG_COMPILE_AHEAD", "1")
+    monkeypatch.setattr(_precompile.subprocess, "Popen", _Started)
+    # a fresh install: each helper finds the cold loops and takes its share
+    monkeypatch.setattr(_precompile, "_first_index_seen", lambda: False)
+    _Started.commands = []
+    assert len(_precompile.start(3)) == 3
+    assert _Started.commands == [["cold", "0/3"], ["cold", "1/3"], ["cold", "2/3"]]
+    # a cache that holds some loops: this process splits those it lacks
+    monkeypatch.setattr(_precompile, "_first_index_seen", lambda: True)
+    cold = [0, 2, 3, _precompile.HELPER_FROM, len(LOOPS) - 1]
+    monkeypatch.setattr(_precompile, "cold_loops", lambda: cold)
+    _Started.commands = []
+    assert len(_precompile.start(2)) == 2
+    order = [str(i) for i in _precompile.helper_order(cold)]
+    assert _Started.commands == [order[0::2], order[1::2]]
+    _Started.commands = []
+    assert len(_precompile.start(9)) == len(cold)  # no helper without a loop
+    assert sorted(sum(_Started.commands, [])) == sorted(order)
+    monkeypatch.setattr(_precompile, "cold_loops", lambda: [3])  # one loop: compiled where needed
+    assert _precompile.start(2) == []
+
+
+def test_waiting_for_helpers_ends_with_them_or_at_the_timeout():
+    quick = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(0.5)"])
+    t0 = time.perf_counter()
+    _precompile.wait([quick])
+    assert quick.returncode == 0 and time.perf_counter() - t0 < 10.0
+    slow = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    t0 = time.perf_counter()
+    _precompile.wait([slow], timeout=0.5)
+    assert slow.poll() is None and time.perf_counter() - t0 < 5.0
+    _precompile.stop([slow])
+    assert slow.returncode is not None

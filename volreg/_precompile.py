@@ -1,15 +1,18 @@
 """Compile the loops of a first run on both ends at once: the command, and a helper process.
 
 On a fresh install numba compiles volreg's loops the first time each is called and caches
-them on disk (:mod:`volreg._jit`); a registration calls about twenty, and compiling them took
-about 17 s of the frog demo's first run on one core.  Compiling is pure Python and holds the
-GIL, so threads cannot share it, but processes can share numba's on-disk cache: a command that
-registers volumes starts one helper process (:func:`start`) that compiles the loops of the
+them on disk (:mod:`volreg._jit`); a registration calls eighteen, and compiling them takes
+about 9 s of one core.  Compiling is pure Python and holds the GIL, so threads cannot share
+it, but processes can share numba's on-disk cache: a command that registers volumes starts one helper process (:func:`start`) that compiles the loops of the
 later stages (from :data:`HELPER_FROM` on) into the cache, then the earlier ones from the last
 back (:func:`helper_order`), while the command goes on and compiles the first-needed ones
 itself.  When the command reaches a loop the helper has cached, numba loads it instead of
 compiling it.  The two meet among the early loops; the helper is stopped when the command ends
 (:func:`stop`), and what it cached stays for the next run.
+
+``batch`` on a local cluster starts one helper per worker instead (``start(shares)``), each
+compiling every n-th loop, and submits its tasks once they have ended (:func:`wait`): its
+workers would otherwise each compile the same loops at once.
 
 The helper is started only where the cache can be written and at least two of these loops
 are not cached yet, so a warm run costs only the check (a few small index reads).  On a fresh
@@ -27,8 +30,9 @@ import re
 import signal
 import subprocess
 import sys
+import time
 
-__all__ = ["HELPER_FROM", "LOOPS", "argument_types", "cold_loops", "helper_order", "start", "stop"]
+__all__ = ["HELPER_FROM", "LOOPS", "argument_types", "cold_loops", "helper_order", "start", "stop", "wait"]
 
 #: The compiled loops of a 3-D label-volume registration (``register``, ``consistency``,
 #: ``tune``), in the order a run first calls them, with the argument types it calls them with:
@@ -200,51 +204,74 @@ def _first_index_seen() -> bool:
     return any(glob.glob(os.path.join(glob.escape(folder), pattern)) for folder in folders)
 
 
-def start() -> subprocess.Popen | None:
-    """Start the helper process that compiles the cold loops into the cache (:func:`helper_order`).
+def start(shares: int = 1) -> list[subprocess.Popen]:
+    """Start the helper processes that compile the cold loops into the cache (:func:`helper_order`).
 
-    Where no index file of the last of :data:`LOOPS` exists yet (a fresh install), the helper
-    starts at once and finds the cold loops itself, so that it compiles while this process
+    Where no index file of the last of :data:`LOOPS` exists yet (a fresh install), the helpers
+    start at once and find the cold loops themselves, so that they compile while this process
     imports (a first run on the frog: 13.9 -> 13.3 s, medians of 6, against 7.6 s warm);
-    otherwise this process checks the cache first (:func:`cold_loops`) and starts a helper
+    otherwise this process checks the cache first (:func:`cold_loops`) and starts helpers
     only for two cold loops or more.
+
+    Parameters
+    ----------
+    shares : int
+        How many helpers, each compiling every ``shares``-th loop of :func:`helper_order`: one
+        beside a command that compiles the rest itself; one per worker where the workers wait
+        for them (``batch``, :func:`wait`), so that no two processes compile the same loop.
 
     Returns
     -------
-    subprocess.Popen or None
-        The helper, to be passed to :func:`stop`; None where none was started (turned off by
+    list of subprocess.Popen
+        The helpers, to be passed to :func:`stop`; empty where none was started (turned off by
         ``VOLREG_COMPILE_AHEAD=0``, no cache, fewer than two loops cold, or no process could be
         started).
     """
     if os.environ.get("VOLREG_COMPILE_AHEAD", "1").strip() == "0":
-        return None
+        return []
+    shares = max(1, int(shares))
     if _first_index_seen():
         cold = cold_loops()
         if cold is None or len(cold) < 2:
-            return None
-        words = [str(i) for i in helper_order(cold)]
+            return []
+        order = helper_order(cold)
+        words = [[str(i) for i in order[k::shares]] for k in range(min(shares, len(order)))]
     else:
-        words = ["cold"]
-    command = [sys.executable, "-m", "volreg._precompile", *words]
-    try:
-        return subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, close_fds=True)
-    except OSError:
-        return None
+        words = [["cold", f"{k}/{shares}"] for k in range(shares)]
+    helpers = []
+    for share in words:
+        command = [sys.executable, "-m", "volreg._precompile", *share]
+        try:
+            helpers.append(subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                            stderr=subprocess.DEVNULL, close_fds=True))
+        except OSError:
+            break
+    return helpers
 
 
-def stop(helper: subprocess.Popen | None) -> None:
-    """Stop the helper if it still runs (what it cached stays); wait until it has ended."""
-    if helper is None or helper.poll() is not None:
-        return
-    try:
-        helper.terminate()
-        helper.wait(timeout=10)
-    except (subprocess.TimeoutExpired, KeyboardInterrupt):  # a step that ignores SIGTERM; a second Ctrl-C
-        helper.kill()
-        helper.wait()
-    except ProcessLookupError:  # pragma: no cover - ended meanwhile
-        pass
+def wait(helpers: list[subprocess.Popen], timeout: float = 600.0) -> None:
+    """Wait until the helpers have ended (at most ``timeout`` seconds in all; then go on)."""
+    deadline = time.monotonic() + timeout
+    for helper in helpers:
+        try:
+            helper.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            return
+
+
+def stop(helpers: list[subprocess.Popen]) -> None:
+    """Stop the helpers that still run (what they cached stays); wait until they have ended."""
+    for helper in helpers:
+        if helper.poll() is not None:
+            continue
+        try:
+            helper.terminate()
+            helper.wait(timeout=10)
+        except (subprocess.TimeoutExpired, KeyboardInterrupt):  # a step that ignores SIGTERM; a second Ctrl-C
+            helper.kill()
+            helper.wait()
+        except ProcessLookupError:  # pragma: no cover - ended meanwhile
+            pass
 
 
 class _Stopped(Exception):
@@ -262,7 +289,8 @@ def _on_sigterm(signum, frame) -> None:
 
 def _main(argv: list[str]) -> int:
     """The helper: compile the :data:`LOOPS` entries whose indices ``argv`` gives, in that order
-    (or, given the one word ``cold``, those not cached yet, in :func:`helper_order`).
+    (or, given ``cold K/N``, every N-th from the K-th of those not cached yet, in
+    :func:`helper_order`; ``cold`` alone: all of them).
 
     SIGTERM stops it: at once where Python runs, else (inside a ctypes callback of LLVM, where
     the exception is only reported) after the loop being compiled.  So does the end of the
@@ -278,9 +306,9 @@ def _main(argv: list[str]) -> int:
     except (AttributeError, OSError):  # pragma: no cover - not on POSIX
         pass
     parent = os.getppid()
-    if argv == ["cold"]:  # started at once: find the cold loops here
-        cold = cold_loops()
-        argv = [str(i) for i in helper_order(cold or [])]
+    if argv[:1] == ["cold"]:  # started at once: find the cold loops here, and take share k of n
+        k, n = (int(w) for w in (argv[1] if len(argv) > 1 else "0/1").split("/"))
+        argv = [str(i) for i in helper_order(cold_loops() or [])[k::n]]
     try:
         for word in argv:
             if _stopping or os.getppid() != parent:  # stopped, or the command was killed outright

@@ -53,8 +53,9 @@ VTK_SUFFIXES = (".vti", ".vtk", ".vtp", ".ply", ".stl", ".obj")
 
 
 #: The commands that register label volumes: on a first run a helper process compiles their loops
-#: alongside the command (:mod:`volreg._precompile`); for ``batch``, alongside the local cluster's
-#: workers (not beside a remote ``--scheduler``, whose workers have caches of their own).
+#: alongside the command (:mod:`volreg._precompile`); for ``batch``, one per local worker while the
+#: cluster starts, its tasks waiting for them (not beside a remote ``--scheduler``, whose workers
+#: have caches of their own).
 COMPILE_AHEAD = ("register", "consistency", "tune", "demo", "batch")
 
 
@@ -197,19 +198,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     # Imported once a command runs, so that --help, --version and usage errors stay quick; with
     # SIGINT and SIGTERM held until the handlers are in place (see PRELOAD).
     held = _hold_signals()
-    helper = None
+    helpers: list = []
     try:
-        # The helper first: on a first run it compiles while this process imports.
+        # The helpers first: on a first run they compile while this process imports. One beside
+        # a command; for batch, one per local worker, which wait for them (see volreg.cli.batch).
         if args.command in COMPILE_AHEAD and not getattr(args, "scheduler", None):
             from volreg import _precompile
 
-            helper = _precompile.start()
+            workers = getattr(args, "workers", None) or 2
+            helpers = _precompile.start(min(workers, os.cpu_count() or 1) if args.command == "batch" else 1)
+            args.compile_helpers = helpers
         _preload(args.command, sys.argv[1:] if argv is None else list(argv))
         from volreg.io._atomic import kept_results
         from volreg.progress import clear_interrupt
     except BaseException:
-        if helper is not None:
-            _precompile.stop(helper)
+        if helpers:
+            _precompile.stop(helpers)
         _release_signals(held)
         raise
 
@@ -272,10 +276,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _interrupted(args.command, _signalled[0])
         raise
     finally:
-        if helper is not None:
+        if helpers:
             from volreg import _precompile
 
-            _precompile.stop(helper)
+            _precompile.stop(helpers)
         filters.__exit__(None, None, None)
         warnings.showwarning = show
         if previous is not None:

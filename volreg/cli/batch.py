@@ -353,6 +353,16 @@ def run(args: argparse.Namespace) -> int:
             client = Client(cluster)
         if client.dashboard_link and not args.quiet:
             print(f"{PROG} batch: Dask dashboard {client.dashboard_link}", file=sys.stderr)
+        helpers = getattr(args, "compile_helpers", None)
+        if helpers and cluster is not None:
+            # A first run: rather than every worker compiling the same loops, the workers load
+            # what the helpers (one per worker, started with this command) compile meanwhile.
+            from volreg import _precompile
+
+            if not args.quiet:
+                print(f"{PROG} batch: compiling the registration's loops once for the workers (a first run)",
+                      file=sys.stderr)
+            _precompile.wait(helpers)
         futures = {}
         for ((fid, fpath), (mid, mpath)), folder in zip(pairs, folders):
             pair_dir = outdir / "pairs" / folder
