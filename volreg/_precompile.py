@@ -3,12 +3,13 @@
 On a fresh install numba compiles volreg's loops the first time each is called and caches
 them on disk (:mod:`volreg._jit`); a registration calls eighteen, and compiling them takes
 about 9 s of one core.  Compiling is pure Python and holds the GIL, so threads cannot share
-it, but processes can share numba's on-disk cache: a command that registers volumes starts one helper process (:func:`start`) that compiles the loops of the
-later stages (from :data:`HELPER_FROM` on) into the cache, then the earlier ones from the last
-back (:func:`helper_order`), while the command goes on and compiles the first-needed ones
-itself.  When the command reaches a loop the helper has cached, numba loads it instead of
-compiling it.  The two meet among the early loops; the helper is stopped when the command ends
-(:func:`stop`), and what it cached stays for the next run.
+it, but processes can share numba's on-disk cache: a command that registers volumes starts
+one helper process (:func:`start`) that compiles the loops of the later stages (from
+:data:`HELPER_FROM` on) into the cache, then the earlier ones from the last back
+(:func:`helper_order`), while the command goes on and compiles the first-needed ones itself.
+When the command reaches a loop the helper has cached, numba loads it instead of compiling it.
+The two meet among the early loops; the helper is stopped when the command ends (:func:`stop`),
+and what it cached stays for the next run.
 
 ``batch`` on a local cluster starts one helper per worker instead (``start(shares)``), each
 compiling every n-th loop, and submits its tasks once they have ended (:func:`wait`): its
@@ -176,8 +177,8 @@ def cold_loops() -> list[int] | None:
 
 
 def _first_index_seen() -> bool:
-    """Whether an index file of the last of :data:`LOOPS` lies in any
-    folder where numba or :mod:`volreg._jit` would cache it, for any version of the source.
+    """Whether an index file of the last of :data:`LOOPS` lies in any folder where numba or
+    :mod:`volreg._jit` would cache it, for any version of the source.
 
     Looked up without importing numba or the loop's module (which takes 0.6 s): under
     ``NUMBA_CACHE_DIR`` where it is set (numba then caches nowhere else), otherwise beside the

@@ -23,7 +23,8 @@ from volreg._jit import njit
 from volreg._threads import part_range, run_parts
 from volreg.kernels.wu import wu_terms
 
-#: Queries per parallel work item of the loops with one neighbour search per query (scratch arrays are allocated per item).
+#: Queries per parallel work item of the loops with one neighbour search per query (scratch
+#: arrays are allocated per item).
 _BLOCK = 512
 
 #: Most queries of one block of the blocked loop (queries sharing one gathered candidate list).

@@ -113,7 +113,8 @@ def _coefficient_kind(m: int) -> str:
 def _coherent_blocks(queries: np.ndarray, sigma: float) -> np.ndarray | None:
     """Blocks of nearby consecutive queries (:func:`~volreg.kernels._compiled._query_blocks`,
     at most ``sigma / 2`` wide), or None when there are few queries or they are not in
-    spatial order (too few queries per block for the shared search to pay)."""
+    spatial order (too few queries per block for the shared search to pay; they are then
+    sorted first, :func:`_blocked_in_order`)."""
     n = queries.shape[0]
     if n < _QBLOCK:
         return None
@@ -176,10 +177,11 @@ def kernel_sum(
 
     Notes
     -----
-    Queries given in spatial order (for instance by
-    :func:`~volreg.kernels.grid.spatial_order`) are evaluated in blocks of nearby
-    queries that share one neighbour search; see :data:`_BLOCKED` for which
-    compiled loop serves which case.
+    Queries are evaluated in blocks of nearby queries that share one neighbour search:
+    as given where they come in spatial order (for instance by
+    :func:`~volreg.kernels.grid.spatial_order`), else sorted cell by cell first and the
+    sums put back in their order; see :data:`_BLOCKED` for which compiled loop serves
+    which case.
     """
     if order not in (0, 1, 2):
         raise ValueError(f"Expected `order` in (0, 1, 2), got {order}.")
