@@ -32,6 +32,7 @@ from scipy import ndimage
 
 from volreg.features.distance_maps import clipped_signed_distance
 from volreg.grid import Grid, GridLike, LabelVolume, as_grid
+from volreg.kernels.grid import rows_within
 
 __all__ = ["resample_labels", "resample_labels_at", "resample_image", "signed_distance_map"]
 
@@ -192,7 +193,7 @@ def resample_labels_at(
     array = image.array
     # The image covers its voxels: continuous indices in [-1/2, n - 1/2] (as ITK).
     size = np.array(image.shape)
-    valid = np.all((index >= -0.5) & (index <= size - 0.5), axis=1)
+    valid = rows_within(index, np.full(image.ndim, -0.5), size - 0.5)
     if method == "nearest":
         nearest = np.clip(np.floor(index[valid] + 0.5).astype(np.int64), 0, size - 1)
         out = np.zeros(len(index), dtype=array.dtype)
@@ -218,22 +219,28 @@ def resample_labels_at(
     # 1.5 mm: 14 s instead of 29 s). With few labels the sort would cost more than it saves.
     if len(labels) > 8:
         slab_order = slab_order[np.argsort(index[slab_order, 0], kind="stable")]
-        slab_key = index[slab_order, 0]
-    else:
-        slab_key = None
+    # Their indices gathered once in that order: each label's candidates are then a slice.
+    slab_index = index[slab_order]
+    slab_key = slab_index[:, 0] if len(labels) > 8 else None
     for n, value in enumerate(labels):
         box = boxes[int(value)]
         lo = np.array([max(s.start - margin, 0) for s in box])
         hi = np.array([min(s.stop + margin, size) for s, size in zip(box, image.shape)])
         # Points whose linear stencil touches the crop.
-        near = slab_order
+        first, stop = 0, len(slab_order)
         if slab_key is not None:
-            near = near[np.searchsorted(slab_key, lo[0] - 1, side="right"):np.searchsorted(slab_key, hi[0], side="left")]
-        near = near[np.all((index[near] > lo - 1) & (index[near] < hi), axis=1)]
+            first = np.searchsorted(slab_key, lo[0] - 1, side="right")
+            stop = np.searchsorted(slab_key, hi[0], side="left")
+        candidates = slab_index[first:stop]
+        touches = np.ones(len(candidates), dtype=bool)
+        for axis in range(image.ndim):  # column by column (see rows_within)
+            column = candidates[:, axis]
+            touches &= (column > lo[axis] - 1) & (column < hi[axis])
+        near = slab_order[first:stop][touches]
         if near.size:
             crop = array[tuple(slice(a, b) for a, b in zip(lo, hi))]
             sdf = clipped_signed_distance(crop == value, image.spacing, diagonal)
-            at = (index[near] - lo).T
+            at = (candidates[touches] - lo).T
             d = ndimage.map_coordinates(sdf, at, order=1, mode="nearest")
             win = d < best[near]
             sel = near[win]
