@@ -144,9 +144,9 @@ def main() -> None:
             if not runs:
                 continue
             med = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
-            times = ", ".join(f"{r['seconds']:.0f}" for r in runs)
+            times = ", ".join(f"{r['seconds']:.2f}" for r in runs)
             print(f"| {n} | {method} | {med['error_percent']:.2f} ({med['identity_percent']:.2f}) "
-                  f"| {med['surface_percent']:.3f} | {med['seconds']:.0f} "
+                  f"| {med['surface_percent']:.3f} | {med['seconds']:.2f} "
                   f"({times}) | {med['peak_rss_gb']:.2f} |", flush=True)
 
 
