@@ -114,8 +114,8 @@ def run_parts(loop: Callable, n: int, *args, grain: int = 1) -> None:
     taken in order by the calling thread and ``t - 1`` helpers; one part, on the calling thread
     alone, where that is one or ``t`` is 1.  A loop's first call in the process runs its first
     part on the calling thread before the helpers start (which compiles the loop there).
-    Results do not depend on the split: each part writes its own items.  An error in any part is raised here once every
-    part that started has ended.
+    Results do not depend on the split: each part writes its own items.  An error in any part
+    is raised here once every part that started has ended.
     """
     threads = numba.get_num_threads()
     parts = min(int(n) // max(int(grain), 1), PARTS_PER_THREAD * threads)

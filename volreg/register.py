@@ -840,7 +840,8 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
     # On one grid, nearest neighbour at the fixed voxel centres is the moving array itself.
     before = (moving.array if moving.same_geometry(fixed) else
               resample_labels_at(moving, indices_through(fixed, None, moving), method="nearest").reshape(fixed.shape))
-    labels = sorted(set(fixed.labels().tolist()) | set(moving.labels().tolist()))
+    in_fixed, in_moving = set(fixed.labels().tolist()), set(moving.labels().tolist())  # one pass over each
+    labels = sorted(in_fixed | in_moving)
     scores_before = label_scores(fixed.array, before, labels, fixed.spacing)
     scores_after = label_scores(fixed.array, warped_array, labels, fixed.spacing)
     inside = fixed.array != 0
@@ -849,9 +850,9 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
     voxels, interior = label_voxel_counts(fixed.array)
     # Not judged: labels cut by an image edge, and labels absent from the moving volume (a
     # structure one subject lacks, or a field of view that misses it: nothing to align).
-    shared = sorted(set(fixed.labels().tolist()) & set(moving.labels().tolist())) or labels
+    shared = sorted(in_fixed & in_moving) or labels
     cut = sorted(set(result.cut_labels.get("fixed", [])) | set(result.cut_labels.get("moving", []))
-                 | (set(fixed.labels().tolist()) - set(moving.labels().tolist())))
+                 | (in_fixed - in_moving))
     findings = review_registration(
         scores_before, scores_after, voxel_mm=feature_unit(fixed, moving), label_voxels=voxels,
         label_interior=interior, linear=linear, cut_labels=cut, folded_fraction=folded_fraction(jac, inside))
