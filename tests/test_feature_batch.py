@@ -100,3 +100,36 @@ def test_objective_with_the_batch_equals_one_feature_at_a_time(kw):
         assert (e3, g3.tolist()) == (e1, g1.tolist())
         assert np.abs(b2).max() > 0
         np.testing.assert_allclose(b1, b2, rtol=1e-10, atol=1e-10 * np.abs(b2).max())
+
+
+@pytest.mark.parametrize("order", [0, 1, 2])
+@pytest.mark.parametrize("parts", [2, 3, 8, 50])
+def test_parts_of_equal_points_cut_through_features_and_equal_one_part_to_the_bit(order, parts, monkeypatch):
+    """The batch's loops split the points, not the features, between their parts: a feature
+    holding most of the points (a large label among small ones) is shared out. Every part run
+    in turn gives each point exactly what one part alone gives it."""
+    import volreg.features.batch as batch_module
+
+    rng = np.random.default_rng(11)
+    features = _features(rng)
+    counts = [5, 0, 300]  # one feature with most of the points, an empty one
+    starts = np.cumsum([0] + counts).astype(np.int64)
+    points = rng.uniform(-16, 16, (int(starts[-1]), 3))
+    groups = [(batch_module._Implicit(features[:2] + features[:1], 3), starts),
+              (batch_module._Voxel(features[2:] + features[2:3], 3), starts)]
+    for group, seg in groups:
+        ref = group.evaluate(points, seg, order)
+        calls = []
+
+        def every_part(loop, n, *args, grain=1):
+            calls.append(n)
+            for part in range(parts):  # one after another, whatever the thread count
+                loop(part, parts, *args)
+
+        monkeypatch.setattr(batch_module, "run_parts", every_part)
+        split = group.evaluate(points, seg, order)
+        monkeypatch.undo()
+        assert calls == [len(points)]  # parts over the points
+        for a, b in zip(split, ref):
+            np.testing.assert_array_equal(a, b)
+        assert np.all(split[0] != 0)  # every point got its sums

@@ -168,14 +168,17 @@ def _bspline3_segments(part, parts, coef, coff, shapes, rstart, index, order, f,
     """:func:`_bspline3` of several coefficient volumes, each at its own segment of ``index``.
 
     Volume ``k`` is ``coef[coff[k]:coff[k + 1]]`` (flat, C order) of shape ``shapes[k]``
-    (3,) and is evaluated at rows ``rstart[k]:rstart[k + 1]``.  Volumes in parallel.
+    (3,) and is evaluated at rows ``rstart[k]:rstart[k + 1]``.  The rows in parallel,
+    ``part_range(N, part, parts)`` of them per part, whichever volumes they fall in.
     """
-    first, stop = part_range(rstart.shape[0] - 1, part, parts)
-    for k in range(first, stop):
+    first, stop = part_range(rstart[rstart.shape[0] - 1], part, parts)
+    stencil = np.empty((3, 4), np.int64)
+    weight = np.empty((9, 4))
+    for k in range(max(np.searchsorted(rstart, first, side="right") - 1, 0), rstart.shape[0] - 1):
+        if rstart[k] >= stop:
+            break
         volume = coef[coff[k]:coff[k + 1]].reshape((shapes[k, 0], shapes[k, 1], shapes[k, 2]))
-        stencil = np.empty((3, 4), np.int64)
-        weight = np.empty((9, 4))
-        for p in range(rstart[k], rstart[k + 1]):
+        for p in range(max(rstart[k], first), min(rstart[k + 1], stop)):
             _bspline3_at(volume, index[p, 0], index[p, 1], index[p, 2], order, p, f, g, h, stencil, weight)
 
 

@@ -898,15 +898,20 @@ def _segmented_sums(part, parts, queries, rstart, jstart, poff, soff, px, py, pz
     grid order), cell starts ``sstart[soff[j]:soff[j + 1]]`` (relative to ``poff[j]``),
     corner ``lo[j]``, cell edge ``cell[j]``, cells ``dims[j]`` and width ``sigma[j]``.
     Per query the sums are those of :func:`_blocked_sum` and
-    :func:`_blocked_sum_hessian`, with one neighbour search per query and job.  Segments
-    in parallel; ``val`` (N, 1), ``grad`` (N, 1, D) and ``hess`` (N, 1, D, D) as there
+    :func:`_blocked_sum_hessian`, with one neighbour search per query and job.  The
+    queries in parallel, ``part_range(N, part, parts)`` of them per part, whichever
+    segments they fall in (one segment may hold most of them: a large label among small
+    ones); ``val`` (N, 1), ``grad`` (N, 1, D) and ``hess`` (N, 1, D, D) as there
     (``order`` 0, 1 or 2 says which are filled).
     """
     dim = queries.shape[1]
     dim3 = dim == 3
-    first, stop = part_range(rstart.shape[0] - 1, part, parts)
-    for f in range(first, stop):
-        ranges = np.empty((max_runs, 2), dtype=np.int64)
+    first, stop = part_range(rstart[rstart.shape[0] - 1], part, parts)
+    ranges = np.empty((max_runs, 2), dtype=np.int64)
+    for f in range(max(np.searchsorted(rstart, first, side="right") - 1, 0), rstart.shape[0] - 1):
+        q0, q1 = max(rstart[f], first), min(rstart[f + 1], stop)
+        if q0 >= stop:
+            break
         for j in range(jstart[f], jstart[f + 1]):
             p0, p1 = poff[j], poff[j + 1]
             gx = px[p0:p1]
@@ -916,7 +921,7 @@ def _segmented_sums(part, parts, queries, rstart, jstart, poff, soff, px, py, pz
             start = sstart[soff[j]:soff[j + 1]]
             width = sigma[j]
             inv_s2 = 1.0 / (width * width)
-            for q in range(rstart[f], rstart[f + 1]):
+            for q in range(q0, q1):
                 x = queries[q]
                 nr = _candidate_ranges(x, lo[j], cell[j], dims[j], width, start, ranges)
                 x0 = x[0]
