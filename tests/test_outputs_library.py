@@ -189,6 +189,25 @@ def test_write_registration_leaves_nothing_when_a_write_fails(small_pair, tmp_pa
     assert list(tmp_path.iterdir()) == []
 
 
+def test_write_registration_leaves_nothing_when_a_stage_fails_during_the_writes(small_pair, tmp_path, monkeypatch):
+    """The fixed grid's fields are written in the background while the inverse is computed; an
+    error there waits for the writes that started and removes them with the rest."""
+    import volreg.register as reg
+
+    started = []
+
+    def failing_inverse(*args, **kwargs):
+        started.append(True)
+        raise MemoryError("Unable to allocate the inverse's grid.")
+
+    monkeypatch.setattr(reg, "_inverse_on_moving_grid", failing_inverse)
+    a, b, protocol = small_pair
+    with pytest.raises(MemoryError, match="inverse"):
+        write_registration(a, b, tmp_path / "deep" / "out", protocol=protocol)
+    assert started
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_both_ways_and_the_consistency_test(small_pair, tmp_path):
     a, b, protocol = small_pair
     both = register_both_ways(a, b, protocol=protocol, outdir=tmp_path / "out",

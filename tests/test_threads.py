@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from volreg._threads import run_parts, single_blas, thread_map
+from volreg._threads import JobQueue, run_parts, single_blas, thread_map
 from volreg.features.implicit import ImplicitSurface
 from volreg.warp.field import fields_on_grid
 from volreg.warp.fit import fit_warp
@@ -94,6 +94,82 @@ def test_jobs_run_concurrently():
         pytest.skip("one numba thread: thread_map is serial")
     barrier = threading.Barrier(2, timeout=20)
     assert list(thread_map(lambda i: (barrier.wait(), i)[1], [0, 1])) == [0, 1]
+
+
+def test_job_queue_runs_jobs_beside_the_caller_and_raises_the_first_error():
+    """Submitted jobs run while the caller goes on (the outputs' writes during the inverse):
+    a job and the caller that each wait for the other both get through; wait() raises the
+    first failed job's error, in submission order."""
+    import threading
+
+    import numba
+
+    if numba.get_num_threads() < 2:
+        pytest.skip("one numba thread: the queue runs each job at once")
+    barrier = threading.Barrier(2, timeout=20)
+    done = []
+    with JobQueue() as jobs:
+        jobs.submit(lambda: done.append(barrier.wait() is not None))
+        barrier.wait()  # the caller meets the job: it runs in the background
+        jobs.wait()
+    assert done == [True]
+
+    def fail(message):
+        raise ValueError(message)
+
+    with JobQueue() as jobs:
+        jobs.submit(done.append, "fine")
+        jobs.submit(fail, "bad `first`")
+        jobs.submit(fail, "bad `second`")
+        with pytest.raises(ValueError, match="first"):
+            jobs.wait()
+    assert done[-1] == "fine"
+
+
+def test_job_queue_leaves_no_job_running_after_its_block():
+    """Leaving the block on an error waits for the running job and cancels those not started,
+    so nothing writes after the caller has cleaned up."""
+    import threading
+    import time
+
+    import numba
+
+    if numba.get_num_threads() < 2:
+        pytest.skip("one numba thread: the queue runs each job at once")
+    ran, release = [], threading.Event()
+
+    def slow(name):
+        release.wait(20)
+        time.sleep(0.05)
+        ran.append(name)
+
+    with pytest.raises(KeyboardInterrupt):
+        with JobQueue() as jobs:
+            for i in range(numba.get_num_threads() + 3):
+                jobs.submit(slow, i)
+            release.set()
+            raise KeyboardInterrupt
+    count = len(ran)
+    assert 1 <= count < numba.get_num_threads() + 3  # the running ones ended, the rest were cancelled
+    time.sleep(0.2)
+    assert len(ran) == count  # and nothing ran afterwards
+
+
+def test_job_queue_with_one_thread_runs_each_job_at_once_on_the_caller():
+    import threading
+
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        where = []
+        with JobQueue() as jobs:
+            jobs.submit(lambda: where.append(threading.get_ident()))
+            assert where == [threading.get_ident()]  # already run, here
+            jobs.wait()
+    finally:
+        numba.set_num_threads(threads)
 
 
 def test_label_scores_on_threads_equal_one_label_at_a_time():

@@ -10,8 +10,10 @@ others does not hold the rest up.  numba's own parallel loops (``prange``) would
 body twice (the function and its parallel kernel); serial loops compile in about half the time,
 and compiling is most of a first run's cost (:mod:`volreg._precompile`).
 
-**Independent jobs** (the implicit-surface fits of several labels, the outputs' writes)
-run on :func:`thread_map`'s threads; the loops they call share the same helper pool.
+**Independent jobs** (the implicit-surface fits of several labels) run on :func:`thread_map`'s
+threads; jobs that become ready one after another while other work goes on (the outputs'
+writes, each as soon as its array exists) on a :class:`JobQueue`'s.  The loops they call
+share the same helper pool.
 
 **One BLAS thread.**  The OpenBLAS libraries that numpy and scipy bundle keep worker threads
 of their own, which busy-wait for a while after each call (L-BFGS-B's vector operations
@@ -39,7 +41,7 @@ from threadpoolctl import threadpool_limits
 
 from volreg._jit import njit
 
-__all__ = ["part_range", "query_workers", "run_parts", "single_blas", "thread_map"]
+__all__ = ["JobQueue", "part_range", "query_workers", "run_parts", "single_blas", "thread_map"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -184,3 +186,54 @@ def thread_map(func: Callable[[T], R], items: Sequence[T]) -> Generator[R, None,
         yield from pool.map(func, items)
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+class JobQueue:
+    """Independent jobs run in the background as they are submitted, on ``numba.get_num_threads()``
+    threads: for work that becomes ready while the calling thread goes on with other work (the
+    outputs' writes, each as soon as its array exists, during the inverse and the metrics).
+
+    With one thread, each job runs at once on the calling thread.  Jobs should release the
+    GIL (compression, file writes, compiled loops) to overlap with the caller.  Use as a
+    context manager: leaving it, on an exception too (a KeyboardInterrupt), cancels the jobs
+    not yet started and waits for the running ones, so no job outlives the block.
+
+    Examples
+    --------
+    >>> with JobQueue() as jobs:
+    ...     jobs.submit(print, "written")
+    ...     jobs.wait()
+    written
+    """
+
+    def __init__(self) -> None:
+        threads = numba.get_num_threads()
+        self._pool = (ThreadPoolExecutor(max_workers=threads, initializer=_mark_job_thread,
+                                         thread_name_prefix="volreg-job") if threads > 1 else None)
+        self._futures: list = []
+
+    def submit(self, func: Callable[..., object], *args) -> None:
+        """Run ``func(*args)`` in the background (at once, with one thread)."""
+        if self._pool is None:
+            func(*args)
+        else:
+            self._futures.append(self._pool.submit(func, *args))
+
+    def wait(self) -> None:
+        """Wait for every submitted job; raise the first job's error (in submission order)."""
+        futures, self._futures = self._futures, []
+        wait(futures)
+        for f in futures:
+            f.result()
+
+    def close(self) -> None:
+        """Cancel the jobs not yet started and wait for the running ones (their errors are dropped:
+        :meth:`wait` is where they are raised)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> "JobQueue":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -26,7 +26,7 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 from volreg import __version__
 from volreg._memory import available_bytes
-from volreg._threads import single_blas, thread_map
+from volreg._threads import JobQueue, single_blas, thread_map
 from volreg.features.implicit import ImplicitSurface, default_min_width
 from volreg.kernels.grid import column_bounds
 from volreg.warp.objective import FeaturePair
@@ -911,47 +911,68 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
     return report
 
 
-def _write_fields(folder, fixed, moving, warp, fields: _FixedGridFields, u_inverse: np.ndarray, report: dict,
-                  force: bool, itk_h5: bool) -> None:
-    """Write the model, both displacement fields (also as ITK composite transforms with ``itk_h5``),
-    the warped labels, the Jacobian map and the report figure into ``folder`` (an
-    :class:`~volreg.io._atomic.OutputFolder`), recording each."""
-    from volreg.io import write_labels, write_scalar
-    from volreg.io.fields import write_displacement, write_itk_composite, write_itk_linear
-    from volreg.io.report_figure import write_report_figure
+class _OutputWrites:
+    """The registration's files, each written in the background (a :class:`~volreg._threads.JobQueue`)
+    as soon as its array exists, into ``folder`` (an :class:`~volreg.io._atomic.OutputFolder`),
+    and recorded there once complete.
 
-    paths = {name: folder.path / name for name in REGISTRATION_OUTPUTS}
-    warped = fields.warped.astype(moving.array.dtype, copy=False)
-    title = (f"volreg register: mean Dice {report['mean_dice']['before']:.3f} -> "
-             f"{report['mean_dice']['after']:.3f}")
+    The fields on the fixed grid, the model and the linear part are written while the inverse
+    and the metrics are computed (compressing and writing release the GIL, and those stages
+    leave part of the second core idle); the inverse's field once it exists; the report figure
+    once the metrics give its title.
+    """
 
-    def output(name: str, writer: Callable[[Path], None]) -> Callable[[], None]:
+    def __init__(self, jobs, folder, fixed, moving, force: bool, itk_h5: bool) -> None:
+        self.jobs, self.folder, self.fixed, self.moving = jobs, folder, fixed, moving
+        self.force, self.itk_h5 = force, itk_h5
+
+    def _submit(self, *outputs: tuple[str, Callable[[Path], None]]) -> None:
+        """Write the named outputs one after the other, as one background job."""
         def job() -> None:
-            writer(paths[name])
-            folder.record(paths[name])  # once complete: a failed run removes it
-        return job
+            for name, writer in outputs:
+                path = self.folder.path / name
+                writer(path)
+                self.folder.record(path)  # once complete: a failed run removes it
+        self.jobs.submit(job)
 
-    h5 = [output("warp.h5", lambda p: write_itk_composite(fields.displacement, fixed, p, force=force)),
-          output("inverse_warp.h5", lambda p: write_itk_composite(u_inverse, moving, p, force=force))]
-    # Largest first. The files are independent, and compressing and writing them release the
-    # GIL: on two threads the 1 mm phantom's outputs took 4.0 s instead of 7.5 s.
-    jobs = [
-        output("warp.nii.gz", lambda p: write_displacement(fields.displacement, fixed, p, force=force)),
-        output("inverse_warp.nii.gz", lambda p: write_displacement(u_inverse, moving, p, force=force)),
-        # The two HDF5 files in one job, one after the other: ITK's HDF5 library may not be thread-safe.
-        *([lambda: [job() for job in h5]] if itk_h5 else []),
-        output("jacobian.nii.gz", lambda p: write_scalar(fields.jacobian, fixed, p, force=force)),
-        output("warped.nii.gz", lambda p: write_labels(fixed.with_array(warped), p, force=force)),
+    def fields(self, warp, fields: _FixedGridFields) -> None:
+        """The fixed grid's displacement, Jacobian map and warped labels, the model and the linear part."""
+        from volreg.io import write_labels, write_scalar
+        from volreg.io.fields import write_displacement, write_itk_linear
+
+        fixed, moving, force = self.fixed, self.moving, self.force
+        warped = fields.warped.astype(moving.array.dtype, copy=False)
+        # Largest first; the files are independent (on two threads the 1 mm phantom's outputs took
+        # 4.0 s instead of 7.5 s one after the other).
+        self._submit(("warp.nii.gz", lambda p: write_displacement(fields.displacement, fixed, p, force=force)))
+        self._submit(("jacobian.nii.gz", lambda p: write_scalar(fields.jacobian, fixed, p, force=force)))
+        self._submit(("warped.nii.gz", lambda p: write_labels(fixed.with_array(warped), p, force=force)),
+                     ("model.npz", lambda p: warp.save(p, force=force)),
+                     ("linear.tfm", lambda p: write_itk_linear(p, warp.linear, force=force)))
+
+    def inverse(self, u_fixed: np.ndarray, u_inverse: np.ndarray) -> None:
+        """The inverse's displacement on the moving grid (and both fields as ITK composite transforms
+        when asked for); ``u_fixed`` is the forward displacement on the fixed grid."""
+        from volreg.io.fields import write_displacement, write_itk_composite
+
+        fixed, moving, force = self.fixed, self.moving, self.force
+        self._submit(("inverse_warp.nii.gz", lambda p: write_displacement(u_inverse, moving, p, force=force)))
+        if self.itk_h5:
+            # The two HDF5 files in one job, one after the other: ITK's HDF5 library may not be thread-safe.
+            self._submit(("warp.h5", lambda p: write_itk_composite(u_fixed, fixed, p, force=force)),
+                         ("inverse_warp.h5", lambda p: write_itk_composite(u_inverse, moving, p, force=force)))
+
+    def figure(self, fields: _FixedGridFields, report: dict) -> None:
+        """The report figure, titled with the report's mean Dice before and after."""
+        from volreg.io.report_figure import write_report_figure
+
+        fixed, moving = self.fixed, self.moving
+        title = (f"volreg register: mean Dice {report['mean_dice']['before']:.3f} -> "
+                 f"{report['mean_dice']['after']:.3f}")
         # The displacement in LPS mm, turned into the fixed grid's voxels on the drawn slices only
-        output("report.png", lambda p: write_report_figure(p, fixed.array, moving.array, fields.warped,
-                                                           fields.displacement, fixed_spacing=fixed.spacing,
-                                                           moving_spacing=moving.spacing, force=force, title=title,
-                                                           to_voxels=fixed.direction / fixed.spacing)),
-        output("model.npz", lambda p: warp.save(p, force=force)),
-        output("linear.tfm", lambda p: write_itk_linear(p, warp.linear, force=force)),
-    ]
-    for _ in thread_map(lambda job: job(), jobs):
-        pass
+        self._submit(("report.png", lambda p: write_report_figure(
+            p, fixed.array, moving.array, fields.warped, fields.displacement, fixed_spacing=fixed.spacing,
+            moving_spacing=moving.spacing, force=self.force, title=title, to_voxels=fixed.direction / fixed.spacing)))
 
 
 def _register_and_write(fixed, moving, outdir, *, protocol, drive_labels, landmarks, force, inputs, truth, prior,
@@ -963,7 +984,7 @@ def _register_and_write(fixed, moving, outdir, *, protocol, drive_labels, landma
     from volreg.io.summary import json_safe
 
     protocol = load_protocol("default") if protocol is None else protocol
-    with output_folder(outdir, force) as folder:
+    with output_folder(outdir, force) as folder, JobQueue() as jobs:  # the jobs end before the folder closes
         folder.check_writable(registration_outputs(protocol), force=force)
         t_all = time.perf_counter()
         result = register_labels(fixed, moving, drive_labels=drive_labels, landmarks=landmarks,
@@ -975,19 +996,26 @@ def _register_and_write(fixed, moving, outdir, *, protocol, drive_labels, landma
         t0 = time.perf_counter()
         fields = _sample_on_fixed_grid(result.warp, fixed, moving, protocol.warp.max_folded_fraction, progress)
         stages.append(_stage("resample", t0))
+        # From here on the outputs are written in the background as their arrays come; the
+        # inverse and metrics stages below share the cores with those writes, and the write
+        # stage is what is left of them at the end.
+        writes = _OutputWrites(jobs, folder, fixed, moving, force, protocol.outputs.itk_h5)
+        writes.fields(result.warp, fields)
 
         t0 = time.perf_counter()
         inverse, u_inverse = _inverse_on_moving_grid(result.warp, moving, progress, fixed, fields.displacement)
+        writes.inverse(fields.displacement, u_inverse)
         stages.append(_stage("inverse", t0))
 
         t0 = time.perf_counter()
         report = _registration_report(fixed, moving, result, fields, inverse, protocol, inputs, truth)
         if landmarks is not None:
             report["landmarks"] = landmark_errors(result.warp, landmarks, fixed)
+        writes.figure(fields, report)
         stages.append(_stage("metrics", t0))
 
         t0 = time.perf_counter()
-        _write_fields(folder, fixed, moving, result.warp, fields, u_inverse, report, force, protocol.outputs.itk_h5)
+        jobs.wait()
         stages.append(_stage("write", t0))
         report["stages"] = stages
         report["seconds"] = time.perf_counter() - t_all
