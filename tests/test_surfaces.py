@@ -163,3 +163,27 @@ def test_edge_sampler_interpolates_as_map_coordinates(dim):
     for offset in np.array(list(np.ndindex(*([3] * dim)))) - 1:
         ref = ndimage.map_coordinates(field, (at + offset).T, order=1, mode="nearest")
         np.testing.assert_array_equal(sample(offset.astype(float)), ref)
+
+
+def test_surfaces_of_several_volumes_at_once_equal_each_volume_alone():
+    """Both volumes' meshes made on the threads together, largest label box first: the same
+    meshes as each volume's own, and per volume the labels without one, in the labels' order."""
+    from volreg.features.label_surfaces import surfaces_of_volumes
+
+    big = Ellipsoid((14, 11, 9), (0, 0, 0))
+    small = Ellipsoid((4, 5, 3), (8, 6, 0))
+    a = label_volume((40, 36, 30), (1.0, 1.0, 1.0), np.eye(3), (-20, -18, -15), big.signed_distance, label=2)
+    arr = a.array.copy()
+    grid = a.grid_points().reshape(-1, 3)
+    arr[(small.signed_distance(grid) < 0).reshape(arr.shape)] = 5
+    a = a.with_array(arr)
+    b = label_volume((27, 24, 20), (1.5, 1.5, 1.5), rotation(20), (-19, -17, -14), big.signed_distance, label=2)
+    found = surfaces_of_volumes([a, b], [5, 2, 9], smoothing=[1.0, 0.7])
+    assert [sorted(m) for m, _ in found] == [[2, 5], [2]]
+    assert [list(e) for _, e in found] == [[9], [5, 9]]  # labels in the order asked for
+    assert all(isinstance(err, SurfaceError) for _, e in found for err in e.values())
+    for (meshes, _), volume, s in zip(found, (a, b), (1.0, 0.7)):
+        for lab, mesh in meshes.items():
+            alone = label_surface(volume, lab, smoothing=s)
+            np.testing.assert_array_equal(mesh.vertices, alone.vertices)
+            np.testing.assert_array_equal(mesh.cells, alone.cells)
