@@ -175,3 +175,24 @@ def test_thinning_keeps_the_point_nearest_each_cell_centre(seed, dim, spacing):
         if c not in expected or d < dist[expected[c]]:
             expected[c] = i
     assert kept.tolist() == sorted(expected.values())
+
+
+def test_median_spacing_of_a_large_set_from_a_sample():
+    """Above twice SPACING_SAMPLE points the median neighbour distance is taken over every k-th
+    point: exact on a regular grid, and within 2 % of the full median on a random surface."""
+    from scipy.spatial import cKDTree
+
+    from volreg.features.implicit import SPACING_SAMPLE, _median_spacing
+
+    g = np.stack(np.meshgrid(np.arange(300) * 0.5, np.arange(300) * 0.5, indexing="ij"), -1).reshape(-1, 2)
+    plane = np.column_stack([g, np.zeros(len(g))])
+    assert len(plane) > 2 * SPACING_SAMPLE
+    assert _median_spacing(cKDTree(plane)) == pytest.approx(0.5, abs=1e-12)
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=(120_000, 3))
+    sphere = 40.0 * u / np.linalg.norm(u, axis=1, keepdims=True)
+    tree = cKDTree(sphere)
+    full = float(np.median(tree.query(sphere, 2)[0][:, 1]))
+    assert _median_spacing(tree) == pytest.approx(full, rel=0.02)
+    small = sphere[: 2 * SPACING_SAMPLE]  # not sampled: every point counts
+    assert _median_spacing(cKDTree(small)) == float(np.median(cKDTree(small).query(small, 2)[0][:, 1]))

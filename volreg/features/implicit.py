@@ -48,9 +48,21 @@ ProgressCallback = Callable[[str, int, int], None]
 # Point-set utilities
 
 
+#: :func:`_median_spacing` takes the median over every k-th point of larger sets, k chosen to
+#: leave at least this many.
+SPACING_SAMPLE = 20000
+
+
 def _median_spacing(tree: cKDTree) -> float:
-    """Median distance from each of the tree's points to its nearest other point, mm."""
-    return float(np.median(tree.query(tree.data, 2, workers=query_workers())[0][:, 1]))
+    """Median distance from each of the tree's points to its nearest other point, mm.
+
+    Over every k-th point where there are more than twice :data:`SPACING_SAMPLE` (a 1 mm
+    brain-size label's 482,000 vertices: 0.36 s of one core for all of them; the median of
+    a sample of 20,000 is within about 1 % of it).
+    """
+    data = tree.data
+    step = max(len(data) // SPACING_SAMPLE, 1) if len(data) > 2 * SPACING_SAMPLE else 1
+    return float(np.median(tree.query(data[::step], 2, workers=query_workers())[0][:, 1]))
 
 
 def default_min_width(points: np.ndarray) -> float:
