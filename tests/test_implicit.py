@@ -196,3 +196,25 @@ def test_median_spacing_of_a_large_set_from_a_sample():
     assert _median_spacing(tree) == pytest.approx(full, rel=0.02)
     small = sphere[: 2 * SPACING_SAMPLE]  # not sampled: every point counts
     assert _median_spacing(cKDTree(small)) == float(np.median(cKDTree(small).query(small, 2)[0][:, 1]))
+
+
+def test_off_surface_points_that_cross_another_sheet_are_dropped():
+    """Carr's off-surface points x +- delta n are kept only where no surface point lies within
+    0.9 delta: across a slab 1 mm thick, the inward points (0.6 mm) land near the other face
+    and are dropped; the outward ones are kept, at signed distance +delta."""
+    from scipy.spatial import cKDTree
+
+    from volreg.features.implicit import _offsurface
+
+    g = np.stack(np.meshgrid(np.arange(-10, 10.01, 0.25), np.arange(-10, 10.01, 0.25), indexing="ij"), -1)
+    g = g.reshape(-1, 2)
+    top = np.column_stack([g, np.full(len(g), 0.5)])
+    bottom = np.column_stack([g, np.full(len(g), -0.5)])
+    points = np.concatenate([top, bottom])
+    normals = np.concatenate([np.tile([0, 0, 1.0], (len(g), 1)), np.tile([0, 0, -1.0], (len(g), 1))])
+    pts, vals = _offsurface(points, normals, 0.6, cKDTree(points))
+    assert np.all(vals == 0.6)  # every inward point (-0.6) lay 0.4 mm from the other face
+    assert len(pts) == len(points)
+    np.testing.assert_allclose(np.abs(pts[:, 2]), 1.1)
+    pts, vals = _offsurface(points, normals, 0.4, cKDTree(points))  # 0.6 mm from the other face: kept
+    assert len(pts) == 2 * len(points) and np.sum(vals < 0) == len(points)
