@@ -222,10 +222,15 @@ def test_boundary_distances_by_trees_equal_those_by_distance_transforms(spacing)
     a[5:25, 6:30, 4:20] = True
     b[8:30, 4:26, 9:27] = True
     b &= rng.random(b.shape) > 0.05  # ragged, with holes
-    ba, bb = _boundary(a), _boundary(b)
+    c = a.copy()  # a's shape with a dent: most of its boundary is a's
+    c[10:16, 12:20, 4:8] = False
     spacing = np.array(spacing)
-    by_edt = _boundary_distances(ba, bb, spacing, tree=False)
-    by_tree = _boundary_distances(ba, bb, spacing, tree=True)
-    for e, t in zip(by_edt, by_tree):
-        assert len(e) == len(t) > 100 and e.max() > 2 * spacing.max()
-        np.testing.assert_allclose(t, e, rtol=1e-12, atol=1e-12)
+    for x, y, shared in ((a, b, False), (a, c, True)):
+        ba, bb = _boundary(x), _boundary(y)
+        by_edt = _boundary_distances(ba, bb, spacing, tree=False)
+        by_tree = _boundary_distances(ba, bb, spacing, tree=True)
+        for e, t in zip(by_edt, by_tree):
+            assert len(e) == len(t) > 100 and e.max() >= 2 * spacing.min()
+            assert np.count_nonzero(e == 0) > (len(e) // 2 if shared else 0)
+            # The same distances, the voxels on both boundaries (distance 0) grouped first by the trees
+            np.testing.assert_allclose(np.sort(t), np.sort(e), rtol=1e-12, atol=1e-12)

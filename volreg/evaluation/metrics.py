@@ -50,8 +50,17 @@ def _boundary_distances(ba: np.ndarray, bb: np.ndarray, spacing: np.ndarray,
                 ndimage.distance_transform_edt(~ba, sampling=spacing)[bb])
     from scipy.spatial import cKDTree
 
+    # A voxel on both boundaries is at distance 0 from the other: only the rest are searched.
+    # After a registration that is most of them (the 1 mm phantom's grey shell: 88 % of its
+    # 323,000 boundary voxels, 38 % before; both labels' scores 0.73 -> 0.42 s after, 0.87 ->
+    # 0.74 s before).  The distances come grouped, zeros first: their mean and percentiles are
+    # those of every voxel.
+    only_a, only_b = ba & ~bb, bb & ~ba
+    both = np.zeros(int(np.count_nonzero(ba)) - int(np.count_nonzero(only_a)))
     pa, pb = np.argwhere(ba) * spacing, np.argwhere(bb) * spacing
-    return cKDTree(pb).query(pa)[0], cKDTree(pa).query(pb)[0]
+    qa, qb = np.argwhere(only_a) * spacing, np.argwhere(only_b) * spacing
+    return (np.concatenate([both, cKDTree(pb).query(qa)[0]]),
+            np.concatenate([np.zeros(len(pb) - len(qb)), cKDTree(pa).query(qb)[0]]))
 
 
 def surface_distances(a: np.ndarray, b: np.ndarray, spacing: np.ndarray) -> tuple[float, float]:
