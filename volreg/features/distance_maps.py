@@ -174,7 +174,11 @@ def _bspline3_segments(part, parts, coef, coff, shapes, rstart, index, order, f,
     first, stop = part_range(rstart[rstart.shape[0] - 1], part, parts)
     stencil = np.empty((3, 4), np.int64)
     weight = np.empty((9, 4))
-    for k in range(max(np.searchsorted(rstart, first, side="right") - 1, 0), rstart.shape[0] - 1):
+    nk = rstart.shape[0] - 1
+    k = 0
+    while k < nk and rstart[k + 1] <= first:  # the volume holding the part's first row
+        k += 1
+    for k in range(k, nk):
         if rstart[k] >= stop:
             break
         volume = coef[coff[k]:coff[k + 1]].reshape((shapes[k, 0], shapes[k, 1], shapes[k, 2]))

@@ -908,7 +908,11 @@ def _segmented_sums(part, parts, queries, rstart, jstart, poff, soff, px, py, pz
     dim3 = dim == 3
     first, stop = part_range(rstart[rstart.shape[0] - 1], part, parts)
     ranges = np.empty((max_runs, 2), dtype=np.int64)
-    for f in range(max(np.searchsorted(rstart, first, side="right") - 1, 0), rstart.shape[0] - 1):
+    nf = rstart.shape[0] - 1
+    f = 0
+    while f < nf and rstart[f + 1] <= first:  # the segment holding the part's first query
+        f += 1
+    for f in range(f, nf):
         q0, q1 = max(rstart[f], first), min(rstart[f + 1], stop)
         if q0 >= stop:
             break
