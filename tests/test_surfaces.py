@@ -178,7 +178,7 @@ def test_surfaces_of_several_volumes_at_once_equal_each_volume_alone():
     arr[(small.signed_distance(grid) < 0).reshape(arr.shape)] = 5
     a = a.with_array(arr)
     b = label_volume((27, 24, 20), (1.5, 1.5, 1.5), rotation(20), (-19, -17, -14), big.signed_distance, label=2)
-    found = surfaces_of_volumes([a, b], [5, 2, 9], smoothing=[1.0, 0.7])
+    found = surfaces_of_volumes([a, b], iter([5, 2, 9]), smoothing=[1.0, 0.7])  # an iterator, read once
     assert [sorted(m) for m, _ in found] == [[2, 5], [2]]
     assert [list(e) for _, e in found] == [[9], [5, 9]]  # labels in the order asked for
     assert all(isinstance(err, SurfaceError) for _, e in found for err in e.values())

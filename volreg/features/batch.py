@@ -29,7 +29,7 @@ from volreg.kernels.grid import max_runs
 __all__ = ["FeatureBatch"]
 
 #: Fewest queries per part of the implicit surfaces' sums (each query sums every level of its
-#: surface: tens of microseconds).
+#: surface: about 3 microseconds on the parcellation).
 _QUERIES = 64
 
 

@@ -356,10 +356,11 @@ def surfaces_of_volumes(
         Per volume, the meshes of its labels and the errors of those without one (absent or
         too small), each in the labels' order.
     """
+    labels = None if labels is None else [int(v) for v in labels]  # once: an iterator is read for every volume
     jobs = []
     for k, volume in enumerate(volumes):
         boxes = volume.label_boxes()
-        for lab in (sorted(boxes) if labels is None else [int(v) for v in labels]):
+        for lab in (sorted(boxes) if labels is None else labels):
             box = boxes.get(lab)
             size = 0 if box is None else int(np.prod([s.stop - s.start for s in box]))
             jobs.append((k, lab, box, size))
