@@ -54,8 +54,6 @@ LOOPS = (
      "float64 int64[1] float64 float64[2] float64[3]"),
     ("volreg.features.distance_maps", "_clipped_sdf_band",
      "int64 int64 bool[3] bool[3] int64[2] float32[1] float32 float32[3]"),
-    ("volreg.features.distance_maps", "_bspline3",
-     "int64 int64 float32[3] float64[2] int64 float64[1] float64[2] float64[3]"),
     ("volreg.kernels._compiled", "_segmented_sums",
      "int64 int64 float64[2] int64[1] int64[1] int64[1] int64[1] float64[1] float64[1] float64[1] "
      "float64[1] int32[1] float64[2] float64[1] int64[2] float64[1] int64 int64 float64[2] float64[3] "

@@ -79,7 +79,7 @@ def _axis(x: float, n: int, idx, w, d, s) -> None:
 
 @njit(fastmath=True)
 def _bspline3_at(coef, i0, i1, i2, order, p, f, g, h, index, weight):  # pragma: no cover - compiled
-    """:func:`_bspline3` at one continuous index ``(i0, i1, i2)``, written to row ``p``;
+    """The cubic B-spline of ``coef`` (nx, ny, nz) at one continuous index ``(i0, i1, i2)``, written to row ``p``;
     ``index`` (3, 4) int and ``weight`` (9, 4) float are scratch."""
     nx, ny, nz = coef.shape
     ix, iy, iz = index[0], index[1], index[2]
@@ -91,7 +91,7 @@ def _bspline3_at(coef, i0, i1, i2, order, p, f, g, h, index, weight):  # pragma:
     # Separably, axis by axis (z, then y, then x): the 64 coefficients are read once and each
     # derivative is a sum over the x weights of sums over y of sums over z, 3 x 64 + 6 x 16 + 10 x 4
     # products instead of up to 10 x 64 (order 2 at 1 M random points: 0.21 s instead of 0.28 s),
-    # and less code to compile (this loop and _bspline3_segments: 1.27 s instead of 1.53 s).
+    # and less code to compile (the loops that call it: 1.27 s instead of 1.53 s).
     v = 0.0
     gx = 0.0
     gy = 0.0
@@ -152,24 +152,16 @@ def _bspline3_at(coef, i0, i1, i2, order, p, f, g, h, index, weight):  # pragma:
 
 
 @njit(nogil=True, fastmath=True)
-def _bspline3(part, parts, coef, index, order, f, g, h):  # pragma: no cover - compiled
-    """Cubic B-spline with coefficients ``coef`` (nx, ny, nz) at continuous indices
-    ``index`` (N, 3): value ``f`` (N,), and for ``order`` >= 1 the gradient ``g``
-    (N, 3) and for ``order`` >= 2 the Hessian ``h`` (N, 3, 3), per index unit."""
-    first, stop = part_range(index.shape[0], part, parts)
-    stencil = np.empty((3, 4), np.int64)
-    weight = np.empty((9, 4))
-    for p in range(first, stop):
-        _bspline3_at(coef, index[p, 0], index[p, 1], index[p, 2], order, p, f, g, h, stencil, weight)
-
-
-@njit(nogil=True, fastmath=True)
 def _bspline3_segments(part, parts, coef, coff, shapes, rstart, index, order, f, g, h):  # pragma: no cover - compiled
-    """:func:`_bspline3` of several coefficient volumes, each at its own segment of ``index``.
+    """Cubic B-splines of several coefficient volumes, each at its own segment of ``index``.
 
     Volume ``k`` is ``coef[coff[k]:coff[k + 1]]`` (flat, C order) of shape ``shapes[k]``
-    (3,) and is evaluated at rows ``rstart[k]:rstart[k + 1]``.  The rows in parallel,
-    ``part_range(N, part, parts)`` of them per part, whichever volumes they fall in.
+    (3,) and is evaluated at the continuous indices of rows ``rstart[k]:rstart[k + 1]`` of
+    ``index`` (N, 3): value ``f`` (N,), and for ``order`` >= 1 the gradient ``g`` (N, 3)
+    and for ``order`` >= 2 the Hessian ``h`` (N, 3, 3), per index unit.  The rows in
+    parallel, ``part_range(N, part, parts)`` of them per part, whichever volumes they fall
+    in.  One volume is one segment (:meth:`VoxelDistance.evaluate`): a loop of its own for
+    that case took 0.9 s more of a first run's compiling.
     """
     first, stop = part_range(rstart[rstart.shape[0] - 1], part, parts)
     stencil = np.empty((3, 4), np.int64)
@@ -487,7 +479,10 @@ class VoxelDistance:
         f = np.empty(n)
         g = np.empty((n, 3)) if order >= 1 else np.empty((0, 3))
         h = np.empty((n, 3, 3)) if order >= 2 else np.empty((0, 3, 3))
-        run_parts(_bspline3, n, self._coef, np.ascontiguousarray(index), int(order), f, g, h, grain=_POINTS)
+        coef = self._coef.reshape(-1)  # one volume, one segment
+        run_parts(_bspline3_segments, n, coef, np.array([0, coef.size], np.int64),
+                  np.array([self._coef.shape], np.int64), np.array([0, n], np.int64), np.ascontiguousarray(index),
+                  int(order), f, g, h, grain=_POINTS)
         out = [f]
         d = self.dim
         if order >= 1:
