@@ -62,7 +62,6 @@ LOOPS = (
      "int64 int64 float32[1] int64[1] int64[2] int64[1] float64[2] int64 float64[1] float64[2] float64[3]"),
     ("volreg.kernels._compiled", "_csr_matmul_shared",
      "int64 int64 int32[1] int32[1] float64[2] float64[2] float64[3]"),
-    ("volreg.features.batch", "_congruence", "float64[3] ro:float64[2]"),
     ("volreg.kernels._compiled", "_csr_matmul_shared_sum",
      "int64 int64 int32[1] int32[1] float64[2] float64[3] float64[2]"),
     ("volreg.kernels._compiled", "_blocked_sum_vector",

@@ -18,11 +18,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from volreg._jit import njit
 from volreg._threads import run_parts
 from volreg.features.distance_maps import _POINTS, VoxelDistance, _bspline3_segments
 from volreg.features.implicit import ImplicitSurface
-from volreg.features.mapped import LinearlyMapped
+from volreg.features.mapped import LinearlyMapped, congruence
 from volreg.kernels._compiled import _segmented_sums
 from volreg.kernels.grid import max_runs
 
@@ -216,25 +215,10 @@ class FeatureBatch:
             if order >= 1:
                 out[1] = out[1] @ a / s
             if order >= 2:
-                out[2] = _congruence(out[2], a) / s
+                # Not a compiled loop: 0.4 against 0.5 ms for 7,000 points, and 0.27 s less of a
+                # first run's compiling.
+                out[2] = congruence(out[2], a) / s
         return tuple(out)
-
-
-@njit
-def _congruence(h, a):  # pragma: no cover - compiled
-    """``a^T h_n a`` for every (D, D) matrix ``h_n`` of ``h`` (N, D, D) (as
-    ``einsum("ia,nij,jb->nab", a, h, a)``, which numpy evaluates slowly)."""
-    n, d = h.shape[0], h.shape[1]
-    out = np.zeros_like(h)
-    for k in range(n):
-        for i in range(d):
-            for j in range(d):
-                hij = h[k, i, j]
-                for x in range(d):
-                    t = a[i, x] * hij
-                    for y in range(d):
-                        out[k, x, y] += t * a[j, y]
-    return out
 
 
 def _segment_rows(begins: np.ndarray, sizes: np.ndarray) -> np.ndarray:
