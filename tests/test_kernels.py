@@ -249,6 +249,9 @@ def test_column_bounds_and_rows_within_equal_numpy_reductions(dim):
     expected = np.all((points >= box_lo) & (points <= box_hi), axis=1)
     assert expected.any() and not expected.all()
     np.testing.assert_array_equal(rows_within(points, box_lo, box_hi), expected)
+    open_box = np.all((points > box_lo) & (points < box_hi), axis=1)
+    assert not open_box[:5].any()  # the faces are outside the open box
+    np.testing.assert_array_equal(rows_within(points, box_lo, box_hi, closed=False), open_box)
     points[7, 0] = np.nan
     assert np.isnan(column_bounds(points)[0][0]) and not rows_within(points, box_lo, box_hi)[7]
 

@@ -109,14 +109,15 @@ def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def rows_within(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def rows_within(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, closed: bool = True) -> np.ndarray:
     """``np.all((points >= lo) & (points <= hi), axis=1)`` for (N, D) points, column by column
-    (7x faster on a million points, for the reason of :func:`column_bounds`)."""
+    (7x faster on a million points, for the reason of :func:`column_bounds`); with ``closed``
+    False, the open box (``>`` and ``<``)."""
     points = np.asarray(points)
     inside = np.ones(len(points), dtype=bool)
     for d in range(points.shape[1]):
         column = points[:, d]
-        inside &= (column >= lo[d]) & (column <= hi[d])
+        inside &= (column >= lo[d]) & (column <= hi[d]) if closed else (column > lo[d]) & (column < hi[d])
     return inside
 
 

@@ -232,10 +232,7 @@ def resample_labels_at(
             first = np.searchsorted(slab_key, lo[0] - 1, side="right")
             stop = np.searchsorted(slab_key, hi[0], side="left")
         candidates = slab_index[first:stop]
-        touches = np.ones(len(candidates), dtype=bool)
-        for axis in range(image.ndim):  # column by column (see rows_within)
-            column = candidates[:, axis]
-            touches &= (column > lo[axis] - 1) & (column < hi[axis])
+        touches = rows_within(candidates, lo - 1, hi, closed=False)
         near = slab_order[first:stop][touches]
         if near.size:
             crop = array[tuple(slice(a, b) for a, b in zip(lo, hi))]
