@@ -230,3 +230,42 @@ def test_both_ways_and_the_consistency_test(small_pair, tmp_path):
     with pytest.raises(ValueError, match="`forward` and `backward`"):
         write_consistency_test(a, b, tmp_path / "half", forward=both.forward.warp)
     assert not (tmp_path / "half").exists()
+
+
+def test_signals_held_for_a_swap_while_other_threads_run():
+    """A SIGTERM sent to the process during a swap is handled once the swap's renames are done,
+    also when other threads run (the kernel then delivers it to one of them, and Python runs
+    the handler in the main thread all the same: a mask on the main thread did not hold it)."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from volreg.io._atomic import _SignalsHeld
+
+    class Stop(Exception):
+        pass
+
+    def raise_stop(signum, frame):
+        raise Stop(signum)
+
+    previous = signal.signal(signal.SIGTERM, raise_stop)
+    release = threading.Event()
+    others = [threading.Thread(target=release.wait, args=(20,)) for _ in range(3)]
+    for t in others:
+        t.start()
+    steps = []
+    try:
+        with pytest.raises(Stop):
+            with _SignalsHeld():
+                os.kill(os.getpid(), signal.SIGTERM)
+                for _ in range(50):  # Python checks for signals between these steps
+                    time.sleep(0.002)
+                    steps.append(1)
+        assert len(steps) == 50  # the block ran to its end, then the handler
+        assert signal.getsignal(signal.SIGTERM) is raise_stop  # restored
+    finally:
+        release.set()
+        for t in others:
+            t.join()
+        signal.signal(signal.SIGTERM, previous)

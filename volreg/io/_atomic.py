@@ -394,17 +394,34 @@ def _link_tree(source: Path, target: Path) -> None:
 
 
 class _SignalsHeld:
-    """Hold SIGINT and SIGTERM back (main thread) for the few renames of a swap."""
+    """Hold SIGINT and SIGTERM back (main thread) for the few renames of a swap.
+
+    Their handlers are replaced by one that notes the signal, and the handler of a noted one
+    runs once the block has ended.  (Blocking them in the main thread's signal mask is not
+    enough: the kernel then hands a signal sent to the process to another of its threads, a
+    compiled loop's helper, and Python runs the handler in the main thread all the same; an
+    interrupt between two renames left the staging folder behind.)
+    """
+
+    _SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __enter__(self):
-        self.held = threading.current_thread() is threading.main_thread() and hasattr(signal, "pthread_sigmask")
-        if self.held:
-            self.mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+        self.previous: dict = {}
+        self.noted: list[int] = []
+        if threading.current_thread() is threading.main_thread():
+            for signum in self._SIGNALS:
+                self.previous[signum] = signal.signal(signum, lambda signum, frame: self.noted.append(signum))
         return self
 
     def __exit__(self, *exc) -> None:
-        if self.held:
-            signal.pthread_sigmask(signal.SIG_SETMASK, self.mask)
+        for signum, handler in self.previous.items():
+            signal.signal(signum, handler)
+        for signum in self.noted[:1]:  # now, as it would have been handled in the block
+            handler = self.previous[signum]
+            if callable(handler):
+                handler(signum, None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(signum)
 
 
 def _swap_in(staging: Path, final: Path) -> None:
@@ -538,6 +555,8 @@ def output_folder(
         try:
             _swap_in(staging, final)
         except BaseException:
+            _remove_tree(staging)  # where the swap had not begun: the run's outputs go with it
+            _staging_open.discard(staging)
             _remove_directories(folder.created)
             raise
     elif outer is not None:
