@@ -183,7 +183,14 @@ def test_kernel_matrix_matches_dense(dim):
     b = rng.uniform(0, 8, (250, dim))
     k = kernel_matrix(a, b, 1.9)
     dense = wu(np.linalg.norm(a[:, None] - b[None], axis=2) / 1.9)
-    np.testing.assert_allclose(k.toarray(), dense, atol=1e-14)
+    # The values are stored rounded to single precision: within half a float32 ulp (2**-24 relative).
+    np.testing.assert_allclose(k.toarray(), dense, rtol=2.0**-24, atol=1e-14)
+    k32 = kernel_matrix(a, b, 1.9, dtype=np.float32)
+    assert k32.dtype == np.float32 and k.dtype == np.float64
+    assert np.array_equal(k32.indptr, k.indptr) and np.array_equal(k32.indices, k.indices)
+    assert np.array_equal(k32.data.astype(np.float64), k.data)
+    with pytest.raises(ValueError, match="dtype"):
+        kernel_matrix(a, b, 1.9, dtype=np.float16)
     sym = kernel_matrix(a, a, 1.9)
     assert abs(sym - sym.T).max() == 0
     np.testing.assert_allclose(sym.diagonal(), 4.0)

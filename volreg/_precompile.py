@@ -44,7 +44,7 @@ LOOPS = (
     ("volreg.kernels._compiled", "_cell_sort", "ro:float64[2] float64[1] float64 int64[1]"),
     ("volreg.kernels._compiled", "_grid_pairs",
      "int64 int64 float64[2] float64[2] int64[1] int32[1] float64[1] float64 int64[1] int64 float64 "
-     "int64[1] int32[1] float64[1] bool"),
+     "int64[1] int32[1] float32[1] bool"),
     ("volreg.features.implicit", "_svr_coordinate_descent",
      "int32[1] int32[1] float32[1] float64[1] float64[1] float64 float64 float64[1] float64[1] int64 "
      "float64"),

@@ -386,13 +386,13 @@ class ImplicitSurface:
                 x, y = x[perm], y[perm]
             grid = CellGrid.build(x, width)
             residual = y - self.evaluate(x, order=0)[0]
-            kmat = kernel_matrix(x, grid, width, sort=False)  # coordinate descent only walks the rows
+            # Coordinate descent only walks the rows, and reads the kernel values in single precision:
+            # the sweeps read half the bytes (the sums stay double), and f moves by less than 1e-5 mm.
+            kmat = kernel_matrix(x, grid, width, sort=False, dtype=np.float32)
             beta = np.zeros(len(x))
             kbeta = np.zeros(len(x))
             sweeps, mean_change, max_change = _svr_coordinate_descent(
-                # The kernel values in single precision: the sweeps read half the bytes (the sums
-                # stay double), and f moves by less than 1e-5 mm.
-                kmat.indptr, kmat.indices, kmat.data.astype(np.float32), np.full(len(x), float(wu(np.zeros(1))[0])),  # K_ii = k(0)
+                kmat.indptr, kmat.indices, kmat.data, np.full(len(x), float(wu(np.zeros(1))[0])),  # K_ii = k(0)
                 residual, eps, float(box), beta, kbeta,
                 int(max_sweeps), tol,
             )

@@ -730,7 +730,8 @@ def _grid_pairs(part, parts, queries, gpts, gorder, start, lo, cell, dims, max_r
 
     With ``fill`` False, writes each row's entry count into ``indptr[1:]``; with
     ``fill`` True, writes the column (``gorder[p]``, the original index) and value
-    of every entry at ``indptr[row]`` onwards.
+    (``data`` float32: computed in double precision, stored rounded) of every entry at
+    ``indptr[row]`` onwards.
     """
     n, dim = queries.shape
     sigma2 = sigma * sigma
