@@ -9,7 +9,7 @@ from shapes import rotation
 from volreg.errors import GeometryError
 from volreg.features.implicit import ImplicitSurface
 from volreg.features.label_surfaces import implicit_on_grid
-from volreg.grid import Grid, LabelVolume, as_grid
+from volreg.grid import Grid, LabelVolume, apply_affine, as_grid
 from volreg.warp.field import (
     displacement_on_grid,
     fields_on_grid,
@@ -245,3 +245,22 @@ def test_resample_image_and_implicit_surface_on_a_grid():
     on_volume = implicit_on_grid(surface, vol, chunk=13)
     np.testing.assert_array_equal(implicit_on_grid(surface, vol.grid, chunk=13), on_volume)
     np.testing.assert_allclose(on_volume, surface(vol.grid_points().reshape(-1, 3)).reshape(SHAPE), rtol=1e-6, atol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(0, 3), (1, 3), (1000, 3), (40000, 3), (500, 2)])  # 40000: blocks and a remainder
+def test_apply_affine_is_the_product_plus_the_offset(shape):
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-200, 200, shape)
+    d = shape[1]
+    for e in (d, 2):
+        m, b = rng.normal(size=(e, d)), rng.normal(size=e) * 50
+        out = apply_affine(p, m, b)
+        assert out.shape == (shape[0], e) and out.flags.c_contiguous
+        # offset first, then each column's term in order: the same bits over whole columns
+        expected = np.stack([sum((m[a, c] * p[:, c] for c in range(d)), np.full(shape[0], b[a]))
+                             for a in range(e)], axis=1).reshape(shape[0], e)
+        np.testing.assert_array_equal(out, expected)
+    # A strided (non-contiguous) view gives the same as its copy.
+    q = rng.uniform(-5, 5, (2 * shape[0], d))[::2]
+    m, b = rng.normal(size=(d, d)), rng.normal(size=d)
+    np.testing.assert_array_equal(apply_affine(q, m, b), apply_affine(q.copy(), m, b))

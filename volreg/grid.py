@@ -52,11 +52,18 @@ class VoxelChunk:
     total: int
 
 
-def apply_affine(points: np.ndarray, matrix: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """``points @ matrix.T + offset`` for (N, D) points, column by column.
+#: Rows per block in :func:`apply_affine`: a block's columns and temporaries stay in cache.
+_AFFINE_ROWS = 1 << 13
 
-    Several times faster than a BLAS product whose inner dimension is D (and free of BLAS
-    threads), which matters when millions of points pass through it.
+
+def apply_affine(points: np.ndarray, matrix: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """``points @ matrix.T + offset`` for (N, D) points, column by column, block by block.
+
+    Each output column is ``offset[a] + matrix[a, 0] p_0 + matrix[a, 1] p_1 + ...`` in that
+    order (as :meth:`Grid.grid_points` sums it, so the two agree to the last bit), over blocks
+    of :data:`_AFFINE_ROWS` rows that stay in cache: 5.7 M points take 90 ms, against 270 ms
+    over whole columns.  No BLAS: its product (80 ms) rounds differently, and the threads
+    OpenBLAS starts for a large product spin afterwards, slowing the compiled loops beside it.
 
     Parameters
     ----------
@@ -73,10 +80,16 @@ def apply_affine(points: np.ndarray, matrix: np.ndarray, offset: np.ndarray) -> 
     if p.ndim != 2 or p.shape[1] != matrix.shape[1]:
         return p @ matrix.T + offset
     out = np.empty((p.shape[0], matrix.shape[0]))
-    for a in range(matrix.shape[0]):
-        out[:, a] = offset[a]
-        for b in range(matrix.shape[1]):
-            out[:, a] += matrix[a, b] * p[:, b]
+    term = np.empty(min(len(p), _AFFINE_ROWS))
+    for s in range(0, len(p), _AFFINE_ROWS):
+        block, rows = p[s : s + _AFFINE_ROWS], out[s : s + _AFFINE_ROWS]
+        t = term[: len(block)]
+        for a in range(matrix.shape[0]):
+            column = rows[:, a]
+            column[...] = offset[a]
+            for b in range(matrix.shape[1]):
+                np.multiply(block[:, b], matrix[a, b], out=t)
+                column += t
     return out
 
 
