@@ -147,6 +147,22 @@ def _save_nifti_gz(img: nib.Nifti1Image, path: Path) -> None:
 _ITK_H5_SUFFIXES = (".h5", ".hdf5")
 
 
+def _itk_pixel_order(u: np.ndarray) -> np.ndarray:
+    """``u`` (i, j[, k], D) rounded to float32, as a new float64 array in ITK's pixel order
+    (the axes reversed, the components last).
+
+    In 3-D slab by slab along j: the 1 mm phantom's field (169 x 199 x 169) took 0.07 s
+    instead of 0.56 s as one transposing copy through a float32 temporary.
+    """
+    d = u.ndim - 1
+    if d != 3:
+        return np.ascontiguousarray(u.astype(np.float32).transpose(*range(d - 1, -1, -1), d), dtype=np.float64)
+    out = np.empty((u.shape[2], u.shape[1], u.shape[0], d))
+    for j in range(u.shape[1]):
+        out[:, j] = u[:, j].astype(np.float32).transpose(1, 0, 2)
+    return out
+
+
 def write_itk_composite(
     displacement: np.ndarray, like: GridLike, path: str | os.PathLike[str], *, force: bool = False
 ) -> None:
@@ -185,8 +201,7 @@ def write_itk_composite(
                             "transforms.")
     u = _checked_displacement(displacement, like)
     d = like.ndim
-    # ITK orders the pixels (k, j, i): the axes reversed, the components last.
-    values = np.ascontiguousarray(u.astype(np.float32).transpose(*range(d - 1, -1, -1), d), dtype=np.float64)
+    values = _itk_pixel_order(u)
     field = sitk.GetImageFromArray(values, isVector=True)  # a copy
     del values
     field.SetOrigin(tuple(float(v) for v in like.origin))
