@@ -555,6 +555,29 @@ def test_thin_displacement_field_owns_its_memory(tmp_path):
         assert isinstance(grid, Grid) and grid.same_geometry(like)
 
 
+@pytest.mark.parametrize("zero_fraction", [0.0, 0.9])
+def test_displacement_field_stored_uncompressed_only_where_it_does_not_compress(tmp_path, zero_fraction):
+    """A field of noise (non-zero at every voxel, as with an affine part) is stored in the gzip
+    stream, about its raw size; one mostly zero (beyond the warp's support) is compressed. Both
+    read back exactly, through nibabel and SimpleITK."""
+    shape = (64, 60, 56)  # larger than the compression samples together
+    like = Grid(shape, np.zeros(3), np.ones(3), np.eye(3))
+    u = np.random.default_rng(4).normal(scale=4.0, size=(*shape, 3)).astype(np.float32).astype(float)
+    u[: int(zero_fraction * shape[0])] = 0.0
+    write_displacement(u, like, tmp_path / "warp.nii.gz")
+    write_displacement(u, like, tmp_path / "warp.nii")
+    packed, plain = (tmp_path / "warp.nii.gz").read_bytes(), (tmp_path / "warp.nii").read_bytes()
+    assert gzip.decompress(packed) == plain
+    if zero_fraction:
+        assert len(packed) < 0.3 * len(plain)
+    else:
+        assert len(plain) < len(packed) < 1.01 * len(plain)  # stored: the bytes and gzip's framing
+    back, _ = read_displacement(tmp_path / "warp.nii.gz")
+    np.testing.assert_array_equal(back, u)
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "warp.nii.gz"))),
+                                  sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "warp.nii"))))
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_compressed_displacement_field_is_the_plain_file_gzipped(tmp_path, dim):
     """warp.nii.gz decompresses to the bytes of warp.nii (the same header and data), and
