@@ -7,7 +7,7 @@ import pytest
 
 from volreg import LabelVolume
 from volreg.warp.field import displacement_on_grid
-from volreg.warp.inverse import InverseWarp, invert_points
+from volreg.warp.inverse import InverseWarp, _newton_steps, invert_points
 from volreg.warp.model import KernelWarp, WarpLevel
 
 
@@ -147,3 +147,19 @@ def test_a_start_within_tol_is_kept_without_the_jacobian():
     assert orders[:2] == [0, 1]
     assert polished.converged.all() and polished.residual.max() <= 1e-4
     assert np.array_equal(polished.points[::2], exact[::2] + shift[::2])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_newton_steps_solve_where_the_jacobian_is_sound_and_damp_elsewhere(dim):
+    rng = np.random.default_rng(8)
+    jac = np.eye(dim) + 0.3 * rng.normal(size=(200, dim, dim))
+    jac[:20] = -jac[:20]  # orientation flipped in 3-D (and some 2-D rows): det below the floor
+    jac[20:30] = 0.0  # singular
+    r = rng.normal(size=(200, dim))
+    a_inv = np.linalg.inv(np.eye(dim) * 1.2 + 0.1 * rng.normal(size=(dim, dim)))
+    step = _newton_steps(jac, r, 0.05, a_inv)
+    sound = np.linalg.det(jac) > 0.05
+    assert sound.sum() > 100 and (~sound).sum() >= 10
+    np.testing.assert_allclose(step[sound], -np.linalg.solve(jac[sound], r[sound][..., None])[..., 0],
+                               rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(step[~sound], -0.5 * r[~sound] @ a_inv.T, rtol=1e-12, atol=1e-12)

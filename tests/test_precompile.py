@@ -198,18 +198,18 @@ def test_first_index_is_looked_up_where_numba_would_write_it(tmp_path, monkeypat
     # numba's own name for the folder of a source file's cache under NUMBA_CACHE_DIR
     sub = _CacheLocator.get_suitable_cache_subpath(str(package / "warp" / "inverse.py"))
     (tmp_path / "cache" / sub).mkdir(parents=True)
-    (tmp_path / "cache" / sub / "inverse._newton_steps-123.py311.nbi").write_bytes(b"")
+    (tmp_path / "cache" / sub / "inverse._grid_fixed_point-123.py311.nbi").write_bytes(b"")
     assert _precompile._first_index_seen()
     # Without NUMBA_CACHE_DIR: beside the source (numba's default), and volreg's fallback folder.
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     assert not _precompile._first_index_seen()
     (package / "warp" / "__pycache__").mkdir()
-    (package / "warp" / "__pycache__" / "inverse._newton_steps-9.py311.nbi").write_bytes(b"")
+    (package / "warp" / "__pycache__" / "inverse._grid_fixed_point-9.py311.nbi").write_bytes(b"")
     assert _precompile._first_index_seen()
-    (package / "warp" / "__pycache__" / "inverse._newton_steps-9.py311.nbi").unlink()
+    (package / "warp" / "__pycache__" / "inverse._grid_fixed_point-9.py311.nbi").unlink()
     fallback = tmp_path / "tmp" / f"volreg-numba-cache-{os.getuid()}" / sub
     fallback.mkdir(parents=True)
-    (fallback / "inverse._newton_steps-9.py311.nbi").write_bytes(b"")
+    (fallback / "inverse._grid_fixed_point-9.py311.nbi").write_bytes(b"")
     assert _precompile._first_index_seen()
 
 

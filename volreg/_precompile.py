@@ -1,7 +1,7 @@
 """Compile the loops of a first run on both ends at once: the command, and a helper process.
 
 On a fresh install numba compiles volreg's loops the first time each is called and caches
-them on disk (:mod:`volreg._jit`); a registration calls sixteen, and compiling them takes
+them on disk (:mod:`volreg._jit`); a registration calls fifteen, and compiling them takes
 about 9 s of one core.  Compiling is pure Python and holds the GIL, so threads cannot share
 it, but processes can share numba's on-disk cache: a command that registers volumes starts
 one helper process (:func:`start`) that compiles the loops of the later stages (from
@@ -72,7 +72,6 @@ LOOPS = (
     ("volreg.warp.inverse", "_grid_fixed_point",
      "int64 int64 float64[4] float64[2] float64[1] float64[2] float64[1] float64[2] int64 float64 "
      "float64[2]"),
-    ("volreg.warp.inverse", "_newton_steps", "float64[3] float64[2] float64 float64[2] float64[2]"),
 )
 
 #: The first of :data:`LOOPS` that the helper compiles: the first one needed after the implicit

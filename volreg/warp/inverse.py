@@ -183,8 +183,7 @@ def invert_points(
         while active.size and it < max_iter:
             it += 1
             xa, ra, ja, rna = x[active], r[active], jac[active], rn[active]
-            step = np.empty_like(ra)
-            _newton_steps(ja, ra, det_floor, np.eye(warp.dim) if affine is None else a_inv, step)
+            step = _newton_steps(ja, ra, det_floor, np.eye(warp.dim) if affine is None else a_inv)
             scale = np.ones(len(active))
             for _ in range(6):  # halve steps that do not reduce the residual
                 xn = xa + scale[:, None] * step
@@ -211,41 +210,50 @@ def invert_points(
 
 
 
-@njit(nogil=True)
-def _newton_steps(jac, r, det_floor, a_inv, step):
+def _newton_steps(jac: np.ndarray, r: np.ndarray, det_floor: float, a_inv: np.ndarray) -> np.ndarray:
     """Per row, the Newton step ``-J^-1 r`` where ``det J > det_floor``, else the damped
-    fixed-point step ``-A^-1 r / 2`` (in place into ``step``); ``jac`` (N, D, D), ``r`` and
-    ``step`` (N, D), D = 2 or 3 (explicit inverses: no per-row LAPACK call)."""
-    d = r.shape[1]
-    for n in range(r.shape[0]):
-        j = jac[n]
-        if d == 2:
-            det = j[0, 0] * j[1, 1] - j[0, 1] * j[1, 0]
-            if det > det_floor:
-                step[n, 0] = -(j[1, 1] * r[n, 0] - j[0, 1] * r[n, 1]) / det
-                step[n, 1] = -(-j[1, 0] * r[n, 0] + j[0, 0] * r[n, 1]) / det
-                continue
-        else:
-            c00 = j[1, 1] * j[2, 2] - j[1, 2] * j[2, 1]
-            c01 = j[0, 2] * j[2, 1] - j[0, 1] * j[2, 2]
-            c02 = j[0, 1] * j[1, 2] - j[0, 2] * j[1, 1]
-            det = j[0, 0] * c00 + j[1, 0] * c01 + j[2, 0] * c02
-            if det > det_floor:
-                c10 = j[1, 2] * j[2, 0] - j[1, 0] * j[2, 2]
-                c11 = j[0, 0] * j[2, 2] - j[0, 2] * j[2, 0]
-                c12 = j[0, 2] * j[1, 0] - j[0, 0] * j[1, 2]
-                c20 = j[1, 0] * j[2, 1] - j[1, 1] * j[2, 0]
-                c21 = j[0, 1] * j[2, 0] - j[0, 0] * j[2, 1]
-                c22 = j[0, 0] * j[1, 1] - j[0, 1] * j[1, 0]
-                step[n, 0] = -(c00 * r[n, 0] + c01 * r[n, 1] + c02 * r[n, 2]) / det
-                step[n, 1] = -(c10 * r[n, 0] + c11 * r[n, 1] + c12 * r[n, 2]) / det
-                step[n, 2] = -(c20 * r[n, 0] + c21 * r[n, 1] + c22 * r[n, 2]) / det
-                continue
-        for a in range(d):
-            acc = 0.0
-            for b in range(d):
-                acc += a_inv[a, b] * r[n, b]
-            step[n, a] = -0.5 * acc
+    fixed-point step ``-A^-1 r / 2``.
+
+    ``J^-1`` by its cofactors, row-wise in NumPy (no per-row LAPACK call, and no compiled
+    loop for a first run to compile: the rows are the few voxels whose start was not within
+    the tolerance).
+
+    Parameters
+    ----------
+    jac : (N, D, D) float ndarray
+    r : (N, D) float ndarray, mm
+    det_floor : float
+    a_inv : (D, D) float ndarray
+
+    Returns
+    -------
+    (N, D) float ndarray, mm
+    """
+    j = [[jac[:, a, b] for b in range(r.shape[1])] for a in range(r.shape[1])]
+    if r.shape[1] == 2:
+        det = j[0][0] * j[1][1] - j[0][1] * j[1][0]
+        cof = [[j[1][1], -j[0][1]], [-j[1][0], j[0][0]]]
+    else:
+        c = [[j[1][1] * j[2][2] - j[1][2] * j[2][1], j[0][2] * j[2][1] - j[0][1] * j[2][2],
+              j[0][1] * j[1][2] - j[0][2] * j[1][1]],
+             [j[1][2] * j[2][0] - j[1][0] * j[2][2], j[0][0] * j[2][2] - j[0][2] * j[2][0],
+              j[0][2] * j[1][0] - j[0][0] * j[1][2]],
+             [j[1][0] * j[2][1] - j[1][1] * j[2][0], j[0][1] * j[2][0] - j[0][0] * j[2][1],
+              j[0][0] * j[1][1] - j[0][1] * j[1][0]]]
+        det = j[0][0] * c[0][0] + j[1][0] * c[0][1] + j[2][0] * c[0][2]
+        cof = c
+    newton = det > det_floor
+    safe = np.where(newton, det, 1.0)
+    step = np.empty_like(r)
+    for a in range(r.shape[1]):
+        acc = cof[a][0] * r[:, 0]
+        for b in range(1, r.shape[1]):
+            acc = acc + cof[a][b] * r[:, b]
+        damped = a_inv[a, 0] * r[:, 0]
+        for b in range(1, r.shape[1]):
+            damped = damped + a_inv[a, b] * r[:, b]
+        step[:, a] = np.where(newton, -acc / safe, -0.5 * damped)
+    return step
 
 
 class InverseWarp(_PointMap):
