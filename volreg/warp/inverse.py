@@ -35,10 +35,12 @@ import numpy as np
 
 from volreg._jit import njit
 from volreg._threads import part_range, run_parts
+from volreg.grid import apply_affine
 from volreg.kernels import _check_points
 from volreg.kernels.grid import rows_within
 from volreg.warp.linear import LinearMap
 from volreg.warp.model import _box_through, _PointMap, linear_outside
+from volreg.warp.objective import _det_cofactor
 
 __all__ = ["InverseSolution", "invert_points", "InverseWarp", "GridStart"]
 
@@ -214,9 +216,9 @@ def _newton_steps(jac: np.ndarray, r: np.ndarray, det_floor: float, a_inv: np.nd
     """Per row, the Newton step ``-J^-1 r`` where ``det J > det_floor``, else the damped
     fixed-point step ``-A^-1 r / 2``.
 
-    ``J^-1`` by its cofactors, row-wise in NumPy (no per-row LAPACK call, and no compiled
-    loop for a first run to compile: the rows are the few voxels whose start was not within
-    the tolerance).
+    ``J^-1 = cof(J)^T / det J`` from the objective's cofactors, row-wise in NumPy (no per-row
+    LAPACK call, and no compiled loop for a first run to compile: the rows are the few voxels
+    whose start was not within the tolerance).
 
     Parameters
     ----------
@@ -229,30 +231,10 @@ def _newton_steps(jac: np.ndarray, r: np.ndarray, det_floor: float, a_inv: np.nd
     -------
     (N, D) float ndarray, mm
     """
-    j = [[jac[:, a, b] for b in range(r.shape[1])] for a in range(r.shape[1])]
-    if r.shape[1] == 2:
-        det = j[0][0] * j[1][1] - j[0][1] * j[1][0]
-        cof = [[j[1][1], -j[0][1]], [-j[1][0], j[0][0]]]
-    else:
-        c = [[j[1][1] * j[2][2] - j[1][2] * j[2][1], j[0][2] * j[2][1] - j[0][1] * j[2][2],
-              j[0][1] * j[1][2] - j[0][2] * j[1][1]],
-             [j[1][2] * j[2][0] - j[1][0] * j[2][2], j[0][0] * j[2][2] - j[0][2] * j[2][0],
-              j[0][2] * j[1][0] - j[0][0] * j[1][2]],
-             [j[1][0] * j[2][1] - j[1][1] * j[2][0], j[0][1] * j[2][0] - j[0][0] * j[2][1],
-              j[0][0] * j[1][1] - j[0][1] * j[1][0]]]
-        det = j[0][0] * c[0][0] + j[1][0] * c[0][1] + j[2][0] * c[0][2]
-        cof = c
+    det, cof = _det_cofactor(jac)
     newton = det > det_floor
-    safe = np.where(newton, det, 1.0)
-    step = np.empty_like(r)
-    for a in range(r.shape[1]):
-        acc = cof[a][0] * r[:, 0]
-        for b in range(1, r.shape[1]):
-            acc = acc + cof[a][b] * r[:, b]
-        damped = a_inv[a, 0] * r[:, 0]
-        for b in range(1, r.shape[1]):
-            damped = damped + a_inv[a, b] * r[:, b]
-        step[:, a] = np.where(newton, -acc / safe, -0.5 * damped)
+    step = -0.5 * apply_affine(r, a_inv, np.zeros(r.shape[1]))
+    step[newton] = -np.einsum("nba,nb->na", cof[newton], r[newton]) / det[newton, None]
     return step
 
 
