@@ -326,10 +326,15 @@ def test_a_volume_filled_by_one_label_gives_the_identity():
     json.dumps(fit.log)
 
 
-def test_a_bank_of_maps_samples_each_map_as_a_bank_of_it_alone():
-    """Samples of several labels' distance maps, read from each map's own block, equal those of
-    one-map banks bit for bit (interpolated inside a map's box, continued beyond it)."""
+@pytest.mark.parametrize("join", [True, False])
+def test_a_bank_of_maps_samples_each_map_as_a_bank_of_it_alone(monkeypatch, join):
+    """Samples of several labels' distance maps, read from one joined array or from each map's
+    own block, equal those of one-map banks bit for bit (interpolated inside a map's box,
+    continued beyond it)."""
+    from volreg.warp import linear
     from volreg.warp.linear import _distance_map, _MapBank
+
+    monkeypatch.setattr(linear, "_JOIN_BYTES", 64 << 20 if join else 0)
 
     rng = np.random.default_rng(5)
     array = np.zeros((30, 26, 22), dtype=np.int16)
@@ -339,6 +344,7 @@ def test_a_bank_of_maps_samples_each_map_as_a_bank_of_it_alone():
     boxes = volume.label_boxes()
     entries = [_distance_map(volume, v, boxes[v], np.array(f), 4.0) for v, f in ((1, (1, 1, 1)), (2, (2, 1, 1)))]
     both = _MapBank(volume, entries)
+    assert (both.joined is not None) == join
     which = rng.integers(0, 2, 400)
     lo, hi = volume.index_to_world(np.zeros((1, 3))), volume.index_to_world(np.array([array.shape]) - 1.0)
     points = rng.uniform(np.minimum(lo, hi) - 8.0, np.maximum(lo, hi) + 8.0, (400, 3))
@@ -349,3 +355,46 @@ def test_a_bank_of_maps_samples_each_map_as_a_bank_of_it_alone():
         d1, g1 = alone.sample(alone.lookup(np.zeros(int(rows.sum()), dtype=np.int64)), points[rows])
         assert np.array_equal(dist[rows], d1) and np.array_equal(grad[rows], g1)
     assert np.all(np.isfinite(dist)) and dist.min() < 0 < dist.max()  # inside and outside samples
+
+
+@pytest.mark.parametrize("shape", [(7, 5, 9), (3, 40, 2), (11, 6)])
+def test_gradient_slab_by_slab_is_numpys_gradient_bit_for_bit(monkeypatch, shape):
+    """The distance maps' gradient, written slab by slab into single precision, equals
+    ``np.gradient`` along every axis cast to float32, with slabs of one row, a few rows and all."""
+    from volreg.warp import linear
+
+    rng = np.random.default_rng(len(shape))
+    dist = rng.normal(0.0, 10.0, shape)
+    step = rng.uniform(0.5, 3.0, len(shape))
+    expected = np.stack([np.gradient(dist, step[a], axis=a) for a in range(len(shape))], axis=-1).astype(np.float32)
+    for slab in (1, 2 * int(np.prod(shape[1:])), 1 << 16):
+        monkeypatch.setattr(linear, "_SLAB_VALUES", slab)
+        out = np.full(shape + (len(shape),), np.nan, dtype=np.float32)
+        linear._gradient_into(dist, step, out)
+        assert np.array_equal(out, expected)
+
+
+def test_distance_map_is_signed_distance_to_the_faces_and_its_gradient():
+    """A label map's values: distance to the faces between inside and outside cells (negative
+    inside) and its central differences, on a grid of unequal spacings."""
+    from volreg.warp.linear import _distance_map
+
+    array = np.zeros((24, 20, 18), dtype=np.int16)
+    array[6:16, 5:15, 4:12] = 3
+    volume = LabelVolume(array, np.zeros(3), np.array([1.0, 1.5, 2.0]), np.eye(3))
+    origin, step, values = _distance_map(volume, 3, volume.label_boxes()[3], np.array([1, 1, 1]), 3.0)
+    assert values.dtype == np.float32 and values.shape[-1] == 4
+    assert np.array_equal(step, volume.spacing)
+    dist = values[..., 0].astype(float)
+    # Along the first axis through the middle of the box: faces half a cell (0.5 mm) beyond the
+    # first and last inside cells; inside, the nearest face may lie along another axis.
+    i, j, k = (np.array([10, 9, 7]) - origin).astype(int)
+    line = dist[:, j, k]
+    inside = np.flatnonzero(line < 0)
+    assert line[inside[0] - 1] == pytest.approx(0.5) and line[inside[0]] == pytest.approx(-0.5)
+    assert line[inside[-1] + 1] == pytest.approx(0.5) and line[inside[-1]] == pytest.approx(-0.5)
+    assert line[inside[0] - 3] == pytest.approx(2.5)
+    grad = values[..., 1:].astype(float)
+    assert np.allclose(grad[1:-1, j, k, 0], (dist[2:, j, k] - dist[:-2, j, k]) / 2.0, atol=1e-6)
+    # Outside, one cell beyond the nearest: the distance falls by 1 mm per mm towards the label.
+    assert grad[inside[0] - 2, j, k, 0] == pytest.approx(-1.0) and grad[inside[-1] + 2, j, k, 0] == pytest.approx(1.0)
