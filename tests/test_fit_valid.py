@@ -103,3 +103,23 @@ def test_bad_valid(problem, valid, match):
     pairs, points = problem
     with pytest.raises(ValueError, match=match):
         fit_warp(pairs, points, settings=SETTINGS, valid=valid)
+
+
+@pytest.mark.parametrize("band, reach", [(None, 0.0), (2.5, 1.5)])
+def test_feature_samples_are_those_within_band_of_the_feature_points(problem, band, reach):
+    """Per feature, the samples whose nearest source surface point is nearer than the band (half
+    the finest implicit width by default) plus the neighbourhood's reach, and no other: the same
+    as a brute-force search over every sample, also for samples near the other feature only."""
+    from volreg.warp.fit import _feature_samples
+
+    pairs, _ = problem
+    rng = np.random.default_rng(3)
+    samples = np.concatenate([rng.uniform([-50.0, -20.0], [50.0, 20.0], (3000, 2)),
+                              pairs[0].f1.points[:200] + rng.normal(0.0, 2.0, (200, 2))])
+    subsets = _feature_samples(pairs, samples, band, reach)
+    assert len(subsets) == len(pairs)
+    for pair, idx in zip(pairs, subsets):
+        limit = (0.5 * min(pair.f1.widths) if band is None else band) + reach
+        nearest = np.min(np.linalg.norm(samples[:, None, :] - pair.f1.points[None], axis=2), axis=1)
+        assert np.array_equal(idx, np.flatnonzero(nearest < limit))
+        assert 50 < len(idx) < len(samples) // 2

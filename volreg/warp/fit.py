@@ -163,9 +163,14 @@ def _feature_samples(features, samples: np.ndarray, band: float | None, reach: f
             continue
         if hasattr(pair.f1, "points"):
             # Distance to the surface points, not |f1|: far from its surface a kernel fit can
-            # pass through 0 again, which would let far-away samples in.
-            dist = cKDTree(pair.f1.points).query(samples, distance_upper_bound=limit + reach)[0]
-            out.append(np.flatnonzero(np.isfinite(dist)))
+            # pass through 0 again, which would let far-away samples in.  Only the samples in
+            # the points' box grown by that distance can be that near (one label of many: few).
+            pts = pair.f1.points
+            r = limit + reach
+            lo, hi = column_bounds(pts)
+            idx = np.flatnonzero(np.all((samples >= lo - r) & (samples <= hi + r), axis=1))
+            dist = cKDTree(pts).query(samples[idx], distance_upper_bound=r)[0]
+            out.append(idx[np.isfinite(dist)])
             continue
         lo, hi = pair.f1.bounds()
         idx = np.flatnonzero(np.all((samples >= lo - reach) & (samples <= hi + reach), axis=1))
