@@ -481,7 +481,12 @@ class _MapBank:
         top = (self.shapes[which] - 1).astype(float)
         strides = self.strides[which]
         if self.joined is None:
-            groups = [(m, np.flatnonzero(which == m)) for m in np.unique(which)]
+            maps, first = np.unique(which, return_index=True)
+            if np.all(which[1:] >= which[:-1]):  # the samples come map by map: each map's a slice
+                ends = np.append(first[1:], len(which))
+                groups = [(m, slice(int(b), int(e))) for m, b, e in zip(maps, first, ends)]
+            else:
+                groups = [(m, np.flatnonzero(which == m)) for m in maps]
         else:  # one group: every sample's cells counted from the joined array's start
             groups = [(None, self.starts[which])]
         return (inv_f, self.origins[which] * inv_f, top, np.maximum(top - 1.0, 0.0), self.steps[which],
