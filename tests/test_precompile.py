@@ -220,7 +220,7 @@ def test_helpers_started_for_a_fresh_cache_compile_their_shares_of_every_cold_lo
     proc = subprocess.run([sys.executable, "-m", "volreg._precompile", "cold", "1/2"], timeout=600,
                           env=_env(NUMBA_CACHE_DIR=str(cache)))
     assert proc.returncode == 0
-    assert _cold_in(cache) == sorted(order[0::2])  # the other share's
+    assert _cold_in(cache) == sorted(_precompile.shares_of(order, 2)[0])  # the other share's
     proc = subprocess.run([sys.executable, "-m", "volreg._precompile", "cold"], timeout=600,
                           env=_env(NUMBA_CACHE_DIR=str(cache)))
     assert proc.returncode == 0
@@ -251,12 +251,33 @@ def test_helpers_for_a_batch_share_the_cold_loops_between_them(monkeypatch):
     _Started.commands = []
     assert len(_precompile.start(2)) == 2
     order = [str(i) for i in _precompile.helper_order(cold)]
-    assert _Started.commands == [order[0::2], order[1::2]]
+    # _grid_pairs (2), which shares compiled callees with the other kernel sums, on a helper of
+    # its own; the others dealt to the rest
+    assert _Started.commands == [["2"], [w for w in order if w != "2"]]
     _Started.commands = []
     assert len(_precompile.start(9)) == len(cold)  # no helper without a loop
     assert sorted(sum(_Started.commands, [])) == sorted(order)
     monkeypatch.setattr(_precompile, "cold_loops", lambda: [3])  # one loop: compiled where needed
     assert _precompile.start(2) == []
+
+
+def test_loops_that_share_compiled_callees_go_to_one_helper():
+    """The kernel sums together on the first helper, the other loops dealt to the others, every
+    loop once and each share in the order given; one helper, or none of those loops: dealt in turn."""
+    names = [name for _, name, _ in LOOPS]
+    assert set(_precompile.SHARED_CALLEES) <= set(names)
+    order = _precompile.helper_order(list(range(len(LOOPS))))
+    together = [i for i in order if names[i] in _precompile.SHARED_CALLEES]
+    for n in (2, 3):
+        shares = _precompile.shares_of(order, n)
+        assert len(shares) == n and shares[0] == together
+        assert sorted(sum(shares, [])) == sorted(order)
+        for share in shares:
+            assert share == [i for i in order if i in share]
+    assert _precompile.shares_of(order, 1) == [order]
+    others = [i for i in order if i not in together]
+    assert _precompile.shares_of(others, 2) == [others[0::2], others[1::2]]
+    assert _precompile.shares_of([], 3) == [[], [], []]
 
 
 def test_waiting_for_helpers_ends_with_them_or_at_the_timeout():

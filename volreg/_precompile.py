@@ -12,8 +12,8 @@ The two meet among the early loops; the helper is stopped when the command ends 
 and what it cached stays for the next run.
 
 ``batch`` on a local cluster starts one helper per worker instead (``start(shares)``), each
-compiling every n-th loop, and submits its tasks once they have ended (:func:`wait`): its
-workers would otherwise each compile the same loops at once.
+compiling a share of the loops (:func:`shares_of`), and submits its tasks once they have ended
+(:func:`wait`): its workers would otherwise each compile the same loops at once.
 
 The helper is started only where the cache can be written and at least two of these loops
 are not cached yet, so a warm run costs only the check (a few small index reads).  On a fresh
@@ -33,7 +33,8 @@ import subprocess
 import sys
 import time
 
-__all__ = ["HELPER_FROM", "LOOPS", "argument_types", "cold_loops", "helper_order", "start", "stop", "wait"]
+__all__ = ["HELPER_FROM", "LOOPS", "SHARED_CALLEES", "argument_types", "cold_loops", "helper_order", "shares_of", "start",
+           "stop", "wait"]
 
 #: The compiled loops of a 3-D label-volume registration (``register``, ``consistency``,
 #: ``tune``), in the order a run first calls them, with the argument types it calls them with:
@@ -138,6 +139,41 @@ def helper_order(cold: list[int]) -> list[int]:
     return [i for i in ordered if i >= HELPER_FROM] + [i for i in reversed(ordered) if i < HELPER_FROM]
 
 
+#: Loops that call the same compiled functions (the kernel sums' neighbour searches, gathers and
+#: kernel): the first of them compiled in a process compiles those, and the others reuse them.
+#: :func:`shares_of` keeps them on one helper.  The fifteen loops on an empty cache, two helpers
+#: (alternating runs, two each): these four on one and the rest on the other ended at 4.9-5.1 s;
+#: every other loop of :func:`helper_order` at 5.4-5.6 s (the later helper); split by each
+#: loop's compile time, 6.1-6.3 s.
+SHARED_CALLEES = ("_grid_pairs", "_blocked_sum", "_segmented_sums", "_blocked_sum_vector")
+
+
+def shares_of(order: list[int], n: int) -> list[list[int]]:
+    """The loops ``order`` (indices into :data:`LOOPS`, as :func:`helper_order` gives them)
+    split among ``n`` helpers, each share in that order.
+
+    Those of :data:`SHARED_CALLEES` together in the first share, the others dealt in turn to
+    the other shares; with one helper, or none of those loops, all dealt in turn to all.
+
+    Parameters
+    ----------
+    order : list of int
+    n : int
+        At least 1.
+
+    Returns
+    -------
+    list of n lists of int
+        Some may be empty (fewer loops than helpers).
+    """
+    n = max(1, int(n))
+    together = [i for i in order if LOOPS[i][1] in SHARED_CALLEES]
+    if n == 1 or not together:
+        return [list(order[k::n]) for k in range(n)]
+    rest = [i for i in order if LOOPS[i][1] not in SHARED_CALLEES]
+    return [together] + [rest[k::n - 1] for k in range(n - 1)]
+
+
 def _dispatcher(index: int):
     module, name, _ = LOOPS[index]
     return getattr(importlib.import_module(module), name)
@@ -213,7 +249,7 @@ def start(shares: int = 1) -> list[subprocess.Popen]:
     Parameters
     ----------
     shares : int
-        How many helpers, each compiling every ``shares``-th loop of :func:`helper_order`: one
+        How many helpers, each compiling its share of the cold loops (:func:`shares_of`): one
         beside a command that compiles the rest itself; one per worker where the workers wait
         for them (``batch``, :func:`wait`), so that no two processes compile the same loop.
 
@@ -232,7 +268,7 @@ def start(shares: int = 1) -> list[subprocess.Popen]:
         if cold is None or len(cold) < 2:
             return []
         order = helper_order(cold)
-        words = [[str(i) for i in order[k::shares]] for k in range(min(shares, len(order)))]
+        words = [[str(i) for i in share] for share in shares_of(order, shares) if share]
     else:
         words = [["cold", f"{k}/{shares}"] for k in range(shares)]
     helpers = []
@@ -286,7 +322,7 @@ def _on_sigterm(signum, frame) -> None:
 
 def _main(argv: list[str]) -> int:
     """The helper: compile the :data:`LOOPS` entries whose indices ``argv`` gives, in that order
-    (or, given ``cold K/N``, every N-th from the K-th of those not cached yet, in
+    (or, given ``cold K/N``, share K of N (:func:`shares_of`) of those not cached yet, in
     :func:`helper_order`; ``cold`` alone: all of them).
 
     SIGTERM stops it: at once where Python runs, else (inside a ctypes callback of LLVM, where
@@ -305,7 +341,8 @@ def _main(argv: list[str]) -> int:
     parent = os.getppid()
     if argv[:1] == ["cold"]:  # started at once: find the cold loops here, and take share k of n
         k, n = (int(w) for w in (argv[1] if len(argv) > 1 else "0/1").split("/"))
-        argv = [str(i) for i in helper_order(cold_loops() or [])[k::n]]
+        shares = shares_of(helper_order(cold_loops() or []), n)
+        argv = [str(i) for i in shares[k]] if 0 <= k < len(shares) else []
     try:
         for word in argv:
             if _stopping or os.getppid() != parent:  # stopped, or the command was killed outright
