@@ -410,8 +410,8 @@ def _gradient_into(dist: np.ndarray, step: np.ndarray, out: np.ndarray) -> None:
     """``np.gradient(dist, step[a], axis=a)`` into ``out[..., a]`` for every axis ``a``.
 
     The same values (differences in float64, cast on assignment), computed slab by slab along
-    the first axis instead of as whole float64 arrays: the gradient of the 1 mm phantom's grey
-    shell map (8.8 M cells) took 0.56 s that way.
+    the first axis instead of as whole float64 arrays: for the 1 mm phantom's grey shell map
+    (8.8 M cells) those took 0.56 s of the map's 1.23 s, and the whole map now takes 0.44 s.
 
     Parameters
     ----------
@@ -445,10 +445,10 @@ class _MapBank:
     into one array: on a 1 mm brain-size volume each is hundreds of MB); a sample names
     its map by position.  Small maps together (at most :data:`_JOIN_BYTES`) are also
     copied into one array, so that the samples of all of them are read in one gather
-    (a hundred labels' maps were read map by map and corner by corner).  Values are multilinear interpolants of the distance and of
-    its (central-difference) gradient; beyond a map's box the distance continues
-    as ``d(q) + |p - q|`` (``q`` the nearest point of the box), a lower bound that
-    keeps pulling stray points back.
+    (a hundred labels' maps were read map by map and corner by corner).  Values are
+    multilinear interpolants of the distance and of its (central-difference) gradient;
+    beyond a map's box the distance continues as ``d(q) + |p - q|`` (``q`` the nearest
+    point of the box), a lower bound that keeps pulling stray points back.
     """
 
     def __init__(self, volume, entries: list[tuple]):
