@@ -360,7 +360,8 @@ def test_a_bank_of_maps_samples_each_map_as_a_bank_of_it_alone(monkeypatch, join
 @pytest.mark.parametrize("shape", [(7, 5, 9), (3, 40, 2), (11, 6)])
 def test_gradient_slab_by_slab_is_numpys_gradient_bit_for_bit(monkeypatch, shape):
     """The distance maps' gradient, written slab by slab into single precision, equals
-    ``np.gradient`` along every axis cast to float32, with slabs of one row, a few rows and all."""
+    ``np.gradient`` along every axis cast to float32, with slabs of the fewest rows (4), a few
+    rows and all."""
     from volreg.warp import linear
 
     rng = np.random.default_rng(len(shape))

@@ -420,16 +420,13 @@ def _gradient_into(dist: np.ndarray, step: np.ndarray, out: np.ndarray) -> None:
     out : (N0, ..., D) float ndarray, written
     """
     n = dist.shape[0]
-    rows = max(1, _SLAB_VALUES // max(1, dist[0].size))
+    rows = max(4, _SLAB_VALUES // max(1, dist[0].size))
     for s in range(0, n, rows):
         e = min(n, s + rows)
-        lo, hi = max(s, 1), min(e, n - 1)
-        if hi > lo:
-            out[lo:hi, ..., 0] = (dist[lo + 1 : hi + 1] - dist[lo - 1 : hi - 1]) / (2.0 * step[0])
-        if s == 0:
-            out[0, ..., 0] = (dist[1] - dist[0]) / step[0]
-        if e == n:
-            out[n - 1, ..., 0] = (dist[n - 1] - dist[n - 2]) / step[0]
+        # Along the first axis from a row more on each side (where there is one), so that the
+        # slab's first and last rows get central differences too; the other axes from the slab.
+        a0, b0 = max(s - 1, 0), min(e + 1, n)
+        out[s:e, ..., 0] = np.gradient(dist[a0:b0], step[0], axis=0)[s - a0 : e - a0]
         for a in range(1, dist.ndim):
             out[s:e, ..., a] = np.gradient(dist[s:e], step[a], axis=a)
 
