@@ -299,6 +299,8 @@ def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float, *
     (N, M) scipy.sparse.csr_matrix
         Column indices refer to the original order of ``cols``; sorted per row if ``sort``.
     """
+    if np.dtype(dtype) not in (np.float32, np.float64):
+        raise ValueError(f"Expected `dtype` float32 or float64, got {np.dtype(dtype)}.")
     grid = cols if isinstance(cols, CellGrid) else CellGrid.build(_check_points("cols", cols), sigma)
     dim = grid.points.shape[1]
     rows = _check_points("rows", rows, dim)
@@ -307,8 +309,6 @@ def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float, *
     indptr = np.zeros(len(rows) + 1, dtype=np.int64)
     gorder = grid.order.astype(np.int64)
     args = (rows, grid.points, gorder, grid.start, grid.lo, grid.cell, grid.dims, max_runs(grid), float(sigma))
-    if np.dtype(dtype) not in (np.float32, np.float64):
-        raise ValueError(f"Expected `dtype` float32 or float64, got {np.dtype(dtype)}.")
     run_parts(_grid_pairs, _query_parts(rows), *args, indptr, np.zeros(0, np.int32), np.zeros(0, np.float32), False)
     np.cumsum(indptr, out=indptr)
     nnz = int(indptr[-1])
