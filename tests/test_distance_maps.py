@@ -135,8 +135,8 @@ def test_bad_arguments(kwargs, message):
 def test_distance_maps_carry_a_label_without_a_surface():
     """A label of a few voxels (no surface: too small) drives the warp through its distance map:
     a cube of 2 x 2 x 2 voxels less one 10 voxels from a sphere, shifted by 2 voxels in the moving volume, comes
-    back in place (Dice 1) with the maps and is missed without them (no linear stage, which would
-    move it by its own distance maps)."""
+    back in place (Dice 1) with the maps and is missed with the implicit surfaces alone (no linear
+    stage, which would move it by its own distance maps)."""
     from volreg.evaluation.metrics import dice
     from volreg.io.protocol import load_protocol
     from volreg.register import register_labels
@@ -151,8 +151,8 @@ def test_distance_maps_carry_a_label_without_a_surface():
     out = {}
     for weight in (0.0, 2.0):
         protocol = load_protocol("default")
-        protocol = dataclasses.replace(protocol, surface=dataclasses.replace(protocol.surface, distance_weight=weight),
-                                       linear=LinearSettings("none"))
+        surface = dataclasses.replace(protocol.surface, implicit_weight=1.0, distance_weight=weight)
+        protocol = dataclasses.replace(protocol, surface=surface, linear=LinearSettings("none"))
         result = register_labels(fixed, moving, protocol=protocol)
         assert result.labels == [1]  # label 2 has no surface either way
         assert result.distance_labels == ([1, 2] if weight else [])
@@ -168,8 +168,9 @@ def test_distance_maps_carry_a_label_without_a_surface():
 
 def test_distance_maps_alone_drive_when_no_label_gives_a_surface():
     """Three labels of 7 voxels each (none gives a surface), shifted 3 mm along i in the moving
-    volume: the distance maps alone register them (Dice 1, measured shifts 2.98-3.00 mm); with
-    distance_weight 0 nothing drives and the registration stops with a clear error."""
+    volume: the distance maps register them (Dice 1, measured shifts 2.98-3.00 mm; by default, and
+    beside implicit surfaces, which then note the labels they leave out); with the implicit surfaces
+    alone nothing drives and the registration stops with a clear error."""
     from volreg.evaluation.metrics import dice
     from volreg.errors import RegistrationInputError
     from volreg.register import register_labels
@@ -186,20 +187,28 @@ def test_distance_maps_alone_drive_when_no_label_gives_a_surface():
         fixed_a[i, j, k] = moving_a[i + 2, j, k] = 0
     geometry = dict(spacing=np.full(3, 1.5), origin=np.zeros(3), direction=np.eye(3))
     fixed, moving = LabelVolume(fixed_a, **geometry), LabelVolume(moving_a, **geometry)
-    result = register_labels(fixed, moving)
-    assert result.labels == [] and result.distance_labels == [1, 2, 3]
-    assert result.skipped[0] == ("fixed volume: Skipping label 1: Label 1 has 7 voxels, fewer than min_voxels=8; "
-                                 "its voxel distance map drives instead.")
-    assert result.skipped[5].startswith("moving volume: Skipping label 3:")
-    u, _ = fields_on_grid(result.warp, fixed)
-    warped = resample_labels(moving, fixed.grid_points() + u)
-    for label in (1, 2, 3):
-        assert dice(fixed_a == label, warped == label) == 1.0
-        assert np.allclose(u[fixed_a == label], [3.0, 0.0, 0.0], atol=0.1)
-    protocol = load_protocol("default")
-    protocol = dataclasses.replace(protocol, surface=dataclasses.replace(protocol.surface, distance_weight=0.0))
+    default = load_protocol("default")
+    with_implicit = dataclasses.replace(default, surface=dataclasses.replace(default.surface, implicit_weight=1.0))
+    for protocol in (default, with_implicit):
+        result = register_labels(fixed, moving, protocol=protocol)
+        assert result.labels == [] and result.distance_labels == [1, 2, 3]
+        if protocol is default:
+            assert result.skipped == []  # no surface drives, so none is left out
+        else:
+            assert result.skipped[0] == ("fixed volume: Skipping label 1: Label 1 has 7 voxels, fewer than "
+                                         "min_voxels=8; its voxel distance map drives instead.")
+            assert result.skipped[5].startswith("moving volume: Skipping label 3:")
+        u, _ = fields_on_grid(result.warp, fixed)
+        warped = resample_labels(moving, fixed.grid_points() + u)
+        for label in (1, 2, 3):
+            assert dice(fixed_a == label, warped == label) == 1.0
+            assert np.allclose(u[fixed_a == label], [3.0, 0.0, 0.0], atol=0.1)
+    protocol = dataclasses.replace(default, surface=dataclasses.replace(default.surface, implicit_weight=1.0,
+                                                                         distance_weight=0.0))
     with pytest.raises(RegistrationInputError, match="distance_weight is 0; nothing drives the warp"):
         register_labels(fixed, moving, protocol=protocol)
+    with pytest.raises(ValueError, match="`implicit_weight` or `distance_weight` > 0"):
+        dataclasses.replace(default.surface, distance_weight=0.0)
 
 
 def _sphere_on_grid(spacing, radius=25.0, centre=(45.3, 44.6, 45.1), size=90.0):

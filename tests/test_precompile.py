@@ -22,21 +22,14 @@ from test_register import blob_volume
 
 #: Run in a fresh interpreter: register a small pair with the default protocol, then print every
 #: signature that any of volreg's compiled loops holds (the cache is warm or not: loaded
-#: signatures count as well as compiled ones).  The small pair's implicit fits take their
-#: residuals one query at a time; on larger surfaces (the frog) they come in blocks of nearby
-#: queries, which one scalar kernel sum on a grid stands for here, as a large mask's distances
-#: stand for the linear stage's on larger volumes.
+#: signatures count as well as compiled ones).  A large mask's distances stand for the linear
+#: stage's on larger volumes.
 _CALLED = """
 import json, sys
 import numpy as np
 from numba.core.registry import CPUDispatcher
 from volreg.cli import main
-from volreg.kernels.sums import kernel_sum
 status = main(["register", sys.argv[1], sys.argv[2], "-o", sys.argv[3], "--quiet"])
-axes = [np.linspace(0.0, 20.0, 30), np.linspace(0.0, 20.0, 30), np.linspace(0.0, 2.0, 30)]
-grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # rows within a block's width
-centres = np.ascontiguousarray(grid[::7])
-kernel_sum(grid, centres, np.ones((len(centres), 1)), 6.0, order=1)
 # The linear stage's distances of a mask as large as the frog's take separable passes.
 from volreg.features.distance_maps import SEPARABLE_CELLS, euclidean_distance
 mask = np.ones((SEPARABLE_CELLS // 16384 + 1, 128, 128), bool)
@@ -246,16 +239,19 @@ def test_helpers_for_a_batch_share_the_cold_loops_between_them(monkeypatch):
     assert _Started.commands == [["cold", "0/3"], ["cold", "1/3"], ["cold", "2/3"]]
     # a cache that holds some loops: this process splits those it lacks
     monkeypatch.setattr(_precompile, "_first_index_seen", lambda: True)
-    cold = [0, 2, 3, _precompile.HELPER_FROM, len(LOOPS) - 1]
+    pairs = next(i for i, (_, name, _) in enumerate(LOOPS) if name == "_grid_pairs")
+    cold = sorted({0, 2, pairs, _precompile.HELPER_FROM, len(LOOPS) - 1})
     monkeypatch.setattr(_precompile, "cold_loops", lambda: cold)
     _Started.commands = []
     assert len(_precompile.start(2)) == 2
     order = [str(i) for i in _precompile.helper_order(cold)]
-    # _grid_pairs (2), which shares compiled callees with the other kernel sums, on a helper of
-    # its own; the others dealt to the rest
-    assert _Started.commands == [["2"], [w for w in order if w != "2"]]
+    # _grid_pairs and the others that share compiled callees with it on one helper; the others
+    # dealt to the rest
+    shared = [w for w in order if LOOPS[int(w)][1] in _precompile.SHARED_CALLEES]
+    assert str(pairs) in shared and len(shared) < len(order)
+    assert _Started.commands == [shared, [w for w in order if w not in shared]]
     _Started.commands = []
-    assert len(_precompile.start(9)) == len(cold)  # no helper without a loop
+    assert len(_precompile.start(9)) == len(cold) - len(shared) + 1  # no helper without a loop
     assert sorted(sum(_Started.commands, [])) == sorted(order)
     monkeypatch.setattr(_precompile, "cold_loops", lambda: [3])  # one loop: compiled where needed
     assert _precompile.start(2) == []

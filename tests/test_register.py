@@ -224,8 +224,8 @@ def test_interior_label_carried(tmp_path):
     assert run(["register", tmp_path / "f.nii.gz", tmp_path / "m.nii.gz", "-o", tmp_path / "out",
                 "--drive-labels", "1", "--quiet"]) == 0
     report = json.loads((tmp_path / "out" / "report.json").read_text())
-    assert report["drive_labels"] == [1]
-    assert report["distance_map_labels"] == [1]  # the chosen labels' distance maps only
+    assert report["drive_labels"] == report["distance_map_labels"] == [1]  # the chosen labels' maps only
+    assert report["implicit_surface_labels"] == []  # none by default
     warped = read_labels(tmp_path / "out" / "warped.nii.gz").array
     assert dice(moving.array == 2, fixed.array == 2) < 0.8  # it did move
     assert dice(warped == 2, fixed.array == 2) >= 0.9

@@ -90,7 +90,7 @@ def test_every_preset_says_how_it_differs_from_the_default(name):
     "protocol",
     [load_protocol(n) for n in PRESETS]
     + [Protocol(name="mine", description='quotes " and \\ backslashes',
-                surface=SurfaceSettings(smoothing=0.0, distance_weight=0.0),
+                surface=SurfaceSettings(smoothing=0.0, implicit_weight=0.5, distance_weight=0.0),
                 warp=WarpSettings(pad=7.5, min_width=3.0, band=2.5, sample_spacing=1.25, max_iter=7,
                                   tolerance=1e-9, lambda_fold=0.0, robust=0.0))],
     ids=PRESETS + ["every-optional-set"],

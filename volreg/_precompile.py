@@ -1,8 +1,8 @@
 """Compile the loops of a first run on both ends at once: the command, and a helper process.
 
 On a fresh install numba compiles volreg's loops the first time each is called and caches
-them on disk (:mod:`volreg._jit`); a registration calls fifteen, and compiling them takes
-about 9 s of one core.  Compiling is pure Python and holds the GIL, so threads cannot share
+them on disk (:mod:`volreg._jit`); a registration calls twelve, and compiling them takes
+about 10 s of one core, imports included.  Compiling is pure Python and holds the GIL, so threads cannot share
 it, but processes can share numba's on-disk cache: a command that registers volumes starts
 one helper process (:func:`start`) that compiles the loops of the later stages (from
 :data:`HELPER_FROM` on) into the cache, then the earlier ones from the last back
@@ -42,29 +42,19 @@ __all__ = ["HELPER_FROM", "LOOPS", "SHARED_CALLEES", "argument_types", "cold_loo
 #: scalar.  ``tests/test_precompile.py`` checks that a registration calls each with exactly these.
 LOOPS = (
     ("volreg.features.distance_maps", "_squared_distance_lines", "int64 int64 float64[3] int64 float64"),
+    ("volreg.features.distance_maps", "_clipped_sdf_band",
+     "int64 int64 bool[3] bool[3] int64[2] float32[1] float32 float32[3]"),
+    ("volreg.features.distance_maps", "_bspline3_segments",
+     "int64 int64 float32[1] int64[1] int64[2] int64[1] float64[2] int64 float64[1] float64[2] float64[3]"),
     ("volreg.kernels._compiled", "_cell_sort", "ro:float64[2] float64[1] float64 int64[1]"),
     ("volreg.kernels._compiled", "_grid_pairs",
      "int64 int64 float64[2] float64[2] int64[1] int32[1] float64[1] float64 int64[1] int64 float64 "
      "int64[1] int32[1] float32[1] bool"),
-    ("volreg.features.implicit", "_svr_coordinate_descent",
-     "int32[1] int32[1] float32[1] float64[1] float64[1] float64 float64 float64[1] float64[1] int64 "
-     "float64"),
-    ("volreg.kernels._compiled", "_query_blocks", "float64[2] float64 int64"),
-    ("volreg.kernels._compiled", "_blocked_sum",
-     "int64 int64 float64[2] int64[1] float64[1] float64[1] float64[1] float64[2] int32[1] float64[1] "
-     "float64 int64[1] float64 float64[2] float64[3]"),
-    ("volreg.features.distance_maps", "_clipped_sdf_band",
-     "int64 int64 bool[3] bool[3] int64[2] float32[1] float32 float32[3]"),
-    ("volreg.kernels._compiled", "_segmented_sums",
-     "int64 int64 float64[2] int64[1] int64[1] int64[1] int64[1] float64[1] float64[1] float64[1] "
-     "float64[1] int32[1] float64[2] float64[1] int64[2] float64[1] int64 int64 float64[2] float64[3] "
-     "float64[4]"),
-    ("volreg.features.distance_maps", "_bspline3_segments",
-     "int64 int64 float32[1] int64[1] int64[2] int64[1] float64[2] int64 float64[1] float64[2] float64[3]"),
     ("volreg.kernels._compiled", "_csr_matmul_shared",
      "int64 int64 int32[1] int32[1] float64[2] float64[2] float64[3]"),
     ("volreg.kernels._compiled", "_csr_matmul_shared_sum",
      "int64 int64 int32[1] int32[1] float64[2] float64[3] float64[2]"),
+    ("volreg.kernels._compiled", "_query_blocks", "float64[2] float64 int64"),
     ("volreg.kernels._compiled", "_blocked_sum_vector",
      "int64 int64 float64[2] int64[1] float64[1] float64[1] float64[1] float64[2] int32[1] float64[1] "
      "float64 int64[1] float64 float64[2] float64[3]"),
@@ -75,12 +65,15 @@ LOOPS = (
      "float64[2]"),
 )
 
-#: The first of :data:`LOOPS` that the helper compiles: the first one needed after the implicit
-#: surfaces.  The command reaches the implicit surfaces' loops (on the frog, 2.5 s after it starts)
-#: before a helper started with it could have compiled them, so it compiles those itself while the
-#: helper compiles the later stages' loops in the order they are needed, and then the earlier ones
-#: from the last back, until the two meet (:func:`helper_order`).
-HELPER_FROM = next(i for i, (_, name, _) in enumerate(LOOPS) if name == "_clipped_sdf_band")
+#: The first of :data:`LOOPS` that the helper compiles: the warp fit's first.  The command
+#: reaches the distance maps' loops (the linear stage, the voxel distance maps, the B-spline
+#: reader) before a helper started with it could have compiled them, so it compiles those itself
+#: while the helper compiles the warp fit's and the outputs' loops in the order they are needed,
+#: and then the earlier ones from the last back, until the two meet (:func:`helper_order`).  A
+#: first ``register`` of the 3 mm frog took 2.9-3.3 s longer than a warm one starting here, 4.8-5.1 s
+#: starting at ``_clipped_sdf_band`` or ``_bspline3_segments``, 3.3-4.5 s at ``_grid_pairs``
+#: (alternating runs, two or three each).
+HELPER_FROM = next(i for i, (_, name, _) in enumerate(LOOPS) if name == "_cell_sort")
 
 _WORD = re.compile(r"(ro:)?(bool|int32|int64|float32|float64)(?:\[([1-4])\])?")
 
@@ -139,13 +132,12 @@ def helper_order(cold: list[int]) -> list[int]:
     return [i for i in ordered if i >= HELPER_FROM] + [i for i in reversed(ordered) if i < HELPER_FROM]
 
 
-#: Loops that call the same compiled functions (the kernel sums' neighbour searches, gathers and
-#: kernel): the first of them compiled in a process compiles those, and the others reuse them.
-#: :func:`shares_of` keeps them on one helper.  The fifteen loops on an empty cache, two helpers
-#: (alternating runs, two each): these four on one and the rest on the other ended at 4.9-5.1 s;
-#: every other loop of :func:`helper_order` at 5.4-5.6 s (the later helper); split by each
-#: loop's compile time, 6.1-6.3 s.
-SHARED_CALLEES = ("_grid_pairs", "_blocked_sum", "_segmented_sums", "_blocked_sum_vector")
+#: The kernel sums and their neighbour searches, which call the same compiled functions (cell
+#: ranges, gathers, the kernel): :func:`shares_of` keeps them on one helper.  The twelve loops on
+#: an empty cache, two helpers (alternating runs): these four on one and the other eight on the
+#: other ended at 5.9-6.3 s; the two kernel sums alone on one 7.0-7.1 s; every other loop of
+#: :func:`helper_order` 7.6-7.9 s.
+SHARED_CALLEES = ("_grid_pairs", "_blocked_sum_vector", "_query_blocks", "_cell_sort")
 
 
 def shares_of(order: list[int], n: int) -> list[list[int]]:

@@ -206,9 +206,11 @@ class LabelRegistration(RegistrationResult):
     Attributes
     ----------
     labels : list of int
-        The labels whose surfaces drove the warp.
+        The labels whose implicit surfaces drove the warp (protocol ``surface.implicit_weight``
+        > 0; none by default).
     skipped : list of str
-        Labels left out (too small in one of the volumes), with the reason.
+        Labels whose implicit surfaces were left out (too small in one of the volumes, or
+        speckled), with the reason.
     distance_labels : list of int
         The labels whose voxel signed-distance maps drove the warp (protocol
         ``surface.distance_weight`` > 0).
@@ -243,23 +245,21 @@ def register_labels(
 ) -> LabelRegistration:
     """Register two label volumes: ``result.warp`` maps fixed points to moving points (pull-back).
 
-    Each driving label gives one feature pair (paper (6)): the kernel implicit
-    surface (Section 4) of its boundary in the fixed volume (``f1``, O1) and in
-    the moving volume (``f2``, O2).  With the protocol's
-    ``surface.distance_weight`` > 0 (the presets) every label present in both
-    volumes (or every drive label) also gives a pair of voxel signed-distance
-    maps (:class:`~volreg.distance_maps.VoxelDistance`, not in the paper), so that
-    labels too small or too fragmented for a surface drive the warp as well
-    (frog demo at 3 mm: endpoint error 0.52 / 1.18 -> 0.51 / 0.84 mm, mean / p95;
-    at 1 x 1 x 1.5 mm 0.29 / 1.08 -> 0.21 / 0.40).  The warp is fitted in the
-    padded neighbourhood of the fixed surfaces (:func:`fit_warp`).
+    Each label present in both volumes (or each drive label) gives a feature pair (paper (6)):
+    its signed distance function (3)-(4) in the fixed volume (``f1``, O1) and in the moving
+    volume (``f2``, O2), read from the label's voxels
+    (:class:`~volreg.distance_maps.VoxelDistance`, weight ``surface.distance_weight``), so that
+    labels too small or too fragmented for a surface drive the warp as well.  With the
+    protocol's ``surface.implicit_weight`` > 0 each label with a surface in both volumes also
+    gives the pair of kernel implicit surfaces (Section 4) of its boundary meshes.  The warp
+    is fitted in the padded neighbourhood of the fixed boundary meshes (:func:`fit_warp`).
 
     Parameters
     ----------
     fixed, moving : LabelVolume
     drive_labels : sequence of int, optional
-        Labels whose surfaces (and distance maps) drive the warp; default every label present in
-        both volumes except speckled ones (less than :data:`COMPACT_FRACTION` of
+        Labels whose distance maps (and implicit surfaces) drive the warp; default every label
+        present in both volumes; their implicit surfaces and meshes leave out speckled ones (less than :data:`COMPACT_FRACTION` of
         the voxels in pieces of at least 5 % of the label, see :func:`despeckle`).
         Specks (pieces under :data:`SPECK_FRACTION` of the label) are removed
         before the surfaces are made.  Labels too small to give a surface in
@@ -283,8 +283,8 @@ def register_labels(
     ------
     RegistrationInputError
         No label in common, a requested label absent from a volume, or, with
-        the protocol's ``distance_weight`` 0, no label with a surface in both
-        volumes (with distance maps every common label drives, surface or not).
+        the protocol's ``distance_weight`` 0 (implicit surfaces alone), no label with a surface
+        in both volumes (with distance maps every common label drives, surface or not).
     """
     from volreg.io.protocol import load_protocol
     from volreg.warp.linear import fit_linear
@@ -301,11 +301,18 @@ def register_labels(
     stages.append(dict(stage="linear", seconds=time.perf_counter() - t0))
 
     t0 = time.perf_counter()
+    implicit = protocol.surface.implicit_weight > 0
     clean_fixed, clean_moving, labels, skipped = _despeckled(fixed, moving, labels, drive_labels is None,
                                                              protocol.surface)
-    s_fixed, s_moving, notes = _surface_pairs(clean_fixed, clean_moving, labels, protocol.surface, unit, progress)
-    skipped += notes
-    used = [v for v in labels if v in s_fixed and v in s_moving]
+    # The fixed meshes delimit the warp volume X; the moving ones are needed only for implicit surfaces.
+    s_fixed, s_moving, notes = _surface_pairs(clean_fixed, clean_moving if implicit else None, labels,
+                                              protocol.surface, unit, progress)
+    meshed = [v for v in labels if v in s_fixed]
+    used = [v for v in meshed if v in s_moving]
+    if implicit:
+        skipped += notes
+    else:
+        skipped = []  # no surface drives: nothing is left out
     if not used and protocol.surface.distance_weight <= 0:
         # With distance maps (distance_weight > 0) every label drives, with a surface or not.
         raise RegistrationInputError(
@@ -314,9 +321,11 @@ def register_labels(
         )
     stages.append(dict(stage="surfaces", seconds=time.perf_counter() - t0))
 
-    t0 = time.perf_counter()
-    pairs = _implicit_pairs(s_fixed, s_moving, used, protocol.surface, unit, linear, progress)
-    stages.append(dict(stage="implicit surfaces", seconds=time.perf_counter() - t0))
+    pairs = []
+    if implicit:
+        t0 = time.perf_counter()
+        pairs = _implicit_pairs(s_fixed, s_moving, used, protocol.surface, unit, linear, progress)
+        stages.append(dict(stage="implicit surfaces", seconds=time.perf_counter() - t0))
 
     distance_labels = []
     boxes_f = {}
@@ -331,7 +340,7 @@ def register_labels(
         stages.append(dict(stage="voxel distance maps", seconds=time.perf_counter() - t0))
 
     t0 = time.perf_counter()
-    points = _warp_volume_points(fixed, s_fixed, used, distance_labels, boxes_f)
+    points = _warp_volume_points(fixed, s_fixed, meshed, distance_labels, boxes_f)
     if len(points) < 2:
         raise RegistrationInputError(
             f"The labels that drive the warp ({(used or distance_labels)[:30]}) give {len(points)} point to fit it at "
@@ -346,14 +355,14 @@ def register_labels(
         prior = _then(prior, back)
     valid = None
     if cut["fixed"] or cut["moving"]:
-        margin = (protocol.surface.min_width_voxels + protocol.surface.distance_clip) * unit
+        margin = protocol.surface.min_width_voxels * unit + protocol.surface.clip_mm(unit)
         boxes = _world_boxes(fixed, cut["fixed"]) + _world_boxes(moving, cut["moving"], back)
         valid = _field_of_view_test(fixed, moving, linear, margin, boxes)
     result = fit_warp(pairs, points, landmarks=landmarks, settings=protocol.warp, prior=prior, valid=valid,
                       progress=progress)
     warp = result.warp if linear.is_identity else result.warp.then(linear)
     stages.append(dict(stage="fit warp", seconds=time.perf_counter() - t0))
-    return LabelRegistration(warp, result.log, labels=used, skipped=skipped, stages=stages,
+    return LabelRegistration(warp, result.log, labels=used if implicit else [], skipped=skipped, stages=stages,
                              distance_labels=[int(v) for v in distance_labels], linear=linear_fit,
                              cut_labels=cut)
 
@@ -531,19 +540,21 @@ def _despeckled(fixed, moving, labels: list[int], choose: bool, settings: Surfac
 
 
 def _surface_pairs(clean_fixed, clean_moving, labels: list[int], settings: SurfaceSettings, unit: float, progress):
-    """The boundary meshes of ``labels`` in both volumes; labels too small for one are noted, not fatal.
+    """The boundary meshes of ``labels`` in both volumes (in the fixed one only when ``clean_moving``
+    is None); labels too small for one are noted, not fatal.
 
     Both are blurred by ``settings.smoothing * unit`` mm (:func:`feature_unit`), whatever their grids.
 
     Returns
     -------
     s_fixed, s_moving : dict of int to Surface
+        ``s_moving`` is empty when ``clean_moving`` is None.
     skipped : list of str
         One note per label and volume without a surface.
     """
     from volreg.features.label_surfaces import surfaces_of_volumes, voxel_size
 
-    volumes = (clean_fixed, clean_moving)
+    volumes = (clean_fixed,) if clean_moving is None else (clean_fixed, clean_moving)
     # label_surface counts the blur in each volume's own largest spacing
     smoothing = [settings.smoothing * unit / voxel_size(volume) for volume in volumes]
     # Both volumes' meshes on the threads at once (one volume after the other, the 1 mm phantom's
@@ -557,7 +568,7 @@ def _surface_pairs(clean_fixed, clean_moving, labels: list[int], settings: Surfa
                 skipped.append(f"{name} volume: {message.rstrip('.')}; its voxel distance map drives instead.")
             else:
                 skipped.append(f"{name} volume: {message}")
-    return found[0][0], found[1][0], skipped
+    return found[0][0], found[1][0] if len(found) > 1 else {}, skipped
 
 
 def _implicit_pairs(s_fixed, s_moving, used: list[int], settings: SurfaceSettings, unit: float, linear,
@@ -598,7 +609,8 @@ def _implicit_pairs(s_fixed, s_moving, used: list[int], settings: SurfaceSetting
     fits = thread_map(fit, jobs)
     try:
         for i, (f1, f2) in enumerate(zip(fits, fits)):
-            pairs.append(FeaturePair(f1, f2 if linear.is_identity else LinearlyMapped(f2, linear)))
+            pairs.append(FeaturePair(f1, f2 if linear.is_identity else LinearlyMapped(f2, linear),
+                                     settings.implicit_weight))
             if progress is not None:
                 progress("fit implicit surfaces", i + 1, len(used))
     finally:
@@ -654,7 +666,7 @@ def _voxel_distance(volume, value: int, boxes: dict, settings, unit: float):
     counted in ``unit`` mm)."""
     from volreg.features.distance_maps import VoxelDistance
 
-    clip, smoothing = settings.distance_clip * unit, settings.distance_smoothing * unit
+    clip, smoothing = settings.clip_mm(unit), settings.distance_smoothing * unit
     # Only the label's box, padded beyond VoxelDistance's own crop, is compared with the value.
     pad = np.ceil((clip + 3 * smoothing) / volume.spacing).astype(int) + 3
     lo = np.array([max(b.start - p, 0) for b, p in zip(boxes[value], pad)])
@@ -863,8 +875,9 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
         "command": "register",
         "inputs": {} if inputs is None else inputs,
         "direction": "pull-back: fixed point x corresponds to moving point x + u(x) (LPS mm)",
-        "drive_labels": result.labels,
+        "drive_labels": sorted(set(result.labels) | set(result.distance_labels)),
         "distance_map_labels": result.distance_labels,
+        "implicit_surface_labels": result.labels,
         "skipped_labels": result.skipped,
         "labels": {
             str(v): {"before": scores_before[v], "after": scores_after[v]} for v in labels

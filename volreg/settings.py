@@ -164,7 +164,7 @@ class WarpSettings:
 
 @dataclass(frozen=True)
 class SurfaceSettings:
-    """How label surfaces and their implicit surfaces are made.
+    """How each label's features are made: boundary mesh, kernel implicit surface, voxel distance map.
 
     Attributes
     ----------
@@ -172,21 +172,32 @@ class SurfaceSettings:
         Gaussian blur of each mask before contouring (largest spacing as unit).
     min_width_voxels : float, voxels
         Finest kernel width of the implicit surfaces.
+    implicit_weight : float
+        Weight in the locational cost of each label's pair of kernel implicit surfaces (paper
+        Section 4, fitted to the boundary meshes); 0 = not fitted.  0 by default: with the voxel
+        distance maps alone the whole command was faster and as accurate or more on six of
+        seven measured label pairs (BENCHMARKS.md, "Voxel distance maps alone").
     distance_weight : float
-        Weight, relative to a label's implicit surface, of its voxel signed-distance
-        feature (:class:`~volreg.features.distance_maps.VoxelDistance`, not in the paper) in the
-        locational cost; it also covers labels too small or fragmented for a surface.
-        0 = off (implicit surfaces only, as in the paper).
+        Weight in the locational cost of each label's pair of voxel signed-distance maps
+        (:class:`~volreg.features.distance_maps.VoxelDistance`: the paper's signed distance
+        function (3)-(4) read from the label's voxels), which also covers labels too small or
+        fragmented for a surface.  0 = off (with ``implicit_weight`` 1: the paper's features alone).
     distance_clip : float, voxels
-        The voxel signed distances are clipped to +- this.
+        The voxel signed distances are clipped to +- this, or to ``min_distance_clip`` where
+        that is more (:meth:`clip_mm`).
+    min_distance_clip : float, mm
+        The clip's least value: the features' reach must cover what is left after the
+        linear stage, whatever the voxel size.
     distance_smoothing : float, voxels
         Gaussian blur of the clipped voxel signed distances.
     """
 
     smoothing: float = 1.0
     min_width_voxels: float = 4.0
-    distance_weight: float = 2.0
-    distance_clip: float = 3.0
+    implicit_weight: float = 0.0
+    distance_weight: float = 3.0
+    distance_clip: float = 2.0
+    min_distance_clip: float = 4.0
     distance_smoothing: float = 1.0
 
     def __post_init__(self) -> None:
@@ -194,12 +205,29 @@ class SurfaceSettings:
             raise ValueError(f"Expected `smoothing` in [0, 10] voxels, got {self.smoothing}.")
         if not (math.isfinite(self.min_width_voxels) and self.min_width_voxels > 0):
             raise ValueError(f"Expected a positive `min_width_voxels`, got {self.min_width_voxels}.")
+        if not (math.isfinite(self.implicit_weight) and self.implicit_weight >= 0):
+            raise ValueError(f"Expected `implicit_weight` >= 0, got {self.implicit_weight}.")
         if not (math.isfinite(self.distance_weight) and self.distance_weight >= 0):
             raise ValueError(f"Expected `distance_weight` >= 0, got {self.distance_weight}.")
+        if self.implicit_weight == 0 and self.distance_weight == 0:
+            raise ValueError("Expected `implicit_weight` or `distance_weight` > 0, got both 0: no feature would "
+                             "drive the warp.")
         if not (math.isfinite(self.distance_clip) and self.distance_clip > 0):
             raise ValueError(f"Expected a positive `distance_clip` (voxels), got {self.distance_clip}.")
+        if not (math.isfinite(self.min_distance_clip) and self.min_distance_clip >= 0):
+            raise ValueError(f"Expected `min_distance_clip` >= 0 (mm), got {self.min_distance_clip}.")
         if not (math.isfinite(self.distance_smoothing) and 0 <= self.distance_smoothing <= 10):
             raise ValueError(f"Expected `distance_smoothing` in [0, 10] voxels, got {self.distance_smoothing}.")
+
+    def clip_mm(self, unit: float) -> float:
+        """The voxel distance maps' clip, mm: ``distance_clip`` voxels of ``unit`` mm, at least
+        ``min_distance_clip``.
+
+        2 voxels and 4 mm: on the label pairs of ``bench_speed.py`` and ``bench_pose.py`` (grids of
+        1-3 mm) 3 voxels and 2 voxels each did worse where the clip came out further from 4-6 mm
+        (BENCHMARKS.md, "Voxel distance maps alone").
+        """
+        return max(self.distance_clip * unit, self.min_distance_clip)
 
 
 #: The kinds of linear stage a protocol may ask for, from none to the most general.

@@ -110,7 +110,8 @@ def _fit_logger(command: str) -> Callable[[LabelRegistration], None]:
             log(f"linear part: rotation {d['rotation_deg']:.1f} deg, scales "
                 f"{', '.join(f'{v:.3f}' for v in d['scales'])}, translation "
                 f"{', '.join(f'{v:.1f}' for v in d['translation'])} mm")
-        log(f"driving labels {result.labels} (surfaces), {result.distance_labels} (voxel distance maps)")
+        log(f"driving labels {result.distance_labels} (voxel distance maps)"
+            + (f", {result.labels} (implicit surfaces)" if result.labels else ""))
         for note in result.skipped:
             log(note)
         for st in result.stages:

@@ -42,7 +42,7 @@ def add_parser(commands) -> None:
     consistency.add_argument("--protocol", metavar="NAME|FILE", default=None,
                              help="protocol preset or TOML file for both registrations (default: default)")
     consistency.add_argument("--drive-labels", metavar="IDS", type=_label_list, default=None,
-                             help="labels whose surfaces drive both warps (default: as `volreg register`)")
+                             help="labels that drive both warps (default: as `volreg register`)")
     consistency.add_argument("--force", action="store_true", help="write into an existing OUTDIR, replacing outputs")
     consistency.add_argument("--quiet", action="store_true", help="no progress bars")
     consistency.add_argument("-v", "--verbose", action="store_true", help="log each stage and warp level to stderr")

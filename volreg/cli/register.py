@@ -43,8 +43,8 @@ def add_parser(commands) -> None:
                           help="linear stage before the kernel warp (default: the protocol's [linear] kind, "
                           "affine in the presets)")
     register.add_argument("--drive-labels", metavar="IDS", type=_label_list, default=None,
-                          help="labels whose surfaces drive the warp, e.g. 1,4,7 (default: every label in both "
-                          "volumes that is compact enough); every label is warped")
+                          help="labels that drive the warp, e.g. 1,4,7 (default: every label in both volumes); "
+                          "every label is warped")
     register.add_argument("--landmarks", metavar=("FIXED_PTS", "MOVING_PTS"), nargs=2, type=Path, default=None,
                           help="corresponding points (.csv x,y,z LPS mm, Slicer .fcsv or .mrk.json)")
     register.add_argument("--force", action="store_true", help="write into an existing OUTDIR, replacing outputs")

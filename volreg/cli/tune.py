@@ -36,7 +36,7 @@ def add_parser(commands) -> None:
     tune.add_argument("--protocol", metavar="NAME|FILE", default="default",
                       help="protocol giving every other setting (default: default)")
     tune.add_argument("--drive-labels", metavar="IDS", type=_label_list, default=None,
-                      help="labels whose surfaces drive the warps (default: as `volreg register`)")
+                      help="labels that drive the warps (default: as `volreg register`)")
     tune.add_argument("--landmarks", metavar=("A_PTS", "B_PTS"), nargs=2, type=Path, default=None,
                       help="corresponding points of A and B (.csv x,y,z LPS mm, .fcsv, .mrk.json)")
     tune.add_argument("--force", action="store_true", help="write into an existing OUTDIR, replacing outputs")

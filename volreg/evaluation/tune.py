@@ -7,7 +7,7 @@ Every candidate setting registers A to B and B to A and is scored, in mm, by
   by :func:`volreg.register.register_both_ways`;
 * a hold-out locational cost: the mean distance from each label's surface vertices,
   carried by the warp, to the same label's surface in the other volume, both ways.  The
-  warp is fitted to implicit-surface values at octree samples, never at these vertices;
+  warp is fitted to feature values at octree samples, never at these vertices;
   the distance is to the nearest vertex of the other surface (marching-cubes vertices,
   about half a voxel apart);
 * with landmarks, the mean landmark error of both directions.
