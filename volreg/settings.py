@@ -175,8 +175,8 @@ class SurfaceSettings:
     implicit_weight : float
         Weight in the locational cost of each label's pair of kernel implicit surfaces (paper
         Section 4, fitted to the boundary meshes); 0 = not fitted.  0 by default: with the voxel
-        distance maps alone the whole command was faster and as accurate or more on six of
-        seven measured label pairs (BENCHMARKS.md, "Voxel distance maps alone").
+        distance maps alone the whole command was 3-38 % faster and its endpoint error lower or
+        the same on each of eight label pairs (BENCHMARKS.md, "Voxel distance maps alone").
     distance_weight : float
         Weight in the locational cost of each label's pair of voxel signed-distance maps
         (:class:`~volreg.features.distance_maps.VoxelDistance`: the paper's signed distance
