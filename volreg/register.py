@@ -259,8 +259,9 @@ def register_labels(
     fixed, moving : LabelVolume
     drive_labels : sequence of int, optional
         Labels whose distance maps (and implicit surfaces) drive the warp; default every label
-        present in both volumes; their implicit surfaces and meshes leave out speckled ones (less than :data:`COMPACT_FRACTION` of
-        the voxels in pieces of at least 5 % of the label, see :func:`despeckle`).
+        present in both volumes, whose meshes and implicit surfaces leave out speckled ones
+        (less than :data:`COMPACT_FRACTION` of the voxels in pieces of at least 5 % of the
+        label, see :func:`despeckle`).
         Specks (pieces under :data:`SPECK_FRACTION` of the label) are removed
         before the surfaces are made.  Labels too small to give a surface in
         either volume are skipped (their distance maps still count).
@@ -343,7 +344,7 @@ def register_labels(
     points = _warp_volume_points(fixed, s_fixed, meshed, distance_labels, boxes_f)
     if len(points) < 2:
         raise RegistrationInputError(
-            f"The labels that drive the warp ({(used or distance_labels)[:30]}) give {len(points)} point to fit it at "
+            f"The labels that drive the warp ({(distance_labels or used)[:30]}) give {len(points)} point to fit it at "
             "(a label of a single voxel); expected labels of a few voxels at least."
         )
     # The kernel warp phi is fitted between the fixed features and the moving ones seen through
