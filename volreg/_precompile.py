@@ -2,11 +2,11 @@
 
 On a fresh install numba compiles volreg's loops the first time each is called and caches
 them on disk (:mod:`volreg._jit`); a registration calls twelve, and compiling them takes
-about 10 s of one core, imports included.  Compiling is pure Python and holds the GIL, so threads cannot share
-it, but processes can share numba's on-disk cache: a command that registers volumes starts
-one helper process (:func:`start`) that compiles the loops of the later stages (from
-:data:`HELPER_FROM` on) into the cache, then the earlier ones from the last back
-(:func:`helper_order`), while the command goes on and compiles the first-needed ones itself.
+about 10 s of one core, imports included.  Compiling is pure Python and holds the GIL, so
+threads cannot share it, but processes can share numba's on-disk cache: a command that
+registers volumes starts one helper process (:func:`start`) that compiles the loops of the
+later stages (from :data:`HELPER_FROM` on) into the cache, then the earlier ones from the last
+back (:func:`helper_order`), while the command goes on and compiles the first-needed ones itself.
 When the command reaches a loop the helper has cached, numba loads it instead of compiling it.
 The two meet among the early loops; the helper is stopped when the command ends (:func:`stop`),
 and what it cached stays for the next run.

@@ -309,7 +309,7 @@ def register_labels(
     s_fixed, s_moving, notes = _surface_pairs(clean_fixed, clean_moving if implicit else None, labels,
                                               protocol.surface, unit, progress)
     meshed = [v for v in labels if v in s_fixed]
-    used = [v for v in meshed if v in s_moving]
+    used = [v for v in meshed if v in s_moving]  # none without implicit surfaces (no moving meshes)
     if implicit:
         skipped += notes
     else:
@@ -363,7 +363,7 @@ def register_labels(
                       progress=progress)
     warp = result.warp if linear.is_identity else result.warp.then(linear)
     stages.append(dict(stage="fit warp", seconds=time.perf_counter() - t0))
-    return LabelRegistration(warp, result.log, labels=used if implicit else [], skipped=skipped, stages=stages,
+    return LabelRegistration(warp, result.log, labels=used, skipped=skipped, stages=stages,
                              distance_labels=[int(v) for v in distance_labels], linear=linear_fit,
                              cut_labels=cut)
 
