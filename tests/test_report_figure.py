@@ -7,7 +7,7 @@ from pathlib import Path
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
-from matplotlib.backends.backend_agg import FigureCanvasAgg
+from PIL import Image
 
 from volreg.io import VolregIOError
 from volreg.io.report_figure import _PALETTE, _label_rgb, write_report_figure
@@ -111,6 +111,13 @@ def test_writes_png_2d(tmp_path):
     _only(tmp_path, "slice.png")
 
 
+def test_palette_is_matplotlibs_tab20():
+    from matplotlib import colormaps
+
+    tab20 = np.asarray(colormaps["tab20"].colors, dtype=float)[:, :3]
+    assert np.allclose(_PALETTE, np.concatenate([tab20[0::2], tab20[1::2]]), atol=1e-12)
+
+
 def test_label_colours_are_fixed_per_value():
     rgb = _label_rgb(np.array([[0, 1, 2], [21, 1, 0]], dtype=np.int32))
     assert np.array_equal(rgb[0, 0], [0.0, 0.0, 0.0])
@@ -173,7 +180,7 @@ def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
         Path(filename).write_bytes(b"partial")
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(FigureCanvasAgg, "print_png", broken)
+    monkeypatch.setattr(Image.Image, "save", broken)
     with pytest.raises(VolregIOError, match=r"could not be written: No space left on device"):
         _write(tmp_path / "report.png", _case(ndim=2))
     _only(tmp_path)
@@ -194,3 +201,22 @@ def test_a_displacement_in_mm_with_its_matrix_draws_as_the_same_in_voxels(tmp_pa
     assert np.array_equal(voxels, converted) and not np.array_equal(voxels, raw)
     with pytest.raises(VolregIOError, match="to_voxels"):
         _write(tmp_path / "bad.png", case, to_voxels=np.eye(2))
+
+
+def test_the_report_figure_is_drawn_without_importing_matplotlib(tmp_path):
+    """Every registration writes the report figure: it is drawn with Pillow alone (importing
+    matplotlib costs a registration a quarter of a second)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from volreg.io.report_figure import write_report_figure\n"
+        "a = np.zeros((12, 10), np.uint8); a[3:8, 2:7] = 1\n"
+        f"write_report_figure({str(tmp_path / 'r.png')!r}, a, a, a, np.zeros((12, 10, 2)),"
+        " fixed_spacing=(1, 1), moving_spacing=(1, 1))\n"
+        "print('matplotlib' in sys.modules)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "False"
+    assert (tmp_path / "r.png").read_bytes()[:8] == PNG_SIGNATURE
