@@ -629,14 +629,17 @@ def _distance_pairs(fixed, moving, labels: list[int], boxes_f: dict, boxes_m: di
     """
     from volreg.features.mapped import LinearlyMapped
 
-    pairs = []
-    for i, v in enumerate(labels):
-        f2 = _voxel_distance(moving, v, boxes_m, settings, unit)
-        pairs.append(FeaturePair(_voxel_distance(fixed, v, boxes_f, settings, unit),
-                                 f2 if linear.is_identity else LinearlyMapped(f2, linear), settings.distance_weight))
-        if progress is not None:
-            progress("voxel distance maps", i + 1, len(labels))
-    return pairs
+    # The maps are independent, and their filters and loops release the GIL: made side by side
+    # on the threads (one after another, the 100-label parcellation's 200 maps took 1.0 s at
+    # 1.2 cores; side by side 0.7 s).
+    jobs = [(volume, v, boxes) for v in labels for volume, boxes in ((fixed, boxes_f), (moving, boxes_m))]
+    maps = []
+    for f in thread_map(lambda job: _voxel_distance(*job, settings, unit), jobs):
+        maps.append(f)
+        if progress is not None and len(maps) % 2 == 0:
+            progress("voxel distance maps", len(maps) // 2, len(labels))
+    return [FeaturePair(f1, f2 if linear.is_identity else LinearlyMapped(f2, linear), settings.distance_weight)
+            for f1, f2 in zip(maps[0::2], maps[1::2])]
 
 
 def _warp_volume_points(fixed, s_fixed, used: list[int], distance_labels: list[int], boxes_f: dict) -> np.ndarray:
