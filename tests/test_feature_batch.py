@@ -61,6 +61,34 @@ def test_batch_equals_each_features_own_evaluation(mapped, order):
         np.testing.assert_allclose(out[k], ref, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("kind", ["implicit", "voxel"])
+@pytest.mark.parametrize("order", [0, 1, 2])
+def test_batch_of_one_kind_equals_each_features_own_evaluation(kind, order):
+    """Features of one kind only; the voxel maps cropped from one volume (its grid's axes and
+    spacing, each map its own origin), as a label volume's maps are."""
+    rng = np.random.default_rng(7)
+    if kind == "implicit":
+        features = _features(rng)[:2]
+    else:
+        spacing, direction = np.array([1.0, 1.2, 1.5]), np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+        features = []
+        for origin, radius in (((-15.0, -14.0, -12.0), 8.0), ((-11.0, -16.0, -9.0), 6.0)):
+            shape = (30, 28, 24)
+            index = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
+            world = np.asarray(origin) + (index * spacing) @ direction.T
+            centre = np.asarray(origin) + (np.array(shape) / 2 * spacing) @ direction.T
+            mask = np.linalg.norm(world - centre, axis=-1) < radius
+            features.append(VoxelDistance(mask, spacing, np.asarray(origin), direction, clip=5.0, smoothing=1.0))
+    batch = FeatureBatch.build(features)
+    counts = [35, 50]
+    centre = np.array([-30.0, 0.0, 7.0])  # about where the maps lie
+    segments = [centre + rng.uniform(-12, 12, (c, 3)) for c in counts]
+    out = batch.evaluate(np.concatenate(segments), np.cumsum([0] + counts), order=order)
+    for k in range(order + 1):
+        ref = np.concatenate([f.evaluate(s, order=order)[k] for f, s in zip(features, segments)])
+        np.testing.assert_allclose(out[k], ref, rtol=1e-12, atol=1e-12)
+
+
 def test_build_refuses_unsupported_or_mixed_features():
     rng = np.random.default_rng(6)
     features = _features(rng)

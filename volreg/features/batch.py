@@ -98,12 +98,19 @@ class _Voxel:
         self.step = np.array([m._step for m in maps], float)
         diagonal = all(m._step_outer is not None for m in maps)
         self.step_outer = np.array([m._step_outer for m in maps], float) if diagonal else None
+        # Maps of one volume share its grid's axes and spacing: then the index of a point is one
+        # product for every map, less each map's own offset (``origin @ to_index + lo``).
+        self.shared = bool(np.all(self.to_index == self.to_index[0]) and np.all(self.step == self.step[0]))
+        self.offset = np.einsum("md,mde->me", self.origin, self.to_index) + self.lo
         self.dim = dim
 
     def evaluate(self, points: np.ndarray, rstart: np.ndarray, order: int) -> list[np.ndarray]:
         n, d = len(points), self.dim
         which = np.repeat(np.arange(len(rstart) - 1), np.diff(rstart))
-        index = np.einsum("nd,nde->ne", points - self.origin[which], self.to_index[which]) - self.lo[which]
+        if self.shared:
+            index = points @ self.to_index[0] - self.offset[which]
+        else:
+            index = np.einsum("nd,nde->ne", points - self.origin[which], self.to_index[which]) - self.lo[which]
         if d == 2:
             index = np.concatenate([index, np.zeros((n, 1))], axis=1)
         f = np.empty(n)
@@ -113,13 +120,18 @@ class _Voxel:
                   np.ascontiguousarray(index), int(order), f, g, h, grain=_POINTS)
         out = [f]
         if order >= 1:
-            step = self.step[which]
-            out.append(np.einsum("nb,nab->na", g[:, :d], step))
+            if self.shared:
+                out.append(g[:, :d] @ self.step[0].T)
+            else:
+                step = self.step[which]
+                out.append(np.einsum("nb,nab->na", g[:, :d], step))
         if order >= 2:
             if self.step_outer is not None:
-                out.append(h[:, :d, :d] * self.step_outer[which])
+                out.append(h[:, :d, :d] * (self.step_outer[0] if self.shared else self.step_outer[which]))
+            elif self.shared:
+                out.append(self.step[0] @ h[:, :d, :d] @ self.step[0].T)
             else:
-                out.append(np.einsum("nab,nbc,nec->nae", step, h[:, :d, :d], step))
+                out.append(np.einsum("nab,nbc,nec->nae", self.step[which], h[:, :d, :d], self.step[which]))
         return out
 
 
@@ -201,14 +213,17 @@ class FeatureBatch:
             raise ValueError("Expected finite values in `points`, found NaN or Inf.")
         if self.linear is not None:
             points = np.ascontiguousarray(self.linear.linear(points))
-        out = [np.empty(n), np.empty((n, d)), np.empty((n, d, d))][: order + 1]
-        counts = np.diff(starts)
-        for members, group in self._groups:
-            sizes = counts[members]
-            rows = _segment_rows(starts[members], sizes)
-            rstart = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-            for o, part in zip(out, group.evaluate(points[rows], rstart, order)):
-                o[rows] = part
+        if len(self._groups) == 1:  # one kind of feature: its rows are all the rows, in order
+            out = list(self._groups[0][1].evaluate(points, starts, order))
+        else:
+            out = [np.empty(n), np.empty((n, d)), np.empty((n, d, d))][: order + 1]
+            counts = np.diff(starts)
+            for members, group in self._groups:
+                sizes = counts[members]
+                rows = _segment_rows(starts[members], sizes)
+                rstart = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+                for o, part in zip(out, group.evaluate(points[rows], rstart, order)):
+                    o[rows] = part
         if self.linear is not None:
             a, s = self.linear._matrix, self.linear._scale
             out[0] = out[0] / s
