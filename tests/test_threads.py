@@ -172,6 +172,21 @@ def test_job_queue_with_one_thread_runs_each_job_at_once_on_the_caller():
         numba.set_num_threads(threads)
 
 
+@pytest.mark.parametrize("threads", [1, 2], ids=["one-thread", "two-threads"])
+def test_job_queue_gives_each_jobs_result(threads):
+    import numba
+
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        with JobQueue() as jobs:
+            futures = [jobs.submit(pow, 2, k) for k in range(5)]
+            assert [f.result() for f in futures] == [1, 2, 4, 8, 16]
+            jobs.wait()
+    finally:
+        numba.set_num_threads(before)
+
+
 def test_label_scores_on_threads_equal_one_label_at_a_time():
     from volreg.evaluation.metrics import label_scores
 

@@ -32,7 +32,7 @@ from __future__ import annotations
 import itertools
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from functools import wraps
 from typing import Callable, Generator, Sequence, TypeVar
 
@@ -212,12 +212,15 @@ class JobQueue:
                                          thread_name_prefix="volreg-job") if threads > 1 else None)
         self._futures: list = []
 
-    def submit(self, func: Callable[..., object], *args) -> None:
-        """Run ``func(*args)`` in the background (at once, with one thread)."""
+    def submit(self, func: Callable[..., R], *args) -> Future:
+        """Run ``func(*args)`` in the background (at once, with one thread); its future."""
         if self._pool is None:
-            func(*args)
-        else:
-            self._futures.append(self._pool.submit(func, *args))
+            future: Future = Future()
+            future.set_result(func(*args))  # an error is raised here, at once
+            return future
+        future = self._pool.submit(func, *args)
+        self._futures.append(future)
+        return future
 
     def wait(self) -> None:
         """Wait for every submitted job; raise the first job's error (in submission order)."""

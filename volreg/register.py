@@ -842,24 +842,34 @@ def _inverse_on_moving_grid(warp, moving, progress, fixed=None, displacement=Non
     return inverse, displacement_on_grid(inverse, moving, progress=progress, stage="invert warp")
 
 
-def _registration_report(fixed, moving, result: LabelRegistration, fields: _FixedGridFields, inverse,
-                         protocol: Protocol, inputs, truth) -> dict:
-    """The report of a registration: Dice per label before and after, Jacobian and displacement
-    figures, the inverse's residual, the fit's levels, and (given ``truth``, the true warp) the
-    endpoint error; without stages and timings."""
-    from volreg.evaluation.metrics import folded_fraction, label_scores
-    from volreg.evaluation.review import findings_summary, judged_labels, label_voxel_counts, review_registration
-    from volreg.io.summary import package_versions
+def _scores_before(fixed, moving) -> dict:
+    """Dice and surface distances per label (every label of either volume) of the moving labels
+    at the fixed voxel centres before any registration (nearest neighbour), against the fixed ones."""
+    from volreg.evaluation.metrics import label_scores
     from volreg.warp.field import indices_through
     from volreg.warp.resample import resample_labels_at
 
-    u, jac, warped_array = fields
     # On one grid, nearest neighbour at the fixed voxel centres is the moving array itself.
     before = (moving.array if moving.same_geometry(fixed) else
               resample_labels_at(moving, indices_through(fixed, None, moving), method="nearest").reshape(fixed.shape))
+    labels = sorted(set(fixed.labels().tolist()) | set(moving.labels().tolist()))
+    return label_scores(fixed.array, before, labels, fixed.spacing)
+
+
+def _registration_report(fixed, moving, result: LabelRegistration, fields: _FixedGridFields, inverse,
+                         protocol: Protocol, inputs, truth, scores_before: dict | None = None) -> dict:
+    """The report of a registration: Dice per label before and after, Jacobian and displacement
+    figures, the inverse's residual, the fit's levels, and (given ``truth``, the true warp) the
+    endpoint error; without stages and timings.  ``scores_before``: :func:`_scores_before`, where
+    already computed."""
+    from volreg.evaluation.metrics import folded_fraction, label_scores
+    from volreg.evaluation.review import findings_summary, judged_labels, label_voxel_counts, review_registration
+    from volreg.io.summary import package_versions
+
+    u, jac, warped_array = fields
     in_fixed, in_moving = set(fixed.labels().tolist()), set(moving.labels().tolist())  # one pass over each
     labels = sorted(in_fixed | in_moving)
-    scores_before = label_scores(fixed.array, before, labels, fixed.spacing)
+    scores_before = _scores_before(fixed, moving) if scores_before is None else scores_before
     scores_after = label_scores(fixed.array, warped_array, labels, fixed.spacing)
     inside = fixed.array != 0
     u_in = u[inside]
@@ -1005,6 +1015,9 @@ def _register_and_write(fixed, moving, outdir, *, protocol, drive_labels, landma
     with output_folder(outdir, force) as folder, JobQueue() as jobs:  # the jobs end before the folder closes
         folder.check_writable(registration_outputs(protocol), force=force)
         t_all = time.perf_counter()
+        # The scores before registration need only the inputs: computed in the background while
+        # the linear stage and the fit leave a core partly idle, not in the metrics stage.
+        before = jobs.submit(_scores_before, fixed, moving)
         result = register_labels(fixed, moving, drive_labels=drive_labels, landmarks=landmarks,
                                  protocol=protocol, prior=prior, progress=progress)
         stages = [dict(st, peak_rss_gb=round(_peak_rss_gb(), 3)) for st in result.stages]
@@ -1026,7 +1039,8 @@ def _register_and_write(fixed, moving, outdir, *, protocol, drive_labels, landma
         stages.append(_stage("inverse", t0))
 
         t0 = time.perf_counter()
-        report = _registration_report(fixed, moving, result, fields, inverse, protocol, inputs, truth)
+        report = _registration_report(fixed, moving, result, fields, inverse, protocol, inputs, truth,
+                                      scores_before=before.result())
         if landmarks is not None:
             report["landmarks"] = landmark_errors(result.warp, landmarks, fixed)
         writes.figure(fields, report)
