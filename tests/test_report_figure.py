@@ -220,3 +220,21 @@ def test_the_report_figure_is_drawn_without_importing_matplotlib(tmp_path):
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert done.stdout.strip() == "False"
     assert (tmp_path / "r.png").read_bytes()[:8] == PNG_SIGNATURE
+
+
+def test_a_pillow_whose_font_takes_no_anchor_still_draws_the_text(tmp_path, monkeypatch):
+    """Older Pillows refuse a text anchor for their bitmap font (where built without FreeType)."""
+    from PIL import ImageDraw
+
+    text = ImageDraw.ImageDraw.text
+
+    def no_anchor(self, xy, message, *args, **kwargs):
+        if kwargs.get("anchor") is not None:
+            raise ValueError("anchor not supported for non-TrueType fonts")
+        return text(self, xy, message, *args, **kwargs)
+
+    monkeypatch.setattr(ImageDraw.ImageDraw, "text", no_anchor)
+    _write(tmp_path / "report.png", _case(moved=True), title="fixed vs moving")
+    image = _read_png(tmp_path / "report.png")
+    assert _has_label_colour(image, 1) and _has_label_colour(image, 2)
+    assert np.any(image[:30].min(axis=-1) < 0.5)  # the title's dark pixels at the top

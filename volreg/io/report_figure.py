@@ -200,7 +200,15 @@ def _fit(shape: tuple[int, ...], aspect: float, box: tuple[float, float]) -> tup
 
 
 def _text(draw, xy: tuple[float, float], text: str, size_px: int, anchor: str) -> None:
-    draw.text(xy, text, fill=(0, 0, 0), font=_font(size_px), anchor=anchor)
+    """``text`` at ``xy`` placed by Pillow's two-letter ``anchor`` (e.g. ``"mt"``: middle, top)."""
+    font = _font(size_px)
+    try:
+        draw.text(xy, text, fill=(0, 0, 0), font=font, anchor=anchor)
+    except ValueError:  # a Pillow without FreeType: its bitmap font takes no anchor
+        left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
+        dx = {"l": 0.0, "m": 0.5, "r": 1.0}[anchor[0]] * (right - left)
+        dy = {"a": 0.0, "t": 0.0, "m": 0.5, "b": 1.0}.get(anchor[1], 0.0) * (bottom - top)
+        draw.text((xy[0] - dx, xy[1] - dy), text, fill=(0, 0, 0), font=font)
 
 
 def _shape_str(shape: tuple[int, ...]) -> str:
