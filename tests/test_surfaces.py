@@ -7,6 +7,7 @@ from shapes import Disc2D, Ellipsoid, label_volume, rotation
 from volreg.features.implicit import ImplicitSurface
 from volreg.errors import SurfaceError
 from volreg.features.label_surfaces import implicit_on_grid, label_surface, label_surfaces
+from volreg.grid import LabelVolume
 
 SPHERE = Ellipsoid((12, 12, 12), (0.31, 0.17, -0.23))
 
@@ -39,6 +40,27 @@ def test_sphere_mesh_in_world_with_outward_normals(name):
     assert np.all(cos > 0.5) and cos.mean() > 0.99
     assert surf.enclosed_volume() == pytest.approx(4 / 3 * np.pi * 12**3, rel=0.03)
     assert surf.label == 7
+
+
+@pytest.mark.parametrize("name", ["identity", "oblique-anisotropic"])
+def test_a_mesh_on_every_second_voxel_lies_on_the_same_sphere_with_fewer_vertices(name):
+    vol = _sphere_volume(*GEOMETRIES[name])
+    fine, coarse = label_surface(vol, 7), label_surface(vol, 7, step=2)
+    radius = np.linalg.norm(coarse.vertices - SPHERE.centre, axis=1)
+    assert np.abs(radius - 12.0).mean() < 0.25 * vol.spacing.max()
+    assert len(coarse.vertices) < 0.4 * len(fine.vertices)
+    assert coarse.enclosed_volume() == pytest.approx(4 / 3 * np.pi * 12**3, rel=0.05)
+
+
+def test_a_label_too_thin_for_every_second_voxel_is_meshed_on_every_voxel():
+    array = np.zeros((20, 20, 20), np.uint8)
+    # A sheet one voxel thick and one voxel beside it, none of them on every second voxel of the
+    # label's box (which starts at (5, 5, 10)): that lattice holds no voxel of the label.
+    array[5:15, 5:15, 11] = 3
+    array[6, 6, 10] = 3
+    vol = LabelVolume(array, np.zeros(3), np.ones(3), np.eye(3))
+    surf = label_surface(vol, 3, smoothing=0, step=2)
+    assert len(surf.vertices) == len(label_surface(vol, 3, smoothing=0).vertices) > 0
 
 
 def test_unsmoothed_mesh_is_the_voxel_staircase():
