@@ -391,8 +391,7 @@ def write_report_figure(
             if note is not None:
                 _text(draw, (centre, y0 + panel.height + 3), note, 12, "mt")
             if col == 0:
-                label = Image.new("RGB", (1, 1))
-                size = ImageDraw.Draw(label).textbbox((0, 0), f"{name}{where}", font=_font(15))
+                size = draw.textbbox((0, 0), f"{name}{where}", font=_font(15))
                 label = Image.new("RGB", (size[2] + 2, size[3] + 2), (255, 255, 255))
                 _text(ImageDraw.Draw(label), (1, 1), f"{name}{where}", 15, "la")
                 label = label.rotate(90, expand=True)
