@@ -862,11 +862,11 @@ def _scores_before(fixed, moving) -> dict:
 
 
 def _registration_report(fixed, moving, result: LabelRegistration, fields: _FixedGridFields, inverse,
-                         protocol: Protocol, inputs, truth, scores_before: dict | None = None) -> dict:
+                         protocol: Protocol, inputs, truth, scores_before: dict) -> dict:
     """The report of a registration: Dice per label before and after, Jacobian and displacement
     figures, the inverse's residual, the fit's levels, and (given ``truth``, the true warp) the
-    endpoint error; without stages and timings.  ``scores_before``: :func:`_scores_before`, where
-    already computed."""
+    endpoint error; without stages and timings.  ``scores_before``: :func:`_scores_before`, computed
+    in the background while the registration runs."""
     from volreg.evaluation.metrics import folded_fraction, label_scores
     from volreg.evaluation.review import findings_summary, judged_labels, label_voxel_counts, review_registration
     from volreg.io.summary import package_versions
@@ -874,7 +874,6 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
     u, jac, warped_array = fields
     in_fixed, in_moving = set(fixed.labels().tolist()), set(moving.labels().tolist())  # one pass over each
     labels = sorted(in_fixed | in_moving)
-    scores_before = _scores_before(fixed, moving) if scores_before is None else scores_before
     scores_after = label_scores(fixed.array, warped_array, labels, fixed.spacing)
     inside = fixed.array != 0
     u_in = u[inside]
