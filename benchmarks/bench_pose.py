@@ -21,14 +21,19 @@ Cases, generated with known answers (seeded):
 4. an ellipsoidal "organ" (semi-axes 60 / 45 / 35 mm) split into 30 Voronoi labels, fixed at 1 mm and
    moving at 0.8 x 0.8 x 2.5 mm with an oblique direction matrix, 25 degrees and 30 mm, plus a smooth
    warp (up to 6 mm);
-5. no motion: case 4's labels at 1 mm (fixed) and at 2 mm (moving); the answer is the identity.
+5. no motion: case 4's labels at 1 mm (fixed) and at 2 mm (moving); the answer is the identity;
+6. no motion: case 4's labels at 1 mm (fixed) and at 0.8 x 0.8 x 2.5 mm on case 4's oblique grid
+   (moving);
+7. no motion: the folded two-label brain phantom of `bench_speed.py` (grey shell 2.5 mm thick around a
+   white core) at 2 mm (fixed: every second voxel of the 1 mm labels, so the same label map) and at
+   1 mm (moving).
 
 The true pull-back map is tau_true = L o beta: a fixed point x is first moved by the smooth warp beta
-(x + the bumps' displacement, defined about the fixed object; the identity in cases 3 and 5), then by
+(x + the bumps' displacement, defined about the fixed object; the identity in cases 3 and 5-7), then by
 the pose L(x) = A (x - c) + c + t (c: the centroid of the fixed labels; A = rotation [x scale / stretch];
 t: the shift). The moving volume holds, at each voxel centre y of its grid, the label of the source
 labels at tau_true^-1(y) = beta^-1(L^-1(y)) (beta inverted by fixed-point iteration), by nearest
-neighbour: the source labels are the analytic label functions in cases 3-5 and the native frog
+neighbour: the source labels are the analytic label functions in cases 3-6 and the native frog
 (1 x 1 x 1.5 mm, of which the 3 mm fixed volume is the block mode) in cases 1-2. The moving grid is the
 box of the moving object plus a margin, in its own spacing and direction. Volumes are written as NIfTI.
 
@@ -48,7 +53,7 @@ program it starts), each writing a displacement field on the fixed grid (LPS mm,
   starts the affine from greedy's rigid alignment of the images' inertia tensors (`-moments 2 -det 1`)
   instead of the image centres;
 - `identity` (no registration) and `truth` (tau_true itself), written and read back as the others: the
-  first is the starting misalignment (and must score 0 mm in case 5), the second checks the scoring (its
+  first is the starting misalignment (and must score 0 mm in cases 5-7), the second checks the scoring (its
   endpoint error must be ~0 everywhere) and gives the Dice of the true map with these discretised
   volumes (not a ceiling: a map that bends boundaries onto the other volume's voxels can score higher).
   Neither is timed.
@@ -237,7 +242,7 @@ def _organ_fixed(labels, spacing: float):
 
 
 def make_case(number: int) -> Case:
-    """Build case ``number`` (1-5): fixed and moving volumes, the true map and a description."""
+    """Build case ``number`` (1-7): fixed and moving volumes, the true map and a description."""
     from volreg.grid import Grid
 
     if number in (1, 2):
@@ -278,7 +283,20 @@ def make_case(number: int) -> Case:
         truth = Truth(Pose(np.eye(3), _centroid(fixed), np.zeros(3)), None)
         moving = _organ_fixed(labels, 2.0)
         return Case(5, "30 labels 1 mm vs 2 mm, no motion", fixed, moving, truth, "none (identity)")
-    raise ValueError(f"Expected a `case` from 1 to 5, got {number!r}.")
+    if number == 6:
+        truth = Truth(Pose(np.eye(3), _centroid(fixed), np.zeros(3)), None)
+        moving = _posed_moving(fixed, truth, labels, (0.8, 0.8, 2.5), direction=rotation(20, (1.0, 0.3, 0.2)))
+        return Case(6, "30 labels 1 mm vs 0.8 x 0.8 x 2.5 mm oblique, no motion", fixed, moving, truth,
+                    "none (identity); moving direction 20 deg oblique")
+    if number == 7:
+        from bench_speed import cortex_phantom
+        from volreg.grid import LabelVolume
+
+        fine = cortex_phantom(1.0)
+        coarse = LabelVolume(fine.array[::2, ::2, ::2].copy(), fine.origin, 2 * fine.spacing, fine.direction)
+        truth = Truth(Pose(np.eye(3), _centroid(coarse), np.zeros(3)), None)
+        return Case(7, "brain phantom 2 mm vs 1 mm, no motion", coarse, fine, truth, "none (identity)")
+    raise ValueError(f"Expected a `case` from 1 to 7, got {number!r}.")
 
 
 # ----------------------------------------------------------------------------- running the methods
@@ -363,7 +381,7 @@ def _summary(block, limit: int = 400) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=1, help="runs per case and method (medians are shown)")
-    parser.add_argument("--cases", default="1,2,3,4,5", help="comma-separated subset of 1-5")
+    parser.add_argument("--cases", default="1,2,3,4,5", help="comma-separated subset of 1-7")
     parser.add_argument("--methods", default=DEFAULT_METHODS,
                         help=f"comma-separated subset of {','.join(REFERENCES + ('volreg',) + PEERS)}")
     add_run_options(parser)

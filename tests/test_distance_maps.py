@@ -10,7 +10,9 @@ from scipy import ndimage
 from shapes import ball_and_shifted_cube
 
 from volreg.features import distance_maps
-from volreg.features.distance_maps import VoxelDistance, clipped_signed_distance, euclidean_distance
+from volreg.features.distance_maps import (
+    VoxelDistance, blurred_signed_distance, clipped_signed_distance, euclidean_distance,
+)
 from volreg.warp.resample import signed_distance_map
 
 
@@ -242,19 +244,69 @@ def test_midway_distances_measure_to_the_boundary_not_to_the_next_voxel(spacing)
 
 
 def test_the_same_ball_at_two_resolutions_gives_the_same_feature():
-    """The distance feature of one ball sampled at 1 mm and at 2 mm: the two maps agree within
-    0.15 mm on average near the boundary (measured 0.11 mm; 0.24 mm with distances between voxel
-    centres)."""
-    features = {}
-    for h in (1.0, 2.0):
-        mask, _ = _sphere_on_grid((h,) * 3)
-        features[h] = VoxelDistance(mask, np.full(3, h), np.zeros(3), np.eye(3), clip=6.0, smoothing=2.0)
+    """The distance feature of one ball sampled at 1 mm and at 2 mm, as a registration makes it
+    (counted in 2 mm voxels): the two maps agree within 0.1 mm on average near the boundary and
+    the 2 mm map is not larger or smaller overall (measured 0.083 mm, 0.013 mm signed; distances
+    between voxel centres, blurred 2 mm as before: 0.113 and 0.031 mm)."""
     rng = np.random.default_rng(3)
     direction = rng.normal(size=(4000, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     points = np.array([45.3, 44.6, 45.1]) + direction * rng.uniform(22.0, 28.0, (4000, 1))
-    gap = np.abs(features[1.0].evaluate(points)[0] - features[2.0].evaluate(points)[0])
-    assert gap.mean() < 0.15, gap.mean()
+    gaps = {}
+    for scale, smoothing in ((2.0, 1.6), (0.0, 2.0)):
+        features = {}
+        for h in (1.0, 2.0):
+            mask, _ = _sphere_on_grid((h,) * 3)
+            features[h] = VoxelDistance(mask, np.full(3, h), np.zeros(3), np.eye(3), clip=6.0, smoothing=smoothing,
+                                        scale=scale)
+        gaps[scale] = features[2.0].evaluate(points)[0] - features[1.0].evaluate(points)[0]
+    assert np.abs(gaps[2.0]).mean() < 0.1 and abs(gaps[2.0].mean()) < 0.02, (np.abs(gaps[2.0]).mean(), gaps[2.0].mean())
+    assert np.abs(gaps[2.0]).mean() < np.abs(gaps[0.0]).mean()
+
+
+@pytest.mark.parametrize("spacing", [(1.0, 1.0, 1.0), (2.0, 2.0, 2.0), (0.8, 0.8, 2.5)])
+def test_blurred_distance_of_a_plane_is_its_signed_distance_at_any_orientation(spacing):
+    """A half-space at oblique orientations and sub-voxel offsets: -s Phi^-1 of its voxels blurred
+    by a Gaussian of s (the largest spacing) is the signed distance to the plane, within a tenth
+    of s on average over the voxels within the clip (measured at most 0.06 at 1 and 2 mm, 0.03 at
+    0.8 x 0.8 x 2.5 mm) and with no bias (at most 0.01), closer than the distances between voxel
+    centres (at least 0.2 and 0.05); beyond the clip, the clip."""
+    spacing = np.asarray(spacing)
+    s = float(spacing.max())
+    clip = 2 * s
+    rng = np.random.default_rng(5)
+    shape = tuple(int(v) for v in np.ceil(48.0 / spacing))
+    index = np.stack(np.meshgrid(*[np.arange(k) for k in shape], indexing="ij"), axis=-1)
+    x = index * spacing - 24.0
+    inner = np.all((index * spacing > 4 * s + 1) & (index * spacing < 48 - 4 * s - 1), axis=-1)  # away from the faces
+    worst = {"blurred": 0.0, "between centres": np.inf}
+    for _ in range(4):
+        n = rng.normal(size=3)
+        while np.abs(n / np.linalg.norm(n)).min() < 0.3:  # oblique: the staircase averages out within s
+            n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        true = x @ n - rng.uniform(-0.5, 0.5) * s
+        mask = true < 0
+        near = inner & (np.abs(true) < clip - 0.5 * s)
+        d = blurred_signed_distance(mask, spacing, s, clip)
+        assert d.dtype == np.float32 and d.shape == mask.shape
+        err = (d - true)[near]
+        assert abs(err.mean()) < 0.02 * s, err.mean()
+        worst["blurred"] = max(worst["blurred"], float(np.abs(err).mean()) / s)
+        midway = clipped_signed_distance(mask, spacing, clip, midway=True)
+        worst["between centres"] = min(worst["between centres"], float(np.abs(midway - true)[near].mean()) / s)
+        far = inner & (np.abs(true) > clip + 0.5 * s)
+        np.testing.assert_array_equal(d[far], np.where(mask[far], -clip, clip).astype(np.float32))
+    assert worst["blurred"] < 0.1 and worst["blurred"] < 0.75 * worst["between centres"], worst
+
+
+def test_blurred_distance_rejects_bad_scale_and_clip():
+    with pytest.raises(ValueError, match="scale"):
+        blurred_signed_distance(np.ones((4, 4, 4), bool), np.ones(3), 0.0, 2.0)
+    with pytest.raises(ValueError, match="clip"):
+        blurred_signed_distance(np.ones((4, 4, 4), bool), np.ones(3), 1.0, -1.0)
+    with pytest.raises(ValueError, match="scale"):
+        VoxelDistance(np.ones((4, 4, 4), bool), np.ones(3), np.zeros(3), np.eye(3), clip=2.0, scale=-1.0)
 
 
 @pytest.mark.parametrize("shape, spacing", [((23, 31, 17), (1.5, 1.0, 2.5)), ((40, 29), (0.9375, 1.2)),

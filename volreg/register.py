@@ -675,14 +675,14 @@ def _voxel_distance(volume, value: int, boxes: dict, settings, unit: float):
     counted in ``unit`` mm)."""
     from volreg.features.distance_maps import VoxelDistance
 
-    clip, smoothing = settings.clip_mm(unit), settings.distance_smoothing * unit
+    clip, smoothing, scale = settings.clip_mm(unit), settings.distance_smoothing * unit, settings.distance_scale * unit
     # Only the label's box, padded beyond VoxelDistance's own crop, is compared with the value.
-    pad = np.ceil((clip + 3 * smoothing) / volume.spacing).astype(int) + 3
+    pad = np.ceil((clip + 3 * smoothing + 4 * scale) / volume.spacing).astype(int) + 3
     lo = np.array([max(b.start - p, 0) for b, p in zip(boxes[value], pad)])
     window = tuple(slice(a, min(b.stop + p, n)) for a, b, p, n in zip(lo, boxes[value], pad, volume.shape))
     origin = volume.origin + volume.direction @ (volume.spacing * lo)
     return VoxelDistance(volume.array[window] == value, volume.spacing, origin, volume.direction,
-                         clip=clip, smoothing=smoothing)
+                         clip=clip, smoothing=smoothing, scale=scale)
 
 
 # ----------------------------------------------------------------------------- a pair of volumes

@@ -189,6 +189,12 @@ class SurfaceSettings:
     min_distance_clip : float, mm
         The clip's least value: the features' reach must cover what is left after the
         linear stage, whatever the voxel size.
+    distance_scale : float, voxels
+        The voxel signed distances are read from each label's mask blurred by a Gaussian of
+        this scale (:func:`~volreg.features.distance_maps.blurred_signed_distance`): exact for
+        a plane at any orientation, and the same on any grid at least this fine, so that the
+        same labels at two resolutions give the same maps.  0 = distances between the voxel
+        centres, to the boundary half-way between them (first order; each grid's own bias).
     distance_smoothing : float, voxels
         Gaussian blur of the clipped voxel signed distances.
     """
@@ -199,7 +205,8 @@ class SurfaceSettings:
     distance_weight: float = 3.0
     distance_clip: float = 2.0
     min_distance_clip: float = 4.0
-    distance_smoothing: float = 1.0
+    distance_scale: float = 1.0
+    distance_smoothing: float = 0.8
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.smoothing) and 0 <= self.smoothing <= 10):
@@ -217,6 +224,8 @@ class SurfaceSettings:
             raise ValueError(f"Expected a positive `distance_clip` (voxels), got {self.distance_clip}.")
         if not (math.isfinite(self.min_distance_clip) and self.min_distance_clip >= 0):
             raise ValueError(f"Expected `min_distance_clip` >= 0 (mm), got {self.min_distance_clip}.")
+        if not (math.isfinite(self.distance_scale) and 0 <= self.distance_scale <= 10):
+            raise ValueError(f"Expected `distance_scale` in [0, 10] voxels, got {self.distance_scale}.")
         if not (math.isfinite(self.distance_smoothing) and 0 <= self.distance_smoothing <= 10):
             raise ValueError(f"Expected `distance_smoothing` in [0, 10] voxels, got {self.distance_smoothing}.")
 

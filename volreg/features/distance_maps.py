@@ -5,26 +5,30 @@ fit to its marching-cubes surface; labels too small or too fragmented for a
 surface (thin bones broken into dozens of pieces by the voxel grid, tissues of
 a few voxels) then only ride along with the warp.  A :class:`VoxelDistance` is
 a second kind of feature function for the locational cost (3)-(4), one per
-label and volume: the signed Euclidean distance of the voxel centres to the
-label's boundary (mm, negative inside; the boundary half-way between the
-centres inside and outside, so that the same object sampled at two
-resolutions gets the same map), clipped to ``+-clip`` mm so
-that only the neighbourhood of the label counts, smoothed by a Gaussian, and
-interpolated by a cubic B-spline -- so that its gradient and Hessian, which
-the objective's gradient needs, are exact derivatives of the interpolant.
+label and volume: the signed distance to the label's boundary (mm, negative
+inside), clipped to ``+-clip`` mm so that only the neighbourhood of the label
+counts, smoothed by a Gaussian, and interpolated by a cubic B-spline -- so that
+its gradient and Hessian, which the objective's gradient needs, are exact
+derivatives of the interpolant.  The distance is read from the label's
+indicator blurred by a Gaussian of a scale in mm (:func:`blurred_signed_distance`),
+exact for a plane whatever the grid, so that the same object sampled at two
+resolutions gets the same map; or, with no scale, measured between voxel
+centres to the boundary half-way between them (:func:`clipped_signed_distance`).
 
 Everything here is a pure function of arrays (no I/O).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, special
 
 from volreg._jit import njit
 from volreg._threads import part_range, run_parts
 
-__all__ = ["VoxelDistance", "clipped_signed_distance", "euclidean_distance"]
+__all__ = ["VoxelDistance", "blurred_signed_distance", "clipped_signed_distance", "euclidean_distance"]
 
 
 @njit
@@ -370,15 +374,62 @@ def clipped_signed_distance(mask: np.ndarray, spacing: np.ndarray, clip: float, 
     return out.reshape(mask.shape)
 
 
+def blurred_signed_distance(mask: np.ndarray, spacing: np.ndarray, scale: float, clip: float) -> np.ndarray:
+    """Signed distance to the boundary of ``mask`` read from its indicator blurred by a Gaussian,
+    clipped to ``[-clip, clip]``.
+
+    ``d = -scale * Phi^-1((G_scale * 1_mask)(x))``, with ``G_scale`` the isotropic Gaussian of
+    standard deviation ``scale`` mm and ``Phi`` the standard normal distribution function.  For
+    a half-space whose boundary plane lies at signed distance ``D`` from ``x`` (positive
+    outside) the blurred indicator is ``Phi(-D / scale)``, so ``d = D`` exactly, at any
+    orientation; a boundary of radius of curvature ``R`` is moved by about ``scale^2 / R``
+    (towards its concave side), the same on any grid.  Where ``scale`` is at least the voxel
+    spacing the blur of the voxels' indicator is that of the object itself up to the voxels'
+    discretisation, which the blur averages out, so the same object sampled at two resolutions
+    gets the same distances: within 3 mm of a ball of radius 25 mm sampled at 1 mm and at 2 mm
+    the distances between voxel centres (shortened half a voxel, :func:`clipped_signed_distance`)
+    differed by 0.1-0.16 mm on average away from the boundary, these by at most 0.01 mm.
+
+    Parameters
+    ----------
+    mask : (n_i, n_j[, n_k]) bool ndarray
+        Beyond its faces the mask is continued by its edge voxels (a label cut by the edge of
+        an image is not closed there).
+    spacing : (D,) float ndarray, mm
+    scale : float, mm
+        Standard deviation of the Gaussian, positive.
+    clip : float, mm
+        Positive.
+
+    Returns
+    -------
+    float32 ndarray of ``mask.shape``, mm (negative inside)
+    """
+    mask = np.asarray(mask, dtype=bool)
+    spacing = np.asarray(spacing, dtype=float)
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"Expected a positive `scale` (mm), got {scale}.")
+    if not (np.isfinite(clip) and clip > 0):
+        raise ValueError(f"Expected a positive `clip` (mm), got {clip}.")
+    blurred = ndimage.gaussian_filter(mask.astype(np.float64), float(scale) / spacing, mode="nearest")
+    # Beyond the clip the distance is the clip: Phi^-1 is evaluated only where it is less.
+    tail = 0.5 * math.erfc(float(clip) / float(scale) / math.sqrt(2.0))
+    out = np.where(blurred >= 0.5, np.float32(-clip), np.float32(clip))
+    band = (blurred > tail) & (blurred < 1.0 - tail)
+    out[band] = np.clip(-float(scale) * special.ndtri(blurred[band]), -clip, clip)
+    return out
+
+
 class VoxelDistance:
     """One label's clipped, smoothed signed distance map as a feature function.
 
     ``f(x)`` (mm) is the cubic B-spline interpolant of the signed distance of
-    the voxel centres to the boundary of ``mask`` half-way between its centres
-    and those outside (negative inside, see :func:`clipped_signed_distance`
-    with ``midway``), clipped to ``[-clip, clip]``
-    and blurred by a Gaussian of ``smoothing`` mm; beyond the mask's bounding
-    box padded by ``clip`` it is the constant ``clip``.  Exposes the interface
+    the voxel centres to the boundary of ``mask`` (negative inside): read from
+    the mask blurred by a Gaussian of ``scale`` mm (:func:`blurred_signed_distance`),
+    or with ``scale`` 0 measured to the boundary half-way between its centres
+    and those outside (:func:`clipped_signed_distance` with ``midway``), clipped
+    to ``[-clip, clip]`` and blurred by a Gaussian of ``smoothing`` mm; beyond
+    the mask's bounding box padded by ``clip`` it is the constant ``clip``.  Exposes the interface
     of :class:`~volreg.features.implicit.ImplicitSurface` that the warp objective uses:
     :meth:`evaluate`, :meth:`bounds` and ``band``.
 
@@ -398,6 +449,10 @@ class VoxelDistance:
         axis, the spline's own blur is part of it (the samples blurred by the
         rest are the spline's coefficients); otherwise the samples are blurred
         by a Gaussian of ``smoothing`` and interpolated.
+    scale : float, mm
+        Scale of the Gaussian through which the distances are read (0: distances between
+        voxel centres); at least the largest voxel spacing for distances that do not depend
+        on the grid.
 
     Attributes
     ----------
@@ -407,7 +462,7 @@ class VoxelDistance:
         the implicit surfaces).
     """
 
-    def __init__(self, mask, spacing, origin, direction, *, clip: float, smoothing: float = 0.0):
+    def __init__(self, mask, spacing, origin, direction, *, clip: float, smoothing: float = 0.0, scale: float = 0.0):
         mask = np.asarray(mask, dtype=bool)
         self.dim = mask.ndim
         if self.dim not in (2, 3):
@@ -418,6 +473,8 @@ class VoxelDistance:
             raise ValueError(f"Expected a positive `clip` (mm), got {clip}.")
         if not (np.isfinite(smoothing) and smoothing >= 0):
             raise ValueError(f"Expected `smoothing` >= 0 (mm), got {smoothing}.")
+        if not (np.isfinite(scale) and scale >= 0):
+            raise ValueError(f"Expected `scale` >= 0 (mm), got {scale}.")
         spacing = np.asarray(spacing, dtype=float)
         self.spacing = spacing
         self.origin = np.asarray(origin, dtype=float)
@@ -429,11 +486,14 @@ class VoxelDistance:
         # Crop: the bounding box padded by the clip distance, the blur's reach and the
         # spline's stencil, so that the map is the constant `clip` at the crop's faces.
         box = ndimage.find_objects(mask.astype(np.int8))[0]
-        pad = np.ceil((clip + 3 * smoothing) / spacing).astype(int) + 2
+        pad = np.ceil((clip + 3 * smoothing + 4 * scale) / spacing).astype(int) + 2
         self.lo = np.array([max(b.start - p, 0) for b, p in zip(box, pad)])
         hi = np.array([min(b.stop + p, n) for b, p, n in zip(box, pad, mask.shape)])
         crop = mask[tuple(slice(a, b) for a, b in zip(self.lo, hi))]
-        sdf = clipped_signed_distance(crop, spacing, clip, midway=True)
+        if scale > 0:
+            sdf = blurred_signed_distance(crop, spacing, scale, clip)
+        else:
+            sdf = clipped_signed_distance(crop, spacing, clip, midway=True)
         # A cubic B-spline whose coefficients are the samples themselves blurs them by its
         # own kernel, of variance 1/3 voxel^2 per axis: where the asked-for blur is at least
         # that, the Gaussian makes up the rest and no prefilter is needed (the prefilter and
