@@ -111,6 +111,9 @@ def test_chunks_cover_every_voxel_exactly_once(n, window):
         np.testing.assert_allclose(part.points, grid.grid_points()[tuple(part.index.T)], atol=1e-12)
         indices.append(part.index)
         done.append((part.done, part.total))
+        alone = grid.chunk(part.done - len(part.index), part.done, window)  # the same chunk, made on its own
+        for name in ("index", "flat", "points", "done", "total"):
+            np.testing.assert_array_equal(getattr(alone, name), getattr(part, name))
     inside = np.zeros(SHAPE, dtype=bool)
     inside[window if window is not None else ...] = True
     np.testing.assert_array_equal(count, inside.astype(int))  # each voxel of the window once, nothing else
@@ -129,6 +132,9 @@ def test_chunks_of_an_empty_grid_and_bad_arguments():
     for window in ((slice(0, 7), slice(0, 5), slice(0, 4)), (slice(0, 6), slice(0, 5)), (slice(0, 6, 2),) * 3):
         with pytest.raises(GeometryError, match="Expected `window` of 3 slices within the grid"):
             next(grid.chunks(10, window))
+    for first, stop in ((-1, 3), (4, 2), (0, grid.shape[0] * grid.shape[1] * grid.shape[2] + 1)):
+        with pytest.raises(GeometryError, match="Expected 0 <= `first` <= `stop`"):
+            grid.chunk(first, stop)
 
 
 # ----------------------------------------------------------------------------- LabelVolume and its grid
@@ -227,6 +233,33 @@ def test_warp_fields_on_a_grid_equal_those_on_the_volume():
     u2, det = fields_on_grid(warp, vol.grid, chunk=11)
     np.testing.assert_allclose(u2, u, atol=1e-12)
     assert det.shape == SHAPE and np.all(det > 0)
+
+
+def test_grid_chunks_on_threads_give_what_one_thread_gives():
+    """The chunks of a grid are evaluated side by side on the threads: the same fields as on one
+    thread, and an inverse's tallies (largest residual, unconverged points) count every chunk."""
+    import numba
+
+    from volreg.warp.inverse import InverseWarp
+
+    vol = LabelVolume(np.zeros(SHAPE, np.uint8), ORIGIN, SPACING, ORIENTATIONS["oblique"])
+    warp = _warp()
+    results = {}
+    for threads in (1, 2):
+        previous = numba.get_num_threads()
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        try:
+            inverse = InverseWarp(warp, tol=1e-9)
+            results[threads] = (fields_on_grid(warp, vol.grid, chunk=5), displacement_on_grid(inverse, vol.grid, chunk=3),
+                                inverse.max_residual, inverse.unconverged)
+        finally:
+            numba.set_num_threads(previous)
+    (u1, det1), inv1, res1, bad1 = results[1]
+    (u2, det2), inv2, res2, bad2 = results[2]
+    np.testing.assert_array_equal(u1, u2)
+    np.testing.assert_array_equal(det1, det2)
+    np.testing.assert_array_equal(inv1, inv2)
+    assert res1 == res2 and 0 < res1 <= 1e-9 and bad1 == bad2 == 0
 
 
 def test_resample_image_and_implicit_surface_on_a_grid():

@@ -60,6 +60,31 @@ def test_thread_map_keeps_the_order_and_raises_a_jobs_error():
         list(thread_map(boom, list(range(8))))
 
 
+def test_thread_map_ahead_keeps_the_order_and_few_results_waiting():
+    """With ``ahead``, at most that many jobs are submitted and not yet yielded, and the results
+    come in order even when a later job ends first."""
+    import threading
+    import time
+
+    lock = threading.Lock()
+    started, yielded, most = [0], [0], [0]
+
+    def job(i):
+        with lock:
+            started[0] += 1
+            most[0] = max(most[0], started[0] - yielded[0])
+        time.sleep(0.02 if i % 3 == 0 else 0.001)
+        return i * i
+
+    out = []
+    for value in thread_map(job, list(range(30)), ahead=4):
+        out.append(value)
+        with lock:
+            yielded[0] += 1
+    assert out == [i * i for i in range(30)]
+    assert 1 <= most[0] <= 4, most[0]
+
+
 def test_implicit_fits_on_threads_equal_serial_fits():
     """The labels' implicit surfaces are fitted on numba's threads in register_labels: the
     same fits as one after another, to the bit."""

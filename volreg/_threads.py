@@ -32,6 +32,7 @@ from __future__ import annotations
 import itertools
 import os
 import threading
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from functools import wraps
 from typing import Callable, Generator, Sequence, TypeVar
@@ -167,7 +168,7 @@ def query_workers() -> int:
     return 1 if getattr(_JOB, "active", False) else numba.get_num_threads()
 
 
-def thread_map(func: Callable[[T], R], items: Sequence[T]) -> Generator[R, None, None]:
+def thread_map(func: Callable[[T], R], items: Sequence[T], *, ahead: int | None = None) -> Generator[R, None, None]:
     """``map(func, items)`` on ``numba.get_num_threads()`` Python threads (in order).
 
     For independent jobs that release the GIL: compiled loops (the implicit-surface fits of
@@ -176,6 +177,14 @@ def thread_map(func: Callable[[T], R], items: Sequence[T]) -> Generator[R, None,
     one thread.  On an exception (a KeyboardInterrupt too) jobs not yet started are cancelled;
     running ones finish first.  A caller that may stop before the last result calls
     ``.close()`` on the generator to join the threads.
+
+    Parameters
+    ----------
+    func : callable
+    items : sequence
+    ahead : int, optional
+        At most this many jobs submitted and not yet yielded (at least the thread count), so
+        that results waiting for an earlier one stay few (chunks of a large grid); default: all.
     """
     workers = min(numba.get_num_threads(), len(items))
     if workers <= 1:
@@ -183,7 +192,18 @@ def thread_map(func: Callable[[T], R], items: Sequence[T]) -> Generator[R, None,
         return
     pool = ThreadPoolExecutor(max_workers=workers, initializer=_mark_job_thread)
     try:
-        yield from pool.map(func, items)
+        if ahead is None:
+            yield from pool.map(func, items)
+            return
+        pending: deque = deque()
+        queued = iter(items)
+        for item in itertools.islice(queued, max(int(ahead), workers)):
+            pending.append(pool.submit(func, item))
+        while pending:
+            result = pending.popleft().result()
+            for item in itertools.islice(queued, 1):
+                pending.append(pool.submit(func, item))
+            yield result
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 

@@ -297,23 +297,46 @@ class Grid:
         """
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
             raise GeometryError(f"Expected `n` to be a positive number of voxels, got {n!r}.")
+        window = self._checked_window(window)
+        total = int(np.prod([s.stop - s.start for s in window]))
+        for first in range(0, total, int(n)):
+            yield self.chunk(first, min(first + int(n), total), window)
+
+    def _checked_window(self, window: tuple[slice, ...] | None) -> tuple[slice, ...]:
         if window is None:
-            window = tuple(slice(0, size) for size in self.shape)
+            return tuple(slice(0, size) for size in self.shape)
         if len(window) != self.ndim or not all(
             isinstance(s, slice) and s.step in (None, 1) and isinstance(s.start, (int, np.integer))
             and isinstance(s.stop, (int, np.integer)) and 0 <= s.start <= s.stop <= size
             for s, size in zip(window, self.shape)
         ):
             raise GeometryError(f"Expected `window` of {self.ndim} slices within the grid {self.shape}, got {window}.")
+        return window
+
+    def chunk(self, first: int, stop: int, window: tuple[slice, ...] | None = None) -> VoxelChunk:
+        """The voxels ``first`` to ``stop - 1`` of ``window`` in C order: one of :meth:`chunks`,
+        made on its own (so that chunks can be made on several threads).
+
+        Parameters
+        ----------
+        first, stop : int
+            Positions in the window's C-order traversal, ``0 <= first <= stop <= voxels``.
+        window : tuple of D slices, optional
+            As for :meth:`chunks`.
+
+        Returns
+        -------
+        VoxelChunk
+        """
+        window = self._checked_window(window)
         sub_shape = tuple(s.stop - s.start for s in window)
-        start = np.array([s.start for s in window])
         total = int(np.prod(sub_shape))
-        n = int(n)
-        for s in range(0, total, n):
-            done = min(s + n, total)
-            index = np.stack(np.unravel_index(np.arange(s, done), sub_shape), axis=1) + start
-            flat = np.ravel_multi_index(tuple(index.T), self.shape)
-            yield VoxelChunk(index, flat, self.index_to_world(index), done, total)
+        if not 0 <= first <= stop <= total:
+            raise GeometryError(f"Expected 0 <= `first` <= `stop` <= {total}, got {first} and {stop}.")
+        start = np.array([s.start for s in window])
+        index = np.stack(np.unravel_index(np.arange(first, stop), sub_shape), axis=1) + start
+        flat = np.ravel_multi_index(tuple(index.T), self.shape)
+        return VoxelChunk(index, flat, self.index_to_world(index), stop, total)
 
     def same_geometry(self, other: Grid | LabelVolume, atol: float = 1e-6) -> bool:
         """True when ``other`` (a grid or a volume) has the same grid size, origin, spacing and direction."""

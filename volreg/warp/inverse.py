@@ -28,6 +28,7 @@ consistency test (Section 5) and to carry points and images the other way.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Callable
 
@@ -263,6 +264,7 @@ class InverseWarp(_PointMap):
         self.start = start
         self.max_residual = 0.0
         self.unconverged = 0
+        self._tally = threading.Lock()  # evaluations may run on several threads (volreg.warp.field)
 
     @property
     def linear(self) -> LinearMap:
@@ -294,9 +296,11 @@ class InverseWarp(_PointMap):
             progress=progress,
             **({} if chunk is None else {"chunk": chunk}),
         )
-        if len(sol.residual):
-            self.max_residual = max(self.max_residual, float(sol.residual.max()))
-        self.unconverged += int(np.count_nonzero(~sol.converged))
+        worst = float(sol.residual.max()) if len(sol.residual) else 0.0
+        missed = int(np.count_nonzero(~sol.converged))
+        with self._tally:
+            self.max_residual = max(self.max_residual, worst)
+            self.unconverged += missed
         if order == 0:
             return (sol.points,)
         _, jac = self.warp.evaluate(sol.points, order=1)
