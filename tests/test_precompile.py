@@ -136,6 +136,34 @@ def test_stopped_helper_ends_promptly_and_leaves_no_partial_file(tmp_path):
     assert not [p for p in cache.rglob("*") if ".tmp." in p.name]
 
 
+#: Run in a fresh interpreter as the helper runs: SIGTERM arrives in the middle of a cache
+#: file's write; the process must finish that write (renamed into place, no temporary file)
+#: and end at once after it with status 0, before the next statement.
+_WRITE_INTERRUPTED = """
+import os, signal, sys
+from numba.core import caching
+from volreg import _precompile
+_precompile._hook_cache_writes()
+signal.signal(signal.SIGTERM, _precompile._on_sigterm)
+target = sys.argv[1]
+with caching.IndexDataCacheFile._open_for_write(None, target) as f:
+    f.write(b"first half ")
+    os.kill(os.getpid(), signal.SIGTERM)
+    f.write(b"second half")
+print("went on after the write")
+"""
+
+
+def test_sigterm_during_a_cache_write_ends_the_helper_after_it(tmp_path):
+    target = tmp_path / "loop.nbc"
+    proc = subprocess.run([sys.executable, "-c", _WRITE_INTERRUPTED, str(target)], capture_output=True,
+                          timeout=120, env=_env())
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == b""
+    assert target.read_bytes() == b"first half second half"
+    assert [p.name for p in tmp_path.iterdir()] == ["loop.nbc"]
+
+
 def test_no_helper_when_turned_off_or_warm(monkeypatch):
     monkeypatch.setenv("VOLREG_COMPILE_AHEAD", "0")
     assert _precompile.start() == []

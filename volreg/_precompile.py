@@ -300,16 +300,55 @@ def stop(helpers: list[subprocess.Popen]) -> None:
 
 
 class _Stopped(Exception):
-    """SIGTERM in the helper; an Exception (not BaseException) so that numba's cache writer,
-    interrupted while writing, removes its temporary file."""
+    """SIGTERM in the helper while numba writes a cache file and no write hook could be set;
+    an Exception (not BaseException) so that numba's cache writer removes its temporary file."""
 
 
 _stopping: list[bool] = []
+_writing: list[bool] = []
+_write_hooked: list[bool] = []
 
 
 def _on_sigterm(signum, frame) -> None:
+    """End the helper at once, unless numba is writing a cache file: then at the end of the write.
+
+    Nothing is unwound: an exception raised into numba's compiler (or LLVM's callbacks) can leave
+    its objects half-built, and their finalisers then crashed the process at exit.  A compiled
+    loop is written to a temporary name and renamed, so ending between writes leaves no partial
+    file."""
     _stopping.append(True)
-    raise _Stopped
+    if not _writing and _write_hooked:
+        os._exit(0)
+    if not _write_hooked:
+        raise _Stopped
+
+
+def _hook_cache_writes() -> None:
+    """Mark numba's cache writes (:data:`_writing`) so that SIGTERM waits for the one under way,
+    and end the helper right after it where SIGTERM came meanwhile.  Without the hook (a numba
+    whose cache writer is named differently) SIGTERM raises :class:`_Stopped` as before."""
+    import contextlib
+
+    try:
+        from numba.core import caching
+
+        original = caching.IndexDataCacheFile._open_for_write
+    except (ImportError, AttributeError):  # pragma: no cover - numba's internals changed
+        return
+
+    @contextlib.contextmanager
+    def marked(self, filepath):
+        _writing.append(True)
+        try:
+            with original(self, filepath) as f:
+                yield f
+        finally:
+            _writing.pop()
+            if _stopping and not _writing:
+                os._exit(0)
+
+    caching.IndexDataCacheFile._open_for_write = marked
+    _write_hooked.append(True)
 
 
 def _main(argv: list[str]) -> int:
@@ -317,12 +356,13 @@ def _main(argv: list[str]) -> int:
     (or, given ``cold K/N``, share K of N (:func:`shares_of`) of those not cached yet, in
     :func:`helper_order`; ``cold`` alone: all of them).
 
-    SIGTERM stops it: at once where Python runs, else (inside a ctypes callback of LLVM, where
-    the exception is only reported) after the loop being compiled.  So does the end of the
+    SIGTERM ends it as soon as Python runs again (LLVM's compiling is not interrupted), or
+    right after a cache file under way is written (:func:`_on_sigterm`).  So does the end of the
     command that started it, by any signal (SIGKILL included), after the loop being compiled.
     Exit status 0 either way.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the command, which stops the helper
+    _hook_cache_writes()
     signal.signal(signal.SIGTERM, _on_sigterm)
     previous = sys.unraisablehook
     sys.unraisablehook = lambda u: None if _stopping else previous(u)
@@ -348,4 +388,6 @@ def _main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(_main(sys.argv[1:]))
+    # Ended without the interpreter's finalisation: nothing is left to flush, and a SIGTERM that
+    # came during it would meet the default handler (exit status -15) or LLVM's finalisers.
+    os._exit(_main(sys.argv[1:]))
