@@ -103,6 +103,17 @@ def test_without_the_linear_stage_the_failure_is_reported(posed, tmp_path, capsy
     assert all(f["message"] in line for f, line in zip(findings, warnings))
 
 
+def _mean_dice_identity_and_warped(fixed, moving, warp, labels) -> tuple[float, float]:
+    """Mean Dice over ``labels`` of the moving labels resampled on the fixed grid as they lie
+    (the identity) and through ``warp``."""
+    grid = fixed.grid_points()
+    identity = volreg.resample_labels(moving, grid).reshape(fixed.shape)
+    warped = volreg.resample_labels(moving, warp(grid.reshape(-1, 3))).reshape(fixed.shape)
+    return tuple(float(np.mean([s["dice"] for s in volreg.label_scores(fixed.array, v, list(labels),
+                                                                            fixed.spacing).values()]))
+                 for v in (identity, warped))
+
+
 @pytest.mark.parametrize("moving_grid", ["2 mm", "0.8 x 0.8 x 2.5 mm oblique"])
 def test_the_same_labels_at_two_resolutions_stay_in_place(moving_grid):
     """No motion: the blobs at 1 mm against the blobs at a coarser grid.  The linear part stays
@@ -127,12 +138,7 @@ def test_the_same_labels_at_two_resolutions_stay_in_place(moving_grid):
     u = result.warp(x) - x
     assert np.linalg.norm(u, axis=1).mean() < (0.32 if moving_grid == "2 mm" else 0.16)
     assert np.linalg.norm(u.mean(axis=0)) < 0.15  # no shift overall
-    labels = list(range(1, 7))
-    grid = fixed.grid_points()
-    identity = volreg.resample_labels(moving, grid).reshape(fixed.shape)
-    warped = volreg.resample_labels(moving, result.warp(grid.reshape(-1, 3))).reshape(fixed.shape)
-    before = np.mean([s["dice"] for s in volreg.label_scores(fixed.array, identity, labels, fixed.spacing).values()])
-    after = np.mean([s["dice"] for s in volreg.label_scores(fixed.array, warped, labels, fixed.spacing).values()])
+    before, after = _mean_dice_identity_and_warped(fixed, moving, result.warp, range(1, 7))
     assert after >= before, (before, after)
 
 
@@ -174,12 +180,7 @@ def test_the_same_cells_at_two_resolutions_are_moved_less_than_their_voxels_disc
     x = fixed.grid_points()[inside]
     moved = np.linalg.norm(result.warp(x) - x, axis=1)
     assert moved.mean() < limit, moved.mean()
-    labels = list(range(1, 13))
-    grid = fixed.grid_points()
-    identity = volreg.resample_labels(moving, grid).reshape(fixed.shape)
-    warped = volreg.resample_labels(moving, result.warp(grid.reshape(-1, 3))).reshape(fixed.shape)
-    before = np.mean([s["dice"] for s in volreg.label_scores(fixed.array, identity, labels, fixed.spacing).values()])
-    after = np.mean([s["dice"] for s in volreg.label_scores(fixed.array, warped, labels, fixed.spacing).values()])
+    before, after = _mean_dice_identity_and_warped(fixed, moving, result.warp, range(1, 13))
     assert after >= before, (before, after)
 
 
