@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -120,11 +121,20 @@ def test_helper_compiles_into_the_cache_that_the_next_process_reads(tmp_path):
     assert _cold_in(cache) == [i for i in range(len(LOOPS)) if i not in chosen]
 
 
-def test_stopped_helper_ends_promptly_and_leaves_no_partial_file(tmp_path):
+@pytest.mark.parametrize("held", [False, True], ids=["signals as they are", "started with SIGTERM blocked"])
+def test_stopped_helper_ends_promptly_and_leaves_no_partial_file(tmp_path, held):
+    """Stopped while compiling, the helper ends with status 0, says nothing, leaves no temporary
+    file and has not compiled every loop; also when started, as the command starts it, while
+    the command holds SIGINT and SIGTERM blocked (a blocked mask is inherited)."""
     cache = tmp_path / "cache"
     cache.mkdir()
-    helper = subprocess.Popen([sys.executable, "-m", "volreg._precompile", *map(str, range(len(LOOPS)))],
-                              env=_env(NUMBA_CACHE_DIR=str(cache)), stderr=subprocess.PIPE)
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM}) if held else None
+    try:
+        helper = subprocess.Popen([sys.executable, "-m", "volreg._precompile", *map(str, range(len(LOOPS)))],
+                                  env=_env(NUMBA_CACHE_DIR=str(cache)), stderr=subprocess.PIPE)
+    finally:
+        if held:
+            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
     time.sleep(4.0)  # imported, and compiling
     assert helper.poll() is None
     t0 = time.perf_counter()
@@ -134,6 +144,7 @@ def test_stopped_helper_ends_promptly_and_leaves_no_partial_file(tmp_path):
     with helper.stderr:
         assert helper.stderr.read() == b""
     assert not [p for p in cache.rglob("*") if ".tmp." in p.name]
+    assert _cold_in(cache)  # stopped before the end, not run to it
 
 
 #: Run in a fresh interpreter as the helper runs: SIGTERM arrives in the middle of a cache

@@ -364,6 +364,11 @@ def _main(argv: list[str]) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the command, which stops the helper
     _hook_cache_writes()
     signal.signal(signal.SIGTERM, _on_sigterm)
+    if hasattr(signal, "pthread_sigmask"):
+        # The command starts its helpers while it holds SIGINT and SIGTERM blocked (until its own
+        # handlers are in place), and a blocked mask is inherited: unblocked here, or SIGTERM would
+        # wait until every loop is compiled.  One that came meanwhile is acted on now.
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
     previous = sys.unraisablehook
     sys.unraisablehook = lambda u: None if _stopping else previous(u)
     try:
