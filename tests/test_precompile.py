@@ -166,6 +166,10 @@ print("went on after the write")
 
 
 def test_sigterm_during_a_cache_write_ends_the_helper_after_it(tmp_path):
+    from numba.core import caching
+
+    if not hasattr(getattr(caching, "IndexDataCacheFile", None), "_open_for_write"):
+        pytest.skip("this numba writes its cache otherwise; the helper then stops as before")
     target = tmp_path / "loop.nbc"
     proc = subprocess.run([sys.executable, "-c", _WRITE_INTERRUPTED, str(target)], capture_output=True,
                           timeout=120, env=_env())
