@@ -26,10 +26,14 @@ Cases, generated with known answers (seeded):
    (moving);
 7. no motion: the folded two-label brain phantom of `bench_speed.py` (grey shell 2.5 mm thick around a
    white core) at 2 mm (fixed: every second voxel of the 1 mm labels, so the same label map) and at
-   1 mm (moving).
+   1 mm (moving);
+8. no motion: a smaller ellipsoid (semi-axes 40 / 30 / 25 mm) split into 12 Voronoi labels, at 1 mm
+   (fixed) and at 2 mm (moving), both grids centred on the ellipsoid, so that the 2 mm voxel centres lie
+   half-way between 1 mm ones;
+9. no motion: case 5 with one label (the ellipsoid's outline, its cells merged), a lone smooth organ.
 
 The true pull-back map is tau_true = L o beta: a fixed point x is first moved by the smooth warp beta
-(x + the bumps' displacement, defined about the fixed object; the identity in cases 3 and 5-7), then by
+(x + the bumps' displacement, defined about the fixed object; the identity in cases 3 and 5-9), then by
 the pose L(x) = A (x - c) + c + t (c: the centroid of the fixed labels; A = rotation [x scale / stretch];
 t: the shift). The moving volume holds, at each voxel centre y of its grid, the label of the source
 labels at tau_true^-1(y) = beta^-1(L^-1(y)) (beta inverted by fixed-point iteration), by nearest
@@ -53,7 +57,7 @@ program it starts), each writing a displacement field on the fixed grid (LPS mm,
   starts the affine from greedy's rigid alignment of the images' inertia tensors (`-moments 2 -det 1`)
   instead of the image centres;
 - `identity` (no registration) and `truth` (tau_true itself), written and read back as the others: the
-  first is the starting misalignment (and must score 0 mm in cases 5-7), the second checks the scoring (its
+  first is the starting misalignment (and must score 0 mm in cases 5-9), the second checks the scoring (its
   endpoint error must be ~0 everywhere) and gives the Dice of the true map with these discretised
   volumes (not a ceiling: a map that bends boundaries onto the other volume's voxels can score higher).
   Neither is timed.
@@ -69,6 +73,9 @@ the fixed labels and the moving labels resampled through the method's field (vol
 resampling, the same for every method); wall seconds and peak RSS (GB). Medians of `--repeats` runs.
 For volreg also its stages (seconds, from report.json) and its linear part, when its model holds one,
 scored against the true pose L at the same voxels.
+
+`--protocol NAME|FILE` is passed to `volreg register` (a preset or a TOML file: settings measured
+against the defaults).
 
 Output: Markdown on stdout: the command line, the cases, one table row per case and method, the volreg
 stages. Work files go to a temporary folder (`--workdir` keeps them).
@@ -241,8 +248,31 @@ def _organ_fixed(labels, spacing: float):
     return _sample(grid, labels, lambda p: p)
 
 
+def _small_organ(shape, spacing: float):
+    """Case 8's 12 Voronoi cells of an ellipsoid of semi-axes 40 / 30 / 25 mm centred at 0, on the grid
+    of ``shape`` voxels of ``spacing`` mm centred at 0."""
+    from scipy.spatial import cKDTree
+
+    from volreg.grid import LabelVolume
+
+    rng = np.random.default_rng(2)
+    axes = np.array([40.0, 30.0, 25.0])
+    u = rng.uniform(-1, 1, (480, 3))
+    tree = cKDTree(u[np.sum(u**2, axis=1) < 0.7][:12] * axes)
+    origin = -0.5 * (np.array(shape) - 1) * spacing
+    grid = LabelVolume(np.zeros(shape, np.uint8), origin, (spacing,) * 3, np.eye(3))
+
+    def labels(p: np.ndarray) -> np.ndarray:
+        inside = np.sum((p / axes) ** 2, axis=1) < 1.0
+        out = np.zeros(len(p), np.uint8)
+        out[inside] = tree.query(p[inside])[1] + 1
+        return out
+
+    return _sample(grid, labels, lambda p: p)
+
+
 def make_case(number: int) -> Case:
-    """Build case ``number`` (1-7): fixed and moving volumes, the true map and a description."""
+    """Build case ``number`` (1-9): fixed and moving volumes, the true map and a description."""
     from volreg.grid import Grid
 
     if number in (1, 2):
@@ -271,6 +301,11 @@ def make_case(number: int) -> Case:
         moving = _posed_moving(fixed, truth, _blob_labels, (1.0, 1.0, 1.0))
         return Case(3, "one blob 2 mm vs 1 mm", fixed, moving, truth,
                     "30 deg about (-0.5, 0.4, 0.75), 30 mm, stretch 0.85 / 1 / 1.15 along oblique axes")
+    if number == 8:
+        fixed, moving = _small_organ((90, 70, 60), 1.0), _small_organ((45, 35, 30), 2.0)
+        truth = Truth(Pose(np.eye(3), _centroid(fixed), np.zeros(3)), None)
+        return Case(8, "12 labels 1 mm vs 2 mm, half a voxel apart, no motion", fixed, moving, truth,
+                    "none (identity)")
     labels = _organ_labels()
     fixed = _organ_fixed(labels, 1.0)
     if number == 4:
@@ -283,6 +318,11 @@ def make_case(number: int) -> Case:
         truth = Truth(Pose(np.eye(3), _centroid(fixed), np.zeros(3)), None)
         moving = _organ_fixed(labels, 2.0)
         return Case(5, "30 labels 1 mm vs 2 mm, no motion", fixed, moving, truth, "none (identity)")
+    if number == 9:
+        truth = Truth(Pose(np.eye(3), _centroid(fixed), np.zeros(3)), None)
+        moving = _organ_fixed(labels, 2.0)
+        lone = [v.with_array((v.array > 0).astype(np.uint8)) for v in (fixed, moving)]
+        return Case(9, "one smooth label 1 mm vs 2 mm, no motion", *lone, truth, "none (identity)")
     if number == 6:
         truth = Truth(Pose(np.eye(3), _centroid(fixed), np.zeros(3)), None)
         moving = _posed_moving(fixed, truth, labels, (0.8, 0.8, 2.5), direction=rotation(20, (1.0, 0.3, 0.2)))
@@ -296,7 +336,7 @@ def make_case(number: int) -> Case:
         coarse = LabelVolume(fine.array[::2, ::2, ::2].copy(), fine.origin, 2 * fine.spacing, fine.direction)
         truth = Truth(Pose(np.eye(3), _centroid(coarse), np.zeros(3)), None)
         return Case(7, "brain phantom 2 mm vs 1 mm, no motion", coarse, fine, truth, "none (identity)")
-    raise ValueError(f"Expected a `case` from 1 to 7, got {number!r}.")
+    raise ValueError(f"Expected a `case` from 1 to 9, got {number!r}.")
 
 
 # ----------------------------------------------------------------------------- running the methods
@@ -335,6 +375,8 @@ def run_method(case: Case, method: str, paths: dict, out: Path, args) -> dict:
         if method == "volreg":
             command = shlex.split(args.volreg_command) + ["register", paths["fixed"], paths["moving"], "-o", str(out),
                                                           "--force", "--quiet"]
+            if args.protocol:
+                command += ["--protocol", args.protocol]
         elif method in PEERS:
             command = [args.peer_python, str(Path(__file__).resolve()), "--peer", method, paths["fixed"],
                        paths["moving"], str(out)]
@@ -381,7 +423,8 @@ def _summary(block, limit: int = 400) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=1, help="runs per case and method (medians are shown)")
-    parser.add_argument("--cases", default="1,2,3,4,5", help="comma-separated subset of 1-7")
+    parser.add_argument("--cases", default="1,2,3,4,5", help="comma-separated subset of 1-9")
+    parser.add_argument("--protocol", default=None, help="passed to `volreg register --protocol` (a preset or a TOML file)")
     parser.add_argument("--methods", default=DEFAULT_METHODS,
                         help=f"comma-separated subset of {','.join(REFERENCES + ('volreg',) + PEERS)}")
     add_run_options(parser)
