@@ -37,7 +37,10 @@ def test_tune_prefers_a_registration_over_the_consistent_identity(pair, tmp_path
     hold-out distance makes tune choose lambda_loc = 100, and tuned.toml loads back with it."""
     assert run(["tune", pair / "a.nii.gz", pair / "b.nii.gz", "-o", tmp_path / "out", "--protocol", pair / "p.toml",
                 "--grid", "lambda_loc=0,100"]) == 0
-    assert "[2/2] lambda_loc=100" in capsys.readouterr().err
+    out = capsys.readouterr()
+    assert "[2/2] lambda_loc=100" in out.err
+    # the last line names the file where it now is, not the staging folder it was written in
+    assert f"{tmp_path / 'out' / 'tuned.toml'} (" in out.out.strip().splitlines()[-1], out.out
     rows = list(csv.DictReader((tmp_path / "out" / "tune.csv").read_text().splitlines()))
     assert [float(r["lambda_loc"]) for r in rows] == [0.0, 100.0]
     identity, registered = rows

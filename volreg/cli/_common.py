@@ -66,6 +66,13 @@ def _listing(values: Sequence[int]) -> str:
     return shown + (f", ... ({len(values)} in all)" if len(values) > _MAX_LISTED else "")
 
 
+def output_path(text: str) -> Path:
+    """The argparse type of ``-o``: a path, not an empty string (which would name the working folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a file or folder name, got an empty string")
+    return Path(text)
+
+
 def _warn(command: str, message: str) -> None:
     print(f"{PROG} {command}: warning: {message}", file=sys.stderr)
 
@@ -184,5 +191,18 @@ def _load_landmarks(args, fixed: LabelVolume | None = None, moving: LabelVolume 
                 f"--landmarks: point {i + 1} of `{path}` ({', '.join(f'{v:.1f}' for v in points[i])} mm) lies outside the "
                 f"{role} image's extent ({np.round(lo, 1).tolist()}..{np.round(hi, 1).tolist()} mm LPS); expected "
                 "points inside it (check the file's coordinate system: LPS or RAS)."
+            )
+    if fixed is not None and len(a) > 1:
+        from scipy.spatial import cKDTree
+
+        # One fixed point cannot be sent to two places, nor pinned twice: the landmark start's
+        # kernel system would be singular.
+        close = sorted(cKDTree(a).query_pairs(0.1 * float(np.min(fixed.spacing))))
+        if close:
+            i, j = close[0]
+            raise UsageError(
+                f"--landmarks: points {i + 1} and {j + 1} of `{args.landmarks[0]}` coincide "
+                f"({', '.join(f'{v:.2f}' for v in a[i])} mm, within a tenth of a voxel); expected distinct fixed "
+                "landmarks (remove the repeated pair)."
             )
     return a, b

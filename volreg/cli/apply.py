@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from volreg.cli._common import PROG, _warn
+from volreg.cli._common import PROG, _warn, output_path
 from volreg.errors import UsageError
 
 __all__ = ["add_parser", "run"]
@@ -39,7 +39,7 @@ def add_parser(commands) -> None:
                        "written in the other one")
     apply.add_argument("--reference", metavar="REF", type=Path, default=None,
                        help="images only (required for them): image whose grid the output takes (fixed space)")
-    apply.add_argument("-o", "--output", metavar="OUT", type=Path, required=True,
+    apply.add_argument("-o", "--output", metavar="OUT", type=output_path, required=True,
                        help="output: an image (.nii.gz, .nii, .nrrd, .mha), or points / mesh in INPUT's format")
     apply.add_argument("--interpolation", choices=("label", "nearest", "linear", "bspline"), default=None,
                        help="images only: label: label-preserving (per-label signed distances, default); nearest; "
@@ -80,6 +80,20 @@ def _check_overlap(field, reference, warp_path, reference_path) -> None:
             "overlap, so the warp would leave every reference voxel where it is; expected a warp on (or around) the "
             "reference's grid (check the origins, or the pairing of the warp and the reference)."
         )
+
+
+def _warn_partial_cover(field, points, warp_path, reference_path) -> None:
+    """One warning line where some reference voxels lie outside the field's grid (voxel centres
+    to half a voxel beyond): the displacement there is 0, as ITK reads a field, so they are not warped."""
+    import numpy as np
+
+    index = field.world_to_index(points.reshape(-1, field.ndim))
+    inside = np.all((index >= -0.5) & (index <= np.array(field.shape) - 0.5), axis=1)
+    share = float(inside.mean())
+    if share < 1.0:
+        _warn("apply", f"warp `{warp_path}` covers {100 * share:.1f} % of the voxels of --reference `{reference_path}`; "
+              "outside it the displacement is 0 (as ITK reads a field), so those voxels are not warped (apply the "
+              "model.npz of the registration, which holds the whole map, or a warp written on the reference's grid).")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -210,6 +224,7 @@ def _run_image(args: argparse.Namespace) -> int:
                 u = u_field
             else:
                 _check_overlap(grid, reference, args.warp, args.reference)  # as ITK: the field is interpolated linearly at the reference voxels, zero outside it
+                _warn_partial_cover(grid, at, args.warp, args.reference)
                 u = np.stack([resample_image(u_field[..., d], grid, at, order=1) for d in range(grid.ndim)], axis=-1)
         else:
             raise UsageError(f"MODEL_OR_WARP `{args.warp}` must be a model.npz, a displacement field .nii/.nii.gz "

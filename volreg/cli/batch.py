@@ -23,7 +23,7 @@ import threading
 import time
 from pathlib import Path
 
-from volreg.cli._common import EXPECTED_ERRORS, PROG
+from volreg.cli._common import EXPECTED_ERRORS, PROG, output_path
 from volreg.errors import UsageError
 
 __all__ = ["add_parser", "read_manifest", "plan_pairs", "pair_folders", "settings_fingerprint", "run_pair", "run"]
@@ -46,7 +46,7 @@ def add_parser(commands) -> None:
         "OUTDIR/batch.png. Exit status 1 if any pair failed.",
     )
     batch.add_argument("manifest", metavar="MANIFEST", type=Path, help="CSV with columns id,path")
-    batch.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
+    batch.add_argument("-o", "--output", metavar="OUTDIR", type=output_path, required=True, help="output directory")
     batch.add_argument("--template", metavar="T", type=Path, default=None, help="register every subject to this volume")
     batch.add_argument("--pairs", choices=("all", "consecutive"), default="all",
                        help="without --template: every ordered pair (default) or consecutive subjects")

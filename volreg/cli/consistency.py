@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from volreg.cli._common import PROG, _fit_logger, _label_list, _sha256, _strict_status, _warn
+from volreg.cli._common import PROG, _fit_logger, _label_list, _sha256, _strict_status, _warn, output_path
 from volreg.errors import UsageError
 
 if TYPE_CHECKING:  # the pipeline is imported when the command runs
@@ -34,7 +34,7 @@ def add_parser(commands) -> None:
     )
     consistency.add_argument("a", metavar="A", type=Path, help="label volume A")
     consistency.add_argument("b", metavar="B", type=Path, help="label volume B")
-    consistency.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
+    consistency.add_argument("-o", "--output", metavar="OUTDIR", type=output_path, required=True, help="output directory")
     consistency.add_argument("--forward", metavar="RESULT_AB", type=Path, default=None,
                              help="OUTDIR of `volreg register A B` (skip registering; needs --backward)")
     consistency.add_argument("--backward", metavar="RESULT_BA", type=Path, default=None,
@@ -75,6 +75,37 @@ def _load_result(result: Path, grid: LabelVolume, option: str, grid_path: Path, 
     return warp
 
 
+def _saved_inputs(result: Path) -> tuple[str | None, str | None]:
+    """The checksums of the fixed and moving files a saved ``volreg register`` OUTDIR was made from
+    (its report.json), or ``None`` where it does not say."""
+    import json
+
+    try:
+        inputs = json.loads((result / "report.json").read_text(encoding="utf-8")).get("inputs", {})
+        return inputs.get("fixed", {}).get("sha256"), inputs.get("moving", {}).get("sha256")
+    except (OSError, ValueError, AttributeError):
+        return None, None
+
+
+def _check_saved_inputs(args: argparse.Namespace, sha_a: str, sha_b: str) -> None:
+    """Refuse saved results registered the other way round; warn where they were made from other
+    files than A and B (the same labels saved again differ in their bytes too)."""
+    for option, result, want in (("--forward", args.forward, (sha_a, sha_b)),
+                                 ("--backward", args.backward, (sha_b, sha_a))):
+        got = _saved_inputs(result)
+        if None in got or got == want:
+            continue
+        command = "volreg register A B" if option == "--forward" else "volreg register B A"
+        if got == want[::-1] and want[0] != want[1]:
+            raise UsageError(f"{option} `{result}` registered the other way round ({'B to A' if option == '--forward' else 'A to B'}, "
+                             f"by its report.json's input checksums); expected the result of `{command}`.")
+        which = [role for role, g, w in zip(("fixed", "moving"), got, want) if g != w]
+        _warn("consistency", f"{option} `{result}` was registered from other files than `{command}` names "
+              f"(its report.json's {' and '.join(which)} checksum differs from "
+              f"{' and '.join(('A' if (r == 'fixed') == (option == '--forward') else 'B') for r in which)}'s); "
+              "the test is of that registration, not of A and B.")
+
+
 def run(args: argparse.Namespace) -> int:
     """``volreg consistency A B -o OUTDIR [--forward RESULT_AB --backward RESULT_BA]``."""
     from volreg.evaluation.consistency import write_consistency_test
@@ -106,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
         linear = protocol.linear.kind
     check_pair(a, b, args.a, args.b, linear=linear)
     inputs = {"A": {"path": str(args.a), "sha256": _sha256(args.a)}, "B": {"path": str(args.b), "sha256": _sha256(args.b)}}
+    if saved:
+        _check_saved_inputs(args, inputs["A"]["sha256"], inputs["B"]["sha256"])
     with ProgressBars(quiet=args.quiet) as progress:
         report = write_consistency_test(
             a, b, args.output, forward=forward, backward=backward, directions=directions, protocol=protocol,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from volreg.cli._common import _fit_logger, _sha256, _summary_line, _warn_review
+from volreg.cli._common import _fit_logger, _sha256, _summary_line, _warn_review, output_path
 
 __all__ = ["add_parser", "run"]
 
@@ -19,7 +19,7 @@ def add_parser(commands) -> None:
         "1 x 1 x 1.5 mm with --full), registered to a copy deformed by a known smooth warp (up to 8 mm); prints "
         "Dice and the endpoint error against the truth and writes every output of `volreg register` to OUTDIR.",
     )
-    demo.add_argument("-o", "--output", metavar="OUTDIR", type=Path, default=Path("volreg-demo"),
+    demo.add_argument("-o", "--output", metavar="OUTDIR", type=output_path, default=Path("volreg-demo"),
                       help="output directory (default ./volreg-demo)")
     demo.add_argument("--full", action="store_true", help="native resolution (slow)")
     demo.add_argument("--protocol", metavar="NAME|FILE", default="default", help="protocol preset or TOML file (default: default)")

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from volreg.cli._common import PROG
+from volreg.cli._common import PROG, output_path
 from volreg.cli._surfaces import (_add_data_options, _data_file_name, _data_meta, _is_label, _load_model, _read,
                                   _register, _wants_gifti, _write_gifti_surface, _write_surface)
 from volreg.errors import UsageError
@@ -30,7 +30,7 @@ def add_parser(commands) -> None:
     )
     morph.add_argument("source", metavar="SOURCE", type=Path)
     morph.add_argument("target", metavar="TARGET", type=Path)
-    morph.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
+    morph.add_argument("-o", "--output", metavar="OUTDIR", type=output_path, required=True, help="output directory")
     morph.add_argument("--frames", type=int, default=10, help="number of frames, >= 2 (default 10)")
     morph.add_argument("--from-result", metavar="OUTDIR", type=Path, default=None,
                        help="use the model.npz of a `volreg register-surfaces` OUTDIR instead of registering")

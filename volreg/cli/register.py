@@ -7,6 +7,7 @@ import dataclasses
 from pathlib import Path
 
 from volreg.cli._common import (
+    output_path,
     _fit_logger,
     _label_list,
     _load_landmarks,
@@ -36,7 +37,7 @@ def add_parser(commands) -> None:
     )
     register.add_argument("fixed", metavar="FIXED", type=Path, help="fixed label volume (defines the output grid)")
     register.add_argument("moving", metavar="MOVING", type=Path, help="moving label volume")
-    register.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
+    register.add_argument("-o", "--output", metavar="OUTDIR", type=output_path, required=True, help="output directory")
     register.add_argument("--protocol", metavar="NAME|FILE", default="default",
                           help="protocol preset (see `volreg protocols`) or TOML file (default: default)")
     register.add_argument("--linear", choices=LINEAR_KINDS, default=None,

@@ -10,7 +10,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from volreg import __version__
-from volreg.cli._common import PROG, _load_landmarks, _sha256
+from volreg.cli._common import PROG, _load_landmarks, _sha256, output_path
 from volreg.cli._surfaces import (FRAMES, _add_data_options, _read, _register, _wants_gifti, _warn_findings,
                                   _write_gifti_surface, _write_surface)
 
@@ -34,7 +34,7 @@ def add_parser(commands) -> None:
     )
     reg.add_argument("source", metavar="SOURCE", type=Path)
     reg.add_argument("target", metavar="TARGET", type=Path)
-    reg.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
+    reg.add_argument("-o", "--output", metavar="OUTDIR", type=output_path, required=True, help="output directory")
     reg.add_argument("--landmarks", metavar=("SRC_PTS", "TGT_PTS"), nargs=2, type=Path, default=None,
                      help="corresponding points (.csv x,y,z LPS mm, Slicer .fcsv or .mrk.json)")
     reg.add_argument("--protocol", metavar="NAME|FILE", default="default", help="protocol preset or TOML file")

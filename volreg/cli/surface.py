@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from volreg import __version__
-from volreg.cli._common import PROG, _float_at_least, _label_list, _listing, _warn
+from volreg.cli._common import PROG, _float_at_least, _label_list, _listing, _warn, output_path
 from volreg.errors import UsageError
 from volreg.settings import SurfaceSettings
 
@@ -37,7 +37,7 @@ def add_parser(commands) -> None:
         "image", metavar="LABELS", type=Path,
         help="label volume: .nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd or .vti",
     )
-    surface.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True,
+    surface.add_argument("-o", "--output", metavar="OUTDIR", type=output_path, required=True,
                          help="output directory (created if missing)")
     surface.add_argument("--labels", metavar="IDS", type=_label_list, default=None,
                          help="comma-separated labels to process, e.g. 1,3 (default: every non-zero label)")

@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from volreg.cli._common import PROG
+from volreg.cli._common import PROG, output_path
 from volreg.cli._surfaces import _add_data_options, _data_meta, _is_label, _load_model, _read, _warn_findings
 from volreg.errors import UsageError
 
@@ -33,7 +33,7 @@ def add_parser(commands) -> None:
     tr.add_argument("--array", metavar="NAME", default=None,
                     help="per-vertex array of TARGET (may be left out when TARGET has exactly one)")
     _add_data_options(tr, "source", "target")
-    tr.add_argument("-o", "--output", metavar="OUT", type=Path, required=True,
+    tr.add_argument("-o", "--output", metavar="OUT", type=output_path, required=True,
                     help="output: mesh (.vtk, .vtp) or GIFTI data file (.shape.gii, .func.gii, .label.gii)")
     tr.add_argument("--method", choices=("nearest", "barycentric"), default="barycentric")
     tr.add_argument("--force", action="store_true", help="replace an existing OUT")

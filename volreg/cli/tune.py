@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from volreg.cli._common import PROG, _label_list, _load_landmarks
+from volreg.cli._common import PROG, _label_list, _load_landmarks, output_path
 from volreg.errors import ProtocolError, UsageError
 
 __all__ = ["add_parser", "parse_grid", "run"]
@@ -30,7 +30,7 @@ def add_parser(commands) -> None:
     )
     tune.add_argument("a", metavar="A", type=Path, help="label volume A")
     tune.add_argument("b", metavar="B", type=Path, help="label volume B")
-    tune.add_argument("-o", "--output", metavar="OUTDIR", type=Path, required=True, help="output directory")
+    tune.add_argument("-o", "--output", metavar="OUTDIR", type=output_path, required=True, help="output directory")
     tune.add_argument("--grid", metavar="KEY=V1,V2,...", action="append", required=True,
                       help="[warp] settings and their candidate values, e.g. lambda_loc=10,100,alpha=0,10 (repeatable)")
     tune.add_argument("--protocol", metavar="NAME|FILE", default="default",
@@ -130,5 +130,5 @@ def run(args: argparse.Namespace) -> int:
         write_text(protocol_to_toml(chosen, comment=comment), paths["tuned.toml"], force=args.force)
         folder.record(paths["tuned.toml"])
     print(f"{PROG} tune: best of {len(combos)} settings: {settings} (score {rows[best]['score_mm']:.3f} mm); "
-          f"{paths['tuned.toml']} ({time.perf_counter() - start:.0f} s)")
+          f"{outdir / 'tuned.toml'} ({time.perf_counter() - start:.0f} s)")
     return 0

@@ -250,6 +250,18 @@ def write_itk_composite(
             raise VolregIOError(f"Composite transform `{p}` could not be written: {_sitk_reason(exc)}.") from None
 
 
+def _nifti_finite(nimg) -> bool:
+    """Whether a float NIfTI file's voxels are all finite, as nibabel reads them (SimpleITK reads
+    NaN and Inf in float NIfTI data as 0: a field would silently hold zero displacement there)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        if np.dtype(nimg.header.get_data_dtype()).kind != "f":
+            return True
+        return bool(np.all(np.isfinite(np.asarray(nimg.dataobj))))
+
+
 def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     """Read an ANTs/ITK displacement field.
 
@@ -267,9 +279,10 @@ def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     """
     p = Path(path)
     suffix = _check_input(p, "Displacement field")
+    nimg = None
     if suffix in (".nii", ".nii.gz"):
         # SimpleITK zero-fills a truncated file: a warp that silently becomes the identity there.
-        _check_nifti(p, suffix, "Displacement field")
+        nimg = _check_nifti(p, suffix, "Displacement field")
     elif suffix in (".mha", ".mhd", ".nrrd", ".nhdr"):
         check_image_data_files(p, suffix, "Displacement field")  # data elsewhere, missing or short
     try:
@@ -285,7 +298,7 @@ def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     array = sitk.GetArrayFromImage(img)  # (k, j, i, D), a copy
     # (i, j, k, D) as float64 in one more copy, C order, owning its memory.
     u = np.array(array.transpose(*range(dim - 1, -1, -1), dim), dtype=np.float64, order="C")
-    if not np.all(np.isfinite(u)):
+    if not np.all(np.isfinite(u)) or (nimg is not None and not _nifti_finite(nimg)):
         raise VolregIOError(f"Displacement field `{p}` holds NaN or Inf; expected finite displacements in mm.")
     grid = Grid(
         u.shape[:-1],

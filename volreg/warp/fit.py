@@ -276,6 +276,12 @@ def _check_inputs(features, source_points, landmarks, settings: WarpSettings, pr
             raise ValueError(
                 f"Expected `landmarks` as two arrays of shape (L, {dim}), got {src_l.shape} and {dst_l.shape}."
             )
+        if len(src_l) > 1:
+            close = sorted(cKDTree(src_l).query_pairs(1e-6 * diameter))
+            if close:
+                i, j = close[0]
+                raise ValueError(f"Expected distinct source `landmarks`, got points {i} and {j} at the same place "
+                                 f"({src_l[i].tolist()} mm).")
         landmarks = (src_l, dst_l)
     neighbourhood = simplex_vertices(dim, settings.neighbourhood) if settings.neighbourhood > 0 else None
     return _Inputs(features, pts, diameter, landmarks, settings.resolved(diameter), neighbourhood, prior, valid,
@@ -754,6 +760,12 @@ def _fit_level(level: int, width: float, samples: _SampleSet, warp: KernelWarp,
     # (the representer theorem puts kernels at every training point, so landmarks
     # away from X can be fitted too).
     centres = octree_sample(inputs.points, s.pad, width, fraction=s.fraction, tree=inputs.tree)
+    if len(centres) == 0:
+        # A warp volume thinner than the level's boxes (a label a few voxels across, whose pad
+        # is a fraction of a voxel): no box centre lies within the pad, so the boxes that meet
+        # it carry the level (their centres within the pad plus a box's half-diagonal).
+        reach = s.pad + s.fraction * width * np.sqrt(inputs.points.shape[1]) / 2
+        centres = octree_sample(inputs.points, reach, width, fraction=s.fraction, tree=inputs.tree)
     if inputs.landmarks is not None:
         centres = np.concatenate([centres, inputs.landmarks[0]])
     grid = CellGrid.build(centres, width)

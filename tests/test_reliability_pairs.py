@@ -1,0 +1,145 @@
+"""Hostile inputs, third round: labels a few voxels across, repeated landmarks, saved results of
+another pair, and displacement fields that cannot be trusted.
+
+Each ends in a correct result (checked against a known answer) or a one-line error naming the
+argument and what was expected.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import volreg
+from volreg.grid import LabelVolume
+
+
+def _ball(centre, radius: float, n: int = 32) -> LabelVolume:
+    """A ball of ``radius`` voxels (label 1) on an ``n``^3 grid of 1 mm voxels at the origin."""
+    g = np.indices((n,) * 3)
+    inside = np.sum((g - np.asarray(centre, float)[:, None, None, None]) ** 2, axis=0) <= radius**2
+    return LabelVolume(inside.astype(np.uint8), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(3))
+
+
+@pytest.mark.parametrize("radius", [1.5, 2.5, 3.0])
+def test_a_label_a_few_voxels_across_is_registered(radius):
+    """A ball a few voxels across (its warp volume, 10 % of its diameter around its surface, is
+    thinner than the coarsest level's boxes) moved by one voxel: the shift comes back within
+    0.25 mm at its voxels."""
+    fixed, moving = _ball((16, 16, 16), radius), _ball((17, 16, 16), radius)
+    result = volreg.register_labels(fixed, moving)
+    x = fixed.grid_points()[fixed.array > 0]
+    error = np.linalg.norm(result.warp(x) - (x + [1.0, 0.0, 0.0]), axis=1)
+    assert error.max() < 0.25, error.max()
+
+
+def _error(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """Two balls of radius 8 voxels two voxels apart (A, B), a third ball (C) on the same grid, and
+    the two saved registrations ``register A B`` (ab) and ``register B A`` (ba)."""
+    from volreg.cli import main
+    from volreg.io import write_labels
+
+    d = tmp_path_factory.mktemp("pair")
+    for name, centre, radius in (("A", (16, 16, 16), 8), ("B", (18, 16, 16), 8), ("C", (13, 15, 16), 7)):
+        write_labels(_ball(centre, radius), d / f"{name}.nii.gz")
+    assert main(["register", str(d / "A.nii.gz"), str(d / "B.nii.gz"), "-o", str(d / "ab"), "--quiet"]) == 0
+    assert main(["register", str(d / "B.nii.gz"), str(d / "A.nii.gz"), "-o", str(d / "ba"), "--quiet"]) == 0
+    return d
+
+
+def test_repeated_fixed_landmarks_are_refused_in_one_line(pair, tmp_path, capsys):
+    """Two pairs at one fixed point (here sent to two places) make the landmark start's kernel
+    system singular: refused, naming the points, before anything is written."""
+    from volreg.cli import main
+
+    (tmp_path / "f.csv").write_text("x,y,z\n16,16,16\n16,16,16\n")
+    (tmp_path / "m.csv").write_text("x,y,z\n17,16,16\n18,16,16\n")
+    capsys.readouterr()
+    assert main(["register", str(pair / "A.nii.gz"), str(pair / "B.nii.gz"), "-o", str(tmp_path / "out"),
+                 "--landmarks", str(tmp_path / "f.csv"), str(tmp_path / "m.csv")]) == 2
+    line = _error(capsys)
+    assert "--landmarks: points 1 and 2 of" in line and "coincide" in line, line
+    assert not (tmp_path / "out").exists()
+
+
+def test_repeated_source_landmarks_are_refused_by_the_library():
+    fixed, moving = _ball((16, 16, 16), 8), _ball((18, 16, 16), 8)
+    p = np.array([[10.0, 16.0, 16.0], [10.0, 16.0, 16.0]])
+    with pytest.raises(ValueError, match="Expected distinct source `landmarks`"):
+        volreg.register_labels(fixed, moving, landmarks=(p, p + [2.0, 0.0, 0.0]))
+
+
+def test_consistency_refuses_saved_results_registered_the_other_way_round(pair, tmp_path, capsys):
+    from volreg.cli import main
+
+    capsys.readouterr()
+    assert main(["consistency", str(pair / "A.nii.gz"), str(pair / "B.nii.gz"), "--forward", str(pair / "ba"),
+                 "--backward", str(pair / "ab"), "-o", str(tmp_path / "out")]) == 2
+    line = _error(capsys)
+    assert "--forward" in line and "registered the other way round" in line, line
+    assert not (tmp_path / "out").exists()
+
+
+def test_consistency_warns_when_saved_results_come_from_other_files(pair, tmp_path, capsys):
+    """C is on A's grid but is not A: the test runs (the same labels saved again differ in their
+    bytes as well), and a warning line says the saved registration is of another file."""
+    from volreg.cli import main
+
+    capsys.readouterr()
+    assert main(["consistency", str(pair / "C.nii.gz"), str(pair / "B.nii.gz"), "--forward", str(pair / "ab"),
+                 "--backward", str(pair / "ba"), "-o", str(tmp_path / "out"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "--forward" in err and "registered from other files" in err and "differs from A's" in err, err
+    assert main(["consistency", str(pair / "A.nii.gz"), str(pair / "B.nii.gz"), "--forward", str(pair / "ab"),
+                 "--backward", str(pair / "ba"), "-o", str(tmp_path / "out2"), "--quiet"]) == 0
+    assert "warning" not in capsys.readouterr().err
+
+
+def test_apply_refuses_a_field_holding_nan(pair, tmp_path, capsys):
+    """SimpleITK reads NaN in a float NIfTI file as 0: the field is checked as nibabel reads it."""
+    import nibabel as nib
+
+    from volreg.cli import main
+
+    w = nib.load(pair / "ab" / "warp.nii.gz")
+    data = np.asarray(w.dataobj).copy()
+    data[8:25, 8:25, 16, 0, 0] = np.nan
+    nib.save(nib.Nifti1Image(data, w.affine, w.header), tmp_path / "nan.nii.gz")
+    capsys.readouterr()
+    assert main(["apply", str(tmp_path / "nan.nii.gz"), str(pair / "B.nii.gz"), "--reference", str(pair / "A.nii.gz"),
+                 "-o", str(tmp_path / "o.nii.gz")]) == 2
+    assert "holds NaN or Inf; expected finite displacements" in _error(capsys)
+    assert not (tmp_path / "o.nii.gz").exists()
+
+
+def test_apply_warns_when_the_field_covers_part_of_the_reference(pair, tmp_path, capsys):
+    """A reference 28 mm along from the field's grid: 4 of its 32 columns lie on the field, and
+    the rest is not warped (zero displacement, as ITK reads a field), which one line says."""
+    from volreg.cli import main
+    from volreg.io import read_labels, write_labels
+
+    b = read_labels(pair / "B.nii.gz")
+    shifted = LabelVolume(b.array, b.origin + [28.0, 0.0, 0.0], b.spacing, b.direction)
+    write_labels(shifted, tmp_path / "ref.nii.gz")
+    capsys.readouterr()
+    assert main(["apply", str(pair / "ab" / "warp.nii.gz"), str(tmp_path / "ref.nii.gz"), "--reference",
+                 str(tmp_path / "ref.nii.gz"), "-o", str(tmp_path / "o.nii.gz"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "covers 12.5 % of the voxels of --reference" in err and "not warped" in err, err
+
+
+def test_an_empty_output_name_is_refused(pair, tmp_path, capsys, monkeypatch):
+    """`-o ""` would name the working folder."""
+    from volreg.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["register", str(pair / "A.nii.gz"), str(pair / "B.nii.gz"), "-o", "", "--force"]) == 2
+    assert "argument -o/--output: expected a file or folder name, got an empty string" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
