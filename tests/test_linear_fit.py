@@ -399,3 +399,41 @@ def test_distance_map_is_signed_distance_to_the_faces_and_its_gradient():
     assert np.allclose(grad[1:-1, j, k, 0], (dist[2:, j, k] - dist[:-2, j, k]) / 2.0, atol=1e-6)
     # Outside, one cell beyond the nearest: the distance falls by 1 mm per mm towards the label.
     assert grad[inside[0] - 2, j, k, 0] == pytest.approx(-1.0) and grad[inside[-1] + 2, j, k, 0] == pytest.approx(1.0)
+
+
+def test_overlap_of_maps_is_the_labels_dice():
+    """A box of 10 voxels along x against the same box 2 voxels along: Dice 8/10 through the
+    identity, 1 through the shift."""
+    from volreg.warp.linear import _mean_dice
+
+    a = np.zeros((40, 30, 30), np.uint8)
+    a[10:20, 10:20, 10:20] = 1
+    b = np.zeros_like(a)
+    b[12:22, 10:20, 10:20] = 1
+    fixed = LabelVolume(a, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(3))
+    moving = LabelVolume(b, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(3))
+    maps = [LinearMap.identity(3), LinearMap(np.eye(3), np.array([2.0, 0.0, 0.0]))]
+    assert _mean_dice(fixed, moving, maps, [1], fixed.label_boxes()) == pytest.approx([0.8, 1.0])
+
+
+def test_a_fit_that_overlaps_clearly_worse_than_its_start_gives_way(monkeypatch):
+    """Where the coarse-to-fine solve runs into a degenerate map (forced here: every level
+    squashes x by half), the labels' overlap keeps the chosen start instead, and the log says so."""
+    import volreg.warp.linear as linear
+
+    run = linear._run
+
+    def squashing(local, start, *args, **kwargs):
+        found, info, used = run(local, start, *args, **kwargs)
+        if args[-2] == linear._LEVEL_EVALUATIONS:
+            found = LinearMap(found.matrix @ np.diag([0.5, 1.0, 1.0]), found.translation)
+        return found, info, used
+
+    monkeypatch.setattr(linear, "_run", squashing)
+    fixed = _volume(BLOBS, (32, 32, 32), (1.5,) * 3, _around((0, 0, 0), (32,) * 3, (1.5,) * 3))
+    moving = _volume(BLOBS, (32, 32, 32), (1.5,) * 3, _around((4, 0, 0), (32,) * 3, (1.5,) * 3),
+                     matrix=np.eye(3), translation=np.array([4.0, 0.0, 0.0]))
+    fit = fit_linear(fixed, moving, kind="affine")
+    assert fit.log["kept_instead"] == "start", fit.log["overlap"]
+    assert fit.log["overlap"]["start"] > fit.log["overlap"]["refined"] + 0.05
+    assert _error(fit, np.eye(3), [4.0, 0.0, 0.0], fixed) < 0.75  # the centroids' start: half a voxel

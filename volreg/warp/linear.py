@@ -129,6 +129,9 @@ _CANDIDATE_EVALUATIONS = 8
 _LEVEL_TOLERANCE = 1e-5
 #: Voxels of margin inside a field of view beyond which a mapped sample carries no cost.
 _FOV_MARGIN_VOXELS = 2.0
+#: The fitted map gives way to the chosen start or the identity where their mean Dice is higher
+#: by more than this.
+_KEEP_OVERLAP = 0.05
 #: A start whose score is within this factor of the best one's competes on rotation: the
 #: least rotated of them wins.
 _NEAR_BEST = 1.5
@@ -151,6 +154,8 @@ class LinearFit:
         ``spacing_mm``, ``f_scale_mm``, ``samples``, ``cost``, ``iterations``,
         ``mean_abs_distance_mm``); ``labels`` (the labels that drove the fit);
         ``cut_labels`` (``fixed`` / ``moving``: labels touching the image edge);
+        ``overlap`` (mean Dice through the ``refined`` map, the ``start`` and the
+        ``identity``) and ``kept_instead`` (``None``, or which of the last two was kept);
         ``map`` (:meth:`LinearMap.describe`); ``seconds``.
     """
 
@@ -819,6 +824,40 @@ def _run(local, start, centre, bank_f, bank_m, fwd, back, f_scale, radius, max_n
     return found, info, (keep_f, keep_b)
 
 
+def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f: dict) -> np.ndarray:
+    """Mean Dice over ``labels`` of the fixed labels and the moving ones read through each map
+    (nearest neighbour), at most about 2^18 fixed voxel centres: the labels' box widened by half
+    its size on each side, every ``step``-th voxel.
+
+    Returns
+    -------
+    (len(maps),) float ndarray
+    """
+    lo = np.min([[b.start for b in boxes_f[v]] for v in labels], axis=0)
+    hi = np.max([[b.stop for b in boxes_f[v]] for v in labels], axis=0)
+    reach = (hi - lo) // 2
+    lo, hi = np.maximum(lo - reach, 0), np.minimum(hi + reach, fixed.shape)
+    step = max(1, int(np.ceil((np.prod(hi - lo, dtype=float) / 2**18) ** (1.0 / fixed.ndim))))
+    axes = [np.arange(a, b, step) for a, b in zip(lo, hi)]
+    index = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, fixed.ndim)
+    points = fixed.index_to_world(index)
+    label_f = fixed.array[tuple(index.T)]
+    wanted = np.asarray(labels)
+    out = []
+    for linear in maps:
+        at = np.rint(moving.world_to_index(linear(points))).astype(np.int64)
+        inside = np.all((at >= 0) & (at < np.array(moving.shape)), axis=1)
+        label_m = np.zeros(len(points), dtype=moving.array.dtype)
+        label_m[inside] = moving.array[tuple(at[inside].T)]
+        scores = []
+        for v in wanted:
+            a, b = label_f == v, label_m == v
+            total = int(a.sum()) + int(b.sum())
+            scores.append(2.0 * np.count_nonzero(a & b) / total if total else 0.0)
+        out.append(float(np.mean(scores)))
+    return np.array(out)
+
+
 def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=None) -> LinearFit:
     """Find the linear pull-back ``x -> A x + b`` (fixed -> moving, LPS mm) that aligns two label volumes.
 
@@ -852,6 +891,11 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
        less two of its voxels carry no cost, and cut labels are left out of the
        centroid start.  Samples of uncut labels always count (beyond a map's box its
        distance keeps growing), so no map wins by pushing a label out of view.
+    4. **Overlap check.** The labels' mean Dice through the fitted map, the chosen start
+       and the identity (nearest neighbour, at most about 2^18 fixed voxels); where the
+       start or the identity overlaps better by more than 0.05, it is kept instead: on
+       grids too coarse for the object (one smooth organ over a few 5 mm slices) the fit
+       can run into a degenerate map that the coarse samples favour.
 
     The ``MAX_LINEAR_LABELS`` largest labels (by volume in ``fixed``) drive the fit.
 
@@ -988,7 +1032,8 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
     # anatomy fits turned upside down almost as well, and scans are rarely upside down.
     lowest = min(row[0] for row in scored)
     near = [row for row in scored if row[0] <= _NEAR_BEST * lowest]
-    _, _, _, start_family, start_name, current = min(near or scored, key=lambda row: (row[1], row[2]))
+    _, _, index, start_family, start_name, current = min(near or scored, key=lambda row: (row[1], row[2]))
+    chosen_start = candidates[index][2]
 
     # Coarse to fine.
     level_log = []
@@ -1022,8 +1067,20 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
         if progress is not None:
             progress("fit linear", level + 1, len(spacings))
 
+    # The fit minimises boundary distances on maps coarsened to each level; on grids too coarse
+    # for the object (a few thick slices through one smooth organ) it can run into a degenerate
+    # map that the coarse samples favour.  The labels' overlap checks it: where the chosen start
+    # or the identity overlaps clearly better, that map is kept instead.
+    maps = [("refined", current), ("start", chosen_start), ("identity", LinearMap.identity(dim))]
+    overlaps = _mean_dice(fixed, moving, [m for _, m in maps], drive, boxes_f)
+    best = int(np.argmax(overlaps))
+    kept = None
+    if overlaps[best] > overlaps[0] + _KEEP_OVERLAP:
+        kept, current = maps[best][0], maps[best][1]
     log = dict(
         kind=kind,
+        overlap=dict(zip([name for name, _ in maps], [float(v) for v in overlaps])),
+        kept_instead=kept,
         start=start_family,
         start_candidate=start_name,
         candidates=tried,
