@@ -1,11 +1,13 @@
 """Hostile inputs, third round: labels a few voxels across, repeated landmarks, saved results of
-another pair, and displacement fields that cannot be trusted.
+another pair, displacement fields that cannot be trusted, and files whose rows or headers are broken.
 
 Each ends in a correct result (checked against a known answer) or a one-line error naming the
 argument and what was expected.
 """
 
 from __future__ import annotations
+
+import re
 
 import numpy as np
 import pytest
@@ -143,3 +145,65 @@ def test_an_empty_output_name_is_refused(pair, tmp_path, capsys, monkeypatch):
     assert main(["register", str(pair / "A.nii.gz"), str(pair / "B.nii.gz"), "-o", "", "--force"]) == 2
     assert "argument -o/--output: expected a file or folder name, got an empty string" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("name, text, words", [
+    ("short.csv", "x,y,z\n1,2,3\n4,5\n", "row 3 has 2 fields; expected x, y and z"),
+    ("word.csv", "x,y,z\n1,2,3\n4,abc,5\n", "row 3 holds 'abc'; expected a number"),
+    ("short.fcsv", "# Markups fiducial file version = 4.11\n# CoordinateSystem = LPS\nF-1,1,2\n",
+     "line 3 has 3 fields; expected Slicer's id,x,y,z"),
+    ("flat.mrk.json", '{"markups": [{"controlPoints": [{"position": [1, 2]}]}]}',
+     "control point 1 has position [1, 2]; expected three coordinates"),
+])
+def test_a_landmark_row_that_cannot_be_read_is_named(tmp_path, name, text, words):
+    from volreg.errors import VolregIOError
+    from volreg.io.landmarks import read_landmarks
+
+    (tmp_path / name).write_text(text)
+    with pytest.raises(VolregIOError, match=re.escape(words)):
+        read_landmarks(tmp_path / name)
+
+
+def test_a_protocol_file_with_a_byte_order_mark_is_read(tmp_path):
+    from volreg.io.protocol import load_protocol
+
+    (tmp_path / "p.toml").write_bytes(b"\xef\xbb\xbf[warp]\nlambda_loc = 50.0\n")
+    assert load_protocol(tmp_path / "p.toml").warp.lambda_loc == 50.0
+
+
+@pytest.mark.parametrize("setting", ["min_det", "fold_margin"])
+def test_a_fold_guard_at_or_above_one_is_refused(tmp_path, setting):
+    """At det 1 or more the guard would drop every level that compresses space."""
+    from volreg.errors import ProtocolError
+    from volreg.io.protocol import load_protocol
+
+    (tmp_path / "p.toml").write_text(f"[warp]\n{setting} = 2.0\n")
+    with pytest.raises(ProtocolError, match=rf"Expected `{setting}` in \[0, 1\)"):
+        load_protocol(tmp_path / "p.toml")
+
+
+@pytest.mark.parametrize("header", ["zero pixdim", "NaN sform"])
+def test_a_broken_nifti_header_gives_one_line_and_nothing_else(tmp_path, capfd, header):
+    """The libraries' own diagnostics (nibabel's log of a pixdim it fixes, ITK's linear-algebra
+    dump for a NaN sform) do not reach the terminal before volreg's one-line error."""
+    import subprocess
+    import sys
+
+    import nibabel as nib
+
+    a = np.zeros((10, 10, 10), np.uint8)
+    a[3:6, 3:6, 3:6] = 1
+    img = nib.Nifti1Image(a, np.eye(4))
+    if header == "zero pixdim":
+        img.header["pixdim"][2] = 0
+    else:
+        s = np.eye(4)
+        s[0, 3] = np.nan
+        img.set_sform(s, 1)
+        img.set_qform(np.eye(4), 0)
+    nib.save(img, tmp_path / "a.nii.gz")
+    run = subprocess.run([sys.executable, "-m", "volreg", "register", "a.nii.gz", "a.nii.gz", "-o", "out"],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("volreg register: error: Label image `a.nii.gz` has"), run.stderr

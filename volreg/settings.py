@@ -127,6 +127,11 @@ class WarpSettings:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"Expected `{name}` >= 0, got {value}.")
+        for name in ("fold_margin", "min_det"):
+            if getattr(self, name) >= 1:
+                raise ValueError(f"Expected `{name}` in [0, 1) (a Jacobian determinant below which the fold guards "
+                                 f"act; at 1 or more they would undo every warp that compresses space), got "
+                                 f"{getattr(self, name)}.")
         for name in ("pad", "min_width", "band", "sample_spacing"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):

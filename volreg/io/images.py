@@ -18,6 +18,7 @@ memory-mapped file).  :func:`read_grid` reads only the geometry (a
 
 from __future__ import annotations
 
+import contextlib
 import gzip
 import os
 import re
@@ -234,6 +235,18 @@ def _check_nifti_length(path: Path, suffix: str, what: str, offset: int, shape: 
         )
 
 
+@contextlib.contextmanager
+def _nibabel_quiet():
+    """nibabel's header checks log what they fix to stderr (through logging's last-resort handler
+    when nothing is configured); the checks here report in one line of their own."""
+    logger = nib.imageglobals.logger
+    disabled, logger.disabled = logger.disabled, True
+    try:
+        yield
+    finally:
+        logger.disabled = disabled
+
+
 def _check_nifti(path: Path, suffix: str, what: str, *, voxels: bool = True) -> nib.Nifti1Image:
     """Checks SimpleITK does not do for NIfTI: truncated data and qform/sform conflicts.
 
@@ -243,8 +256,9 @@ def _check_nifti(path: Path, suffix: str, what: str, *, voxels: bool = True) -> 
     """
     _check_nifti_dims(path, suffix, what)
     try:
-        with warnings.catch_warnings():
-            # nibabel warns about odd but legal headers; we only need the fields below.
+        with warnings.catch_warnings(), _nibabel_quiet():
+            # nibabel warns (and logs, e.g. a zero pixdim it "fixes") about odd headers; we only
+            # need the fields below, and check them ourselves.
             warnings.simplefilter("ignore")
             img = nib.load(str(path))
             header = img.header
@@ -268,6 +282,11 @@ def _check_nifti(path: Path, suffix: str, what: str, *, voxels: bool = True) -> 
     if voxels:
         _check_nifti_length(path, suffix, what, offset, shape, itemsize)
 
+    for name, form, code in (("qform", qform, qcode), ("sform", sform, scode)):
+        if form is not None and not np.all(np.isfinite(form)):
+            # SimpleITK would print pages of linear-algebra diagnostics before failing on it.
+            raise VolregIOError(f"{what} `{path}` has a {name} (code {int(code)}) with NaN or Inf entries; expected "
+                                "a finite geometry (fix the header or clear that form).")
     if qform is None and sform is None:
         warnings.warn(
             f"{what} `{path}` has no orientation in its header (qform_code = sform_code = 0): read as ITK does "

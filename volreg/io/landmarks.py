@@ -38,15 +38,19 @@ def _frame(value: str, path: Path) -> bool:
 
 def _read_fcsv(path: Path, text: str) -> np.ndarray:
     ras = True
-    rows = []
-    for line in text.splitlines():
+    points = []
+    for number, line in enumerate(text.splitlines(), start=1):
         if line.startswith("#"):
             if "CoordinateSystem" in line:
                 ras = _frame(line.split("=", 1)[1], path)
             continue
         if line.strip():
-            rows.append(next(csv.reader([line])))
-    points = np.array([[float(r[1]), float(r[2]), float(r[3])] for r in rows]) if rows else np.zeros((0, 3))
+            r = next(csv.reader([line]))
+            if len(r) < 4:
+                raise VolregIOError(f"Landmark file `{path}` line {number} has {len(r)} fields; expected Slicer's "
+                                    "id,x,y,z,... columns.")
+            points.append([_number(v, path, f"line {number}") for v in r[1:4]])
+    points = np.array(points, dtype=float).reshape(-1, 3)
     return points * _FLIP if ras else points
 
 
@@ -79,6 +83,9 @@ def _read_mrk_json(path: Path, text: str) -> np.ndarray:
                 points.append(np.full(3, np.nan))
                 continue
             p = np.asarray(cp["position"], dtype=float) * scale
+            if p.shape != (3,):
+                raise VolregIOError(f"Landmark file `{path}` control point {len(points) + 1} has position "
+                                    f"{cp['position']!r}; expected three coordinates.")
             points.append(p * _FLIP if ras else p)
     return np.array(points).reshape(-1, 3)
 
@@ -91,7 +98,21 @@ def _read_csv(path: Path, text: str) -> np.ndarray:
     if not {"x", "y", "z"} <= set(header):
         raise VolregIOError(f"Landmark file `{path}` has header {rows[0]}; expected a header row naming x,y,z (LPS mm).")
     cols = [header.index(c) for c in ("x", "y", "z")]
-    return np.array([[float(r[c]) for c in cols] for r in rows[1:]]).reshape(-1, 3)
+    points = []
+    for number, r in enumerate(rows[1:], start=2):
+        if len(r) <= max(cols):
+            raise VolregIOError(f"Landmark file `{path}` row {number} has {len(r)} fields; expected x, y and z in "
+                                f"columns {', '.join(str(c + 1) for c in cols)}, as the header names them.")
+        points.append([_number(r[c], path, f"row {number}") for c in cols])
+    return np.array(points, dtype=float).reshape(-1, 3)
+
+
+def _number(text: str, path: Path, where: str) -> float:
+    """``float(text)``, or a one-line error naming the file and ``where`` in it."""
+    try:
+        return float(text)
+    except ValueError:
+        raise VolregIOError(f"Landmark file `{path}` {where} holds {text.strip()!r}; expected a number (mm).") from None
 
 
 def read_landmarks(path: str | os.PathLike[str], *, keep_unplaced: bool = False) -> np.ndarray:

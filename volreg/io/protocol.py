@@ -74,7 +74,7 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
         presets = sorted(p.stem for p in PROTOCOL_DIR.glob("*.toml"))
         raise ProtocolError(f"Protocol `{text}` not found: expected a .toml file or a preset ({', '.join(presets)}).")
     try:
-        raw = path.read_text(encoding="utf-8")
+        raw = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Windows editors) is not TOML
     except OSError as exc:
         raise ProtocolError(f"Protocol `{path}` could not be read: {exc.strerror or exc}.") from None
     except UnicodeDecodeError:
