@@ -207,3 +207,20 @@ def test_a_broken_nifti_header_gives_one_line_and_nothing_else(tmp_path, capfd, 
     assert run.returncode == 2
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("volreg register: error: Label image `a.nii.gz` has"), run.stderr
+
+
+def test_repeated_source_landmarks_of_surfaces_are_refused_in_one_line(tmp_path, capsys):
+    import pyvista as pv
+
+    from volreg.cli import main
+
+    pv.Sphere(radius=20, theta_resolution=20, phi_resolution=20).save(tmp_path / "a.vtk")
+    pv.Sphere(radius=20, center=(2, 0, 0), theta_resolution=20, phi_resolution=20).save(tmp_path / "b.vtk")
+    (tmp_path / "f.csv").write_text("x,y,z\n20,0,0\n20,0,0\n")
+    (tmp_path / "m.csv").write_text("x,y,z\n22,0,0\n22,1,0\n")
+    capsys.readouterr()
+    assert main(["register-surfaces", str(tmp_path / "a.vtk"), str(tmp_path / "b.vtk"), "-o", str(tmp_path / "out"),
+                 "--landmarks", str(tmp_path / "f.csv"), str(tmp_path / "m.csv")]) == 2
+    line = _error(capsys)
+    assert "--landmarks: points 1 and 2 of" in line and "expected distinct source landmarks" in line, line
+    assert not (tmp_path / "out").exists()

@@ -192,17 +192,19 @@ def _load_landmarks(args, fixed: LabelVolume | None = None, moving: LabelVolume 
                 f"{role} image's extent ({np.round(lo, 1).tolist()}..{np.round(hi, 1).tolist()} mm LPS); expected "
                 "points inside it (check the file's coordinate system: LPS or RAS)."
             )
-    if fixed is not None and len(a) > 1:
+    if len(a) > 1:
         from scipy.spatial import cKDTree
 
         # One fixed point cannot be sent to two places, nor pinned twice: the landmark start's
         # kernel system would be singular.
-        close = sorted(cKDTree(a).query_pairs(0.1 * float(np.min(fixed.spacing))))
+        tol, within = (0.1 * float(np.min(fixed.spacing)), "within a tenth of a voxel") if fixed is not None \
+            else (1e-3, "within 1 micrometre")
+        close = sorted(cKDTree(a).query_pairs(tol))
         if close:
             i, j = close[0]
             raise UsageError(
                 f"--landmarks: points {i + 1} and {j + 1} of `{args.landmarks[0]}` coincide "
-                f"({', '.join(f'{v:.2f}' for v in a[i])} mm, within a tenth of a voxel); expected distinct fixed "
-                "landmarks (remove the repeated pair)."
+                f"({', '.join(f'{v:.2f}' for v in a[i])} mm, {within}); expected distinct "
+                f"{'fixed' if fixed is not None else 'source'} landmarks (remove the repeated pair)."
             )
     return a, b
