@@ -129,9 +129,6 @@ _CANDIDATE_EVALUATIONS = 8
 _LEVEL_TOLERANCE = 1e-5
 #: Voxels of margin inside a field of view beyond which a mapped sample carries no cost.
 _FOV_MARGIN_VOXELS = 2.0
-#: The fitted map gives way to the chosen start or the identity where their mean Dice is higher
-#: by more than this.
-_KEEP_OVERLAP = 0.05
 #: A start whose score is within this factor of the best one's competes on rotation: the
 #: least rotated of them wins.
 _NEAR_BEST = 1.5
@@ -154,8 +151,8 @@ class LinearFit:
         ``spacing_mm``, ``f_scale_mm``, ``samples``, ``cost``, ``iterations``,
         ``mean_abs_distance_mm``); ``labels`` (the labels that drove the fit);
         ``cut_labels`` (``fixed`` / ``moving``: labels touching the image edge);
-        ``overlap`` (mean Dice through the ``refined`` map, the ``start`` and the
-        ``identity``) and ``kept_instead`` (``None``, or which of the last two was kept);
+        ``overlap`` (mean Dice through the ``identity``, the ``start`` and the ``refined``
+        map) and ``kept_instead`` (``None``, or which of the first two was kept);
         ``map`` (:meth:`LinearMap.describe`); ``seconds``.
     """
 
@@ -891,11 +888,13 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
        less two of its voxels carry no cost, and cut labels are left out of the
        centroid start.  Samples of uncut labels always count (beyond a map's box its
        distance keeps growing), so no map wins by pushing a label out of view.
-    4. **Overlap check.** The labels' mean Dice through the fitted map, the chosen start
-       and the identity (nearest neighbour, at most about 2^18 fixed voxels); where the
-       start or the identity overlaps better by more than 0.05, it is kept instead: on
-       grids too coarse for the object (one smooth organ over a few 5 mm slices) the fit
-       can run into a degenerate map that the coarse samples favour.
+    4. **Overlap check.** The labels' mean Dice through the identity, the chosen start and
+       the fitted map (nearest neighbour, at most about 2^18 fixed voxels); the first of
+       them, in that order, whose Dice is the highest is kept.  Where the labels do not
+       determine the map (one smooth organ: every ``A = L R L^-1`` maps an ellipsoid of
+       semi-axes ``L`` onto itself) the fit drifts with the grids' differences without
+       overlapping better, and on grids too coarse for the object (one organ over a few
+       5 mm slices) it can run into a degenerate map that the coarse samples favour.
 
     The ``MAX_LINEAR_LABELS`` largest labels (by volume in ``fixed``) drive the fit.
 
@@ -1067,19 +1066,20 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
         if progress is not None:
             progress("fit linear", level + 1, len(spacings))
 
-    # The fit minimises boundary distances on maps coarsened to each level; on grids too coarse
-    # for the object (a few thick slices through one smooth organ) it can run into a degenerate
-    # map that the coarse samples favour.  The labels' overlap checks it: where the chosen start
-    # or the identity overlaps clearly better, that map is kept instead.
-    maps = [("refined", current), ("start", chosen_start), ("identity", LinearMap.identity(dim))]
+    # The fit minimises boundary distances on maps coarsened to each level.  Where the labels do
+    # not determine the map it drifts with the grids' differences (one smooth organ: every
+    # A = L R L^-1 maps an ellipsoid of semi-axes L onto itself), and on grids too coarse for the
+    # object (a few thick slices) it can run into a degenerate map the coarse samples favour.
+    # The labels' overlap checks it: of the identity, the chosen start and the fitted map, the
+    # first (in that order) whose mean Dice is the highest is kept.
+    maps = [("identity", LinearMap.identity(dim)), ("start", chosen_start), ("refined", current)]
     overlaps = _mean_dice(fixed, moving, [m for _, m in maps], drive, boxes_f)
-    best = int(np.argmax(overlaps))
-    kept = None
-    if overlaps[best] > overlaps[0] + _KEEP_OVERLAP:
-        kept, current = maps[best][0], maps[best][1]
+    pick = int(np.flatnonzero(overlaps >= overlaps.max())[0])
+    kept = None if pick == len(maps) - 1 else maps[pick][0]
+    current = maps[pick][1]
     log = dict(
         kind=kind,
-        overlap=dict(zip([name for name, _ in maps], [float(v) for v in overlaps])),
+        overlap={name: float(v) for (name, _), v in zip(maps, overlaps)},
         kept_instead=kept,
         start=start_family,
         start_candidate=start_name,
