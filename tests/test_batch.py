@@ -66,8 +66,12 @@ def test_rerun_recomputes_nothing(cohort, capsys):
     warp = d / "out" / "pairs" / "template__s3" / "warp.nii.gz"
     before = warp.stat().st_mtime_ns
     assert main(args) == 1
-    assert "(6 already done, skipped), 1 failed" in capsys.readouterr().out
+    out = capsys.readouterr()
+    assert "(6 already done, skipped), 1 failed" in out.out
     assert warp.stat().st_mtime_ns == before
+    # the failed pair is named on stderr, with its reason
+    (line,) = [x for x in out.err.splitlines() if "failed" in x]
+    assert line.startswith("volreg batch: warning: pair template <- bad failed:") and "corrupt.nii.gz" in line
 
 
 def test_results_equal_volreg_register(cohort, tmp_path):
@@ -120,6 +124,7 @@ def test_killed_worker_is_retried(cohort, tmp_path):
     ("id,file\ns0,a.nii.gz\n", "columns id,path"),
     ("id,path\ns0,s0.nii.gz\ns0,s1.nii.gz\n", "listed twice"),
     ("id,path\ns0,s0.nii.gz\n", "no pair"),
+    ("id,path\ns0,s0.nii.gz\ns1,s1.nii.gz,extra\n", "line 3: 3 fields where the header names 2"),
 ])
 def test_bad_manifest(cohort, tmp_path, capsys, content, words):
     d, _ = cohort
@@ -216,3 +221,19 @@ def test_a_first_run_submits_its_tasks_once_the_compiling_helpers_have_ended(coh
     assert "compiling the registration's loops once for the workers" in capsys.readouterr().err
     assert events and all(ended for _, _, ended in events)  # every task submitted after the helpers ended
     assert (tmp_path / "out" / "pairs" / "s1__s5" / "warp.nii.gz").is_file()
+
+
+def test_a_pair_redone_another_way_keeps_no_earlier_result(cohort, tmp_path):
+    """A consistency test, then a plain registration of the same pair into the same OUTDIR: the
+    pair's folder holds the registration alone, not the earlier test's files beside it."""
+    d, _ = cohort
+    (d / "two.csv").write_text("id,path\ns1,s1.nii.gz\ns5,s5.nii.gz\n")
+    common = ["-o", str(tmp_path / "out"), "--pairs", "consecutive", "--protocol", str(d / "p.toml"), "--workers", "1",
+              "--quiet"]
+    assert main(["batch", str(d / "two.csv"), "--consistency", *common]) == 0
+    pair = tmp_path / "out" / "pairs" / "s1__s5"
+    assert (pair / "consistency.json").is_file() and (pair / "forward").is_dir()
+    assert main(["batch", str(d / "two.csv"), *common]) == 0
+    assert (pair / "warp.nii.gz").is_file() and (pair / "batch_row.json").is_file()
+    assert not (pair / "consistency.json").exists() and not (pair / "forward").exists()
+    assert not (pair / "backward").exists()

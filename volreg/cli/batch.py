@@ -23,7 +23,7 @@ import threading
 import time
 from pathlib import Path
 
-from volreg.cli._common import EXPECTED_ERRORS, PROG, output_path
+from volreg.cli._common import EXPECTED_ERRORS, PROG, _warn, output_path
 from volreg.errors import UsageError
 
 __all__ = ["add_parser", "read_manifest", "plan_pairs", "pair_folders", "settings_fingerprint", "run_pair", "run"]
@@ -58,6 +58,10 @@ def add_parser(commands) -> None:
     batch.set_defaults(run=run)
 
 
+#: Failed pairs named one per line on stderr at most (the rest are counted; batch.csv has all).
+_FAILED_LINES = 20
+
+
 def read_manifest(path: Path) -> list[tuple[str, Path]]:
     """``id,path`` rows (header required; relative paths are relative to the manifest)."""
     if not path.is_file():
@@ -78,6 +82,9 @@ def read_manifest(path: Path) -> list[tuple[str, Path]]:
         sid, p = (row.get("id") or "").strip(), (row.get("path") or "").strip()
         if not sid or not p:
             raise UsageError(f"MANIFEST `{path}` line {i}: expected an id and a path, got {row}.")
+        if None in row:
+            raise UsageError(f"MANIFEST `{path}` line {i}: {len(row) - 1 + len(row[None])} fields where the header "
+                             f"names {len(row) - 1}; expected one value per column (quote a path holding a comma).")
         if sid in seen:
             raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` is listed twice; expected unique ids.")
         if any(c in sid for c in "/\\") or sid in (".", ".."):
@@ -167,6 +174,24 @@ def _done(outdir: Path, sha: tuple[str, str], consistency: bool, fingerprint: st
     return row if all((outdir / n).is_file() for n in needed) else None
 
 
+def _remove_earlier_results(outdir: Path) -> None:
+    """Remove what an earlier run of a pair wrote (its row first, so that an interruption leaves
+    the pair not done): a result redone with other inputs, or the other kind (a registration
+    after a consistency test, or the reverse), would otherwise lie beside the new one."""
+    import shutil
+
+    from volreg.evaluation.consistency import CONSISTENCY_OUTPUTS
+    from volreg.register import REGISTRATION_OUTPUTS
+
+    (outdir / "batch_row.json").unlink(missing_ok=True)
+    for name in (*REGISTRATION_OUTPUTS, *CONSISTENCY_OUTPUTS, "forward", "backward"):
+        path = outdir / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        elif path.exists() or path.is_symlink():
+            path.unlink()
+
+
 def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str, protocol: str,
              consistency: bool = False) -> dict:
     """One task: register MOVING to FIXED (or both ways with ``consistency``) into ``outdir``; return its row.
@@ -196,6 +221,7 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
         if (out / "batch_row.json").is_file():
             row["redone"] = True  # finished before, with other inputs or settings
         _remove_temporaries(out)
+        _remove_earlier_results(out)
         check_pair(a, b, fpath, mpath, linear=proto.linear.kind)
         with ProgressBars(quiet=True) as progress:
             if consistency:
@@ -408,6 +434,10 @@ def run(args: argparse.Namespace) -> int:
     skipped = sum(1 for r in rows if r.get("skipped"))
     redone = sum(1 for r in rows if r.get("redone"))
     again = f", {redone} redone (inputs, protocol or volreg version changed)" if redone else ""
+    for r in failed[:_FAILED_LINES]:
+        _warn("batch", f"pair {r['fixed_id']} <- {r['moving_id']} failed: {r.get('error') or 'no message'}")
+    if len(failed) > _FAILED_LINES:
+        _warn("batch", f"{len(failed) - _FAILED_LINES} more pairs failed; see batch.csv.")
     print(f"{PROG} batch: {len(rows) - len(failed)} of {len(rows)} pairs done ({skipped} already done, skipped{again}), "
           f"{len(failed)} failed; {outdir / 'batch.csv'} ({time.perf_counter() - start:.0f} s)")
     return 1 if failed else 0
