@@ -224,3 +224,67 @@ def test_repeated_source_landmarks_of_surfaces_are_refused_in_one_line(tmp_path,
     line = _error(capsys)
     assert "--landmarks: points 1 and 2 of" in line and "expected distinct source landmarks" in line, line
     assert not (tmp_path / "out").exists()
+
+
+@pytest.fixture(scope="module")
+def spheres(tmp_path_factory):
+    """Two spheres of radius 20 mm 3 mm apart, and `register-surfaces` of the first to the second."""
+    import pyvista as pv
+
+    from volreg.cli import main
+
+    d = tmp_path_factory.mktemp("spheres")
+    pv.Sphere(radius=20, theta_resolution=24, phi_resolution=24).save(d / "a.vtk")
+    pv.Sphere(radius=20, center=(3, 0, 0), theta_resolution=24, phi_resolution=24).save(d / "b.vtk")
+    assert main(["register-surfaces", str(d / "a.vtk"), str(d / "b.vtk"), "-o", str(d / "r"), "--quiet"]) == 0
+    return d
+
+
+@pytest.mark.parametrize("kind, words", [("text", "holds <U1 values; expected numbers"),
+                                         ("nan", "NaN/Inf values; expected finite per-vertex values")])
+def test_transfer_refuses_an_array_it_cannot_interpolate(spheres, tmp_path, capsys, kind, words):
+    import pyvista as pv
+
+    from volreg.cli import main
+
+    target = pv.read(spheres / "b.vtk")
+    target.point_data.clear()
+    n = target.n_points
+    target.point_data["v"] = np.array(["a"] * n) if kind == "text" else np.where(np.arange(n) % 7 == 0, np.nan, 1.0)
+    target.save(tmp_path / "t.vtk")
+    capsys.readouterr()
+    assert main(["transfer", str(spheres / "a.vtk"), str(tmp_path / "t.vtk"), "--result", str(spheres / "r"),
+                 "-o", str(tmp_path / "o.vtk")]) == 2
+    assert words in _error(capsys)
+    assert not (tmp_path / "o.vtk").exists()
+
+
+def test_correspondence_table_keeps_full_precision_far_from_the_origin(tmp_path):
+    """Coordinates of 1e6 mm: six significant digits would round them to 10 mm."""
+    import csv
+
+    import pyvista as pv
+
+    from volreg.cli import main
+
+    for name, centre in (("a", (1e6, 1e6, 1e6)), ("b", (1e6 + 3, 1e6, 1e6))):
+        mesh = pv.Sphere(radius=20, center=centre, theta_resolution=20, phi_resolution=20)
+        mesh.points = mesh.points.astype(np.float64)
+        mesh.points = np.asarray(mesh.points) - np.asarray(mesh.center) + np.asarray(centre)  # float64 about it
+        mesh.save(tmp_path / f"{name}.vtk")
+    assert main(["register-surfaces", str(tmp_path / "a.vtk"), str(tmp_path / "b.vtk"), "-o", str(tmp_path / "r"),
+                 "--quiet"]) == 0
+    rows = list(csv.DictReader((tmp_path / "r" / "correspondence.csv").read_text().splitlines()))
+    source = pv.read(tmp_path / "a.vtk").points
+    table = np.array([[float(r[k]) for k in ("x", "y", "z")] for r in rows])
+    assert np.abs(table - source).max() < 1e-6
+
+
+def test_morph_refuses_more_frames_than_it_can_write(spheres, tmp_path, capsys):
+    from volreg.cli import main
+
+    capsys.readouterr()
+    assert main(["morph", str(spheres / "a.vtk"), str(spheres / "b.vtk"), "--from-result", str(spheres / "r"),
+                 "--frames", "100000000", "-o", str(tmp_path / "m")]) == 2
+    assert "--frames 100000000: expected 2 to 1000 frames" in _error(capsys)
+    assert not (tmp_path / "m").exists()

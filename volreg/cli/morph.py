@@ -18,6 +18,10 @@ if TYPE_CHECKING:  # numpy and the pipeline are imported when the command runs
 __all__ = ["add_parser", "run"]
 
 
+#: The most frames a morph writes (each is a mesh file and a PNG, and all are held for the GIF).
+MAX_FRAMES = 1000
+
+
 def add_parser(commands) -> None:
     """Add ``morph`` to the ``volreg`` subcommands."""
     morph = commands.add_parser(
@@ -31,7 +35,7 @@ def add_parser(commands) -> None:
     morph.add_argument("source", metavar="SOURCE", type=Path)
     morph.add_argument("target", metavar="TARGET", type=Path)
     morph.add_argument("-o", "--output", metavar="OUTDIR", type=output_path, required=True, help="output directory")
-    morph.add_argument("--frames", type=int, default=10, help="number of frames, >= 2 (default 10)")
+    morph.add_argument("--frames", type=int, default=10, help="number of frames, 2 to 1000 (default 10)")
     morph.add_argument("--from-result", metavar="OUTDIR", type=Path, default=None,
                        help="use the model.npz of a `volreg register-surfaces` OUTDIR instead of registering")
     morph.add_argument("--protocol", metavar="NAME|FILE", default="default", help="protocol when registering")
@@ -91,8 +95,9 @@ def run(args: argparse.Namespace) -> int:
     from volreg.progress import ProgressBars
 
     start = time.perf_counter()
-    if args.frames < 2:
-        raise UsageError(f"--frames {args.frames}: expected at least 2 frames (the source and the warped source).")
+    if not 2 <= args.frames <= MAX_FRAMES:
+        raise UsageError(f"--frames {args.frames}: expected 2 to {MAX_FRAMES} frames (the source, the warped source "
+                         "and the steps between).")
     source = _read(args.source, "SOURCE", args.source_data)
     target = _read(args.target, "TARGET", args.target_data)
     warp = _load_model(args.from_result) if args.from_result is not None else None

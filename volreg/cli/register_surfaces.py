@@ -113,8 +113,10 @@ def run(args: argparse.Namespace) -> int:
         w = csv.writer(table, lineterminator="\n")
         w.writerow(["vertex", "x", "y", "z", "tau_x", "tau_y", "tau_z", "target_x", "target_y", "target_z", "distance_mm"])
         for i in range(len(warped)):
-            w.writerow([i, *(f"{v:.6g}" for v in source.vertices[i]), *(f"{v:.6g}" for v in warped[i]),
-                        *(f"{v:.6g}" for v in closest[i]), f"{distance[i]:.6g}"])
+            # shortest round-trip text of each float: six digits would round coordinates far from
+            # the origin (1e6 mm) to several millimetres
+            w.writerow([i, *map(float, source.vertices[i]), *map(float, warped[i]), *map(float, closest[i]),
+                        float(distance[i])])
         write_text(table.getvalue(), paths["correspondence.csv"], force=args.force)
         folder.record(paths["correspondence.csv"])
         report["seconds"] = time.perf_counter() - start

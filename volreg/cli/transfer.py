@@ -71,6 +71,14 @@ def run(args: argparse.Namespace) -> int:
         name = next(iter(target.arrays))
     elif name not in target.arrays:
         raise UsageError(f"--array `{name}` is not a per-vertex array of TARGET `{args.target}`; it has: {available}.")
+    data = np.asarray(target.arrays[name])
+    if data.dtype.kind not in "iubf":
+        raise UsageError(f"Per-vertex array `{name}` of TARGET `{args.target}` holds {data.dtype} values; expected "
+                         "numbers (scalars, vectors or integer labels).")
+    if data.dtype.kind == "f" and not np.all(np.isfinite(data)):
+        raise UsageError(f"Per-vertex array `{name}` of TARGET `{args.target}` holds "
+                         f"{int(np.count_nonzero(~np.isfinite(data)))} NaN/Inf values; expected finite per-vertex "
+                         "values (interpolation would spread them to their neighbours).")
     _check_output(args.output)
     check_writable([args.output], force=args.force)
     warp = _load_model(args.result)
