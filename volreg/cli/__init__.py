@@ -220,6 +220,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     # SIGTERM (a scheduler or `kill` stopping the job) unwinds like Ctrl-C, so every command's
     # clean-up runs: outputs written so far are removed and temporary files deleted.
     previous = _install_sigterm()
+    # SIGINT too, so that it is recorded when a library turns the KeyboardInterrupt into an error
+    # of its own (numba's dispatcher: "SystemError: ... returned a result with an exception set").
+    previous_int = signal.signal(signal.SIGINT, _raise_interrupt) \
+        if previous is not None and signal.getsignal(signal.SIGINT) is signal.default_int_handler else None
     unraisable = sys.unraisablehook
     if previous is not None:  # the main thread: signals are delivered here
         clear_interrupt()
@@ -286,6 +290,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             sys.unraisablehook = unraisable
             clear_interrupt()
             signal.signal(signal.SIGTERM, previous)
+            if previous_int is not None:
+                signal.signal(signal.SIGINT, previous_int)
 
 
 def run() -> None:
