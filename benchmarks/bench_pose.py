@@ -30,10 +30,13 @@ Cases, generated with known answers (seeded):
 8. no motion: a smaller ellipsoid (semi-axes 40 / 30 / 25 mm) split into 12 Voronoi labels, at 1 mm
    (fixed) and at 2 mm (moving), both grids centred on the ellipsoid, so that the 2 mm voxel centres lie
    half-way between 1 mm ones;
-9. no motion: case 5 with one label (the ellipsoid's outline, its cells merged), a lone smooth organ.
+9. no motion: case 5 with one label (the ellipsoid's outline, its cells merged), a lone smooth organ;
+10. thick slices: one ellipsoid (semi-axes 6 / 5 / 12 mm) on 64 x 64 x 8 voxels of 0.3 x 0.3 x 5 mm
+    (about five slices through it), against the same grid holding it stretched to 6.5 mm along x and
+    moved 0.6 mm (an affine truth).
 
 The true pull-back map is tau_true = L o beta: a fixed point x is first moved by the smooth warp beta
-(x + the bumps' displacement, defined about the fixed object; the identity in cases 3 and 5-9), then by
+(x + the bumps' displacement, defined about the fixed object; the identity in cases 3 and 5-10), then by
 the pose L(x) = A (x - c) + c + t (c: the centroid of the fixed labels; A = rotation [x scale / stretch];
 t: the shift). The moving volume holds, at each voxel centre y of its grid, the label of the source
 labels at tau_true^-1(y) = beta^-1(L^-1(y)) (beta inverted by fixed-point iteration), by nearest
@@ -272,7 +275,7 @@ def _small_organ(shape, spacing: float):
 
 
 def make_case(number: int) -> Case:
-    """Build case ``number`` (1-9): fixed and moving volumes, the true map and a description."""
+    """Build case ``number`` (1-10): fixed and moving volumes, the true map and a description."""
     from volreg.grid import Grid
 
     if number in (1, 2):
@@ -301,6 +304,21 @@ def make_case(number: int) -> Case:
         moving = _posed_moving(fixed, truth, _blob_labels, (1.0, 1.0, 1.0))
         return Case(3, "one blob 2 mm vs 1 mm", fixed, moving, truth,
                     "30 deg about (-0.5, 0.4, 0.75), 30 mm, stretch 0.85 / 1 / 1.15 along oblique axes")
+    if number == 10:
+        from volreg.grid import LabelVolume
+
+        spacing = np.array([0.3, 0.3, 5.0])
+        grid = LabelVolume(np.zeros((64, 64, 8), np.uint8), (0.0, 0.0, 0.0), spacing, np.eye(3))
+        centre = np.array([9.6, 9.6, 20.0])
+        axes = np.array([6.0, 5.0, 12.0])
+        pose = Pose(np.diag([6.5 / 6.0, 1.0, 1.0]), centre, np.array([0.6, 0.0, 0.0]))
+
+        def ellipsoid(p: np.ndarray) -> np.ndarray:
+            return (np.sum(((p - centre) / axes) ** 2, axis=1) <= 1.0).astype(np.uint8)
+
+        truth = Truth(pose, None)
+        return Case(10, "one label over 5 mm slices, stretched", _sample(grid, ellipsoid, lambda p: p),
+                    _sample(grid, ellipsoid, pose.inverse), truth, "stretch 6.5 / 6 along x, 0.6 mm")
     if number == 8:
         fixed, moving = _small_organ((90, 70, 60), 1.0), _small_organ((45, 35, 30), 2.0)
         truth = Truth(Pose(np.eye(3), _centroid(fixed), np.zeros(3)), None)
@@ -336,7 +354,7 @@ def make_case(number: int) -> Case:
         coarse = LabelVolume(fine.array[::2, ::2, ::2].copy(), fine.origin, 2 * fine.spacing, fine.direction)
         truth = Truth(Pose(np.eye(3), _centroid(coarse), np.zeros(3)), None)
         return Case(7, "brain phantom 2 mm vs 1 mm, no motion", coarse, fine, truth, "none (identity)")
-    raise ValueError(f"Expected a `case` from 1 to 9, got {number!r}.")
+    raise ValueError(f"Expected a `case` from 1 to 10, got {number!r}.")
 
 
 # ----------------------------------------------------------------------------- running the methods
@@ -423,7 +441,7 @@ def _summary(block, limit: int = 400) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=1, help="runs per case and method (medians are shown)")
-    parser.add_argument("--cases", default="1,2,3,4,5", help="comma-separated subset of 1-9")
+    parser.add_argument("--cases", default="1,2,3,4,5", help="comma-separated subset of 1-10")
     parser.add_argument("--protocol", default=None, help="passed to `volreg register --protocol` (a preset or a TOML file)")
     parser.add_argument("--methods", default=DEFAULT_METHODS,
                         help=f"comma-separated subset of {','.join(REFERENCES + ('volreg',) + PEERS)}")
