@@ -288,3 +288,17 @@ def test_morph_refuses_more_frames_than_it_can_write(spheres, tmp_path, capsys):
                  "--frames", "100000000", "-o", str(tmp_path / "m")]) == 2
     assert "--frames 100000000: expected 2 to 1000 frames" in _error(capsys)
     assert not (tmp_path / "m").exists()
+
+
+def test_morph_from_a_result_of_other_surfaces_says_so(spheres, tmp_path, capsys):
+    """A saved warp applied to a SOURCE it was not fitted to lands away from TARGET: one warning line."""
+    import pyvista as pv
+
+    from volreg.cli import main
+
+    (pv.Sphere(radius=12, center=(-25, 0, 0)) + pv.Sphere(radius=12, center=(25, 0, 0))).save(tmp_path / "two.vtk")
+    capsys.readouterr()
+    assert main(["morph", str(tmp_path / "two.vtk"), str(spheres / "b.vtk"), "--from-result", str(spheres / "r"),
+                 "--frames", "3", "-o", str(tmp_path / "m"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "volreg morph: warning: the warped SOURCE vertices lie a median" in err and "--from-result" in err, err

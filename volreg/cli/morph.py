@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 from volreg.cli._common import PROG, output_path
 from volreg.cli._surfaces import (_add_data_options, _data_file_name, _data_meta, _is_label, _load_model, _read,
-                                  _register, _wants_gifti, _write_gifti_surface, _write_surface)
+                                  _register, _wants_gifti, _warn_findings, _write_gifti_surface, _write_surface)
 from volreg.errors import UsageError
 
 if TYPE_CHECKING:  # numpy and the pipeline are imported when the command runs
@@ -91,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
     from volreg.io._atomic import output_folder
     from volreg.io.gifti import write_gifti_data
     from volreg.io.protocol import load_protocol
-    from volreg.morph import morph_vertices, transfer_values
+    from volreg.evaluation.surface_review import diameter, review_surface_distance
+    from volreg.morph import closest_points, morph_vertices, transfer_values
     from volreg.progress import ProgressBars
 
     start = time.perf_counter()
@@ -121,6 +122,12 @@ def run(args: argparse.Namespace) -> int:
                 warp = _register(source, target, protocol, None, progress,
                                  names=(f"SOURCE `{args.source}`", f"TARGET `{args.target}`"))
         warped = warp(source.vertices)
+        if args.from_result is not None:
+            # a saved warp of other surfaces would morph this SOURCE somewhere else, silently
+            _, distance, _ = closest_points(warped, target.vertices, target.triangles)
+            _warn_findings("morph", review_surface_distance(
+                distance, diameter(target.vertices),
+                hint="Check that SOURCE and TARGET are the surfaces registered in --from-result, read in the same frame."))
         frames = morph_vertices(source.vertices, warped, args.frames, linear=warp.linear)
         ts = np.linspace(0.0, 1.0, args.frames)
         colours = None

@@ -75,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
         closest, distance, _ = closest_points(warped, target.vertices, target.triangles)
         target_diameter = diameter(target.vertices)
         late = review_surface_distance(distance, target_diameter, limits,
-                                       hint="Check that SOURCE and TARGET are in the same frame and unit.")
+                                       hint="Check that SOURCE and TARGET are in the same frame and unit, and roughly aligned "
+                                            "(surfaces get no linear stage).")
         _warn_findings("register-surfaces", late)
         findings += late
         report = {
