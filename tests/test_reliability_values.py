@@ -426,6 +426,9 @@ def test_an_interrupt_that_a_library_turns_into_another_error_is_still_an_interr
             raise ValueError("Invalid affine transformation matrix") from None
 
     monkeypatch.setattr("volreg.io.report_figure.write_report_figure", drawing)
+    # Python's own SIGINT handler, as when the command starts (a library loaded by another test
+    # may have installed its own)
+    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     # On one thread the figure is drawn by the main thread, which the signal interrupts (on
     # more, the outputs are written on worker threads and the interrupt meets the main one
     # waiting for them).
@@ -438,6 +441,7 @@ def test_an_interrupt_that_a_library_turns_into_another_error_is_still_an_interr
                      "--protocol", str(tmp_path / "p.toml"), "--quiet"])
     finally:
         numba.set_num_threads(threads)
+        signal.signal(signal.SIGINT, previous_int)
     assert code == status
     assert _error(capsys) == f"volreg register: interrupted by {name}; the outputs of this run were removed."
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.nii.gz", "b.nii.gz", "p.toml"]

@@ -222,8 +222,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     previous = _install_sigterm()
     # SIGINT too, so that it is recorded when a library turns the KeyboardInterrupt into an error
     # of its own (numba's dispatcher: "SystemError: ... returned a result with an exception set").
+    # (Not where SIGINT is ignored, as for a job started in the background by a shell.)
     previous_int = signal.signal(signal.SIGINT, _raise_interrupt) \
-        if previous is not None and signal.getsignal(signal.SIGINT) is signal.default_int_handler else None
+        if previous is not None and signal.getsignal(signal.SIGINT) not in (signal.SIG_IGN, None) else None
     unraisable = sys.unraisablehook
     if previous is not None:  # the main thread: signals are delivered here
         clear_interrupt()
