@@ -417,7 +417,9 @@ def run(args: argparse.Namespace) -> int:
         client = cluster = None
         _close_started_clusters()
         _await_worker_launches()
-        finished = sum(1 for r in rows if r.get("status") == "done")
+        # Counted on disk, the workers stopped: a pair's row is written once its outputs are, and
+        # pairs that ended while the interrupt was on its way were never collected here.
+        finished = sum(1 for folder in folders if (outdir / "pairs" / folder / "batch_row.json").is_file())
         print(f"{PROG} batch: interrupted by {name}; {finished} of {len(pairs)} pairs finished and are kept in "
               f"`{outdir / 'pairs'}` (a rerun skips them); the {len(pairs) - finished} others are unfinished and a "
               f"rerun redoes them; `{outdir / 'batch.csv'}` was not written.", file=sys.stderr)
