@@ -302,3 +302,15 @@ def test_morph_from_a_result_of_other_surfaces_says_so(spheres, tmp_path, capsys
                  "--frames", "3", "-o", str(tmp_path / "m"), "--quiet"]) == 0
     err = capsys.readouterr().err
     assert "volreg morph: warning: the warped SOURCE vertices lie a median" in err and "--from-result" in err, err
+
+
+def test_triangles_repeating_a_vertex_are_not_counted_as_non_manifold_edges(tmp_path, recwarn):
+    import pyvista as pv
+
+    from volreg.io.meshes import read_surface
+
+    sphere = pv.Sphere(radius=20, theta_resolution=16, phi_resolution=16)
+    faces = np.concatenate([np.asarray(sphere.faces), [3, 0, 0, 1, 3, 2, 2, 2]])
+    pv.PolyData(np.asarray(sphere.points), faces).save(tmp_path / "degenerate.vtk")
+    read_surface(tmp_path / "degenerate.vtk")
+    assert not [w for w in recwarn if "non-manifold" in str(w.message)]

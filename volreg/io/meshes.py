@@ -401,8 +401,11 @@ def read_surface(path: str | os.PathLike[str]) -> SurfaceData:
         raise VolregIOError(f"Surface `{p}` has triangles indexing missing vertices; expected indices below {len(out.vertices)}.")
     if out.normals is not None and (out.normals.shape != out.vertices.shape or not np.all(np.isfinite(out.normals))):
         out.normals = None  # unusable normals are estimated again
-    if len(out.triangles):
-        edges = np.sort(out.triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    t = out.triangles
+    # triangles that repeat a vertex (zero area by their indices) have no edges of their own
+    proper = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])] if len(t) else t
+    if len(proper):
+        edges = np.sort(proper[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
         _, counts = np.unique(edges, axis=0, return_counts=True)
         bad = int(np.count_nonzero(counts > 2))
         if bad:
