@@ -56,18 +56,24 @@ def pair(tmp_path_factory):
     return d
 
 
-def test_repeated_fixed_landmarks_are_refused_in_one_line(pair, tmp_path, capsys):
-    """Two pairs at one fixed point (here sent to two places) make the landmark start's kernel
-    system singular: refused, naming the points, before anything is written."""
+@pytest.mark.parametrize("command", ["register", "register-surfaces"])
+def test_repeated_landmarks_are_refused_in_one_line(request, tmp_path, capsys, command):
+    """Two pairs at one fixed (source) point, here sent to two places, make the landmark start's
+    kernel system singular: refused, naming the points, before anything is written."""
     from volreg.cli import main
 
-    (tmp_path / "f.csv").write_text("x,y,z\n16,16,16\n16,16,16\n")
-    (tmp_path / "m.csv").write_text("x,y,z\n17,16,16\n18,16,16\n")
+    if command == "register":
+        d, inputs, point, role = request.getfixturevalue("pair"), ("A.nii.gz", "B.nii.gz"), (16, 16, 16), "fixed"
+    else:
+        d, inputs, point, role = request.getfixturevalue("spheres"), ("a.vtk", "b.vtk"), (20, 0, 0), "source"
+    x, y, z = point
+    (tmp_path / "f.csv").write_text(f"x,y,z\n{x},{y},{z}\n{x},{y},{z}\n")
+    (tmp_path / "m.csv").write_text(f"x,y,z\n{x + 1},{y},{z}\n{x + 2},{y},{z}\n")
     capsys.readouterr()
-    assert main(["register", str(pair / "A.nii.gz"), str(pair / "B.nii.gz"), "-o", str(tmp_path / "out"),
+    assert main([command, *(str(d / name) for name in inputs), "-o", str(tmp_path / "out"),
                  "--landmarks", str(tmp_path / "f.csv"), str(tmp_path / "m.csv")]) == 2
     line = _error(capsys)
-    assert "--landmarks: points 1 and 2 of" in line and "coincide" in line, line
+    assert "--landmarks: points 1 and 2 of" in line and f"expected distinct {role} landmarks" in line, line
     assert not (tmp_path / "out").exists()
 
 
@@ -207,23 +213,6 @@ def test_a_broken_nifti_header_gives_one_line_and_nothing_else(tmp_path, capfd, 
     assert run.returncode == 2
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("volreg register: error: Label image `a.nii.gz` has"), run.stderr
-
-
-def test_repeated_source_landmarks_of_surfaces_are_refused_in_one_line(tmp_path, capsys):
-    import pyvista as pv
-
-    from volreg.cli import main
-
-    pv.Sphere(radius=20, theta_resolution=20, phi_resolution=20).save(tmp_path / "a.vtk")
-    pv.Sphere(radius=20, center=(2, 0, 0), theta_resolution=20, phi_resolution=20).save(tmp_path / "b.vtk")
-    (tmp_path / "f.csv").write_text("x,y,z\n20,0,0\n20,0,0\n")
-    (tmp_path / "m.csv").write_text("x,y,z\n22,0,0\n22,1,0\n")
-    capsys.readouterr()
-    assert main(["register-surfaces", str(tmp_path / "a.vtk"), str(tmp_path / "b.vtk"), "-o", str(tmp_path / "out"),
-                 "--landmarks", str(tmp_path / "f.csv"), str(tmp_path / "m.csv")]) == 2
-    line = _error(capsys)
-    assert "--landmarks: points 1 and 2 of" in line and "expected distinct source landmarks" in line, line
-    assert not (tmp_path / "out").exists()
 
 
 @pytest.fixture(scope="module")

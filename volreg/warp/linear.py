@@ -837,21 +837,15 @@ def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f:
     step = max(1, int(np.ceil((np.prod(hi - lo, dtype=float) / 2**18) ** (1.0 / fixed.ndim))))
     axes = [np.arange(a, b, step) for a, b in zip(lo, hi)]
     index = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, fixed.ndim)
+    from volreg.evaluation.metrics import dice
+    from volreg.warp.resample import resample_labels
+
     points = fixed.index_to_world(index)
     label_f = fixed.array[tuple(index.T)]
-    wanted = np.asarray(labels)
     out = []
     for linear in maps:
-        at = np.rint(moving.world_to_index(linear(points))).astype(np.int64)
-        inside = np.all((at >= 0) & (at < np.array(moving.shape)), axis=1)
-        label_m = np.zeros(len(points), dtype=moving.array.dtype)
-        label_m[inside] = moving.array[tuple(at[inside].T)]
-        scores = []
-        for v in wanted:
-            a, b = label_f == v, label_m == v
-            total = int(a.sum()) + int(b.sum())
-            scores.append(2.0 * np.count_nonzero(a & b) / total if total else 0.0)
-        out.append(float(np.mean(scores)))
+        label_m = resample_labels(moving, linear(points), method="nearest")
+        out.append(float(np.mean([dice(label_f == v, label_m == v) for v in labels])))
     return np.array(out)
 
 
