@@ -99,11 +99,11 @@ def _check_saved_inputs(args: argparse.Namespace, sha_a: str, sha_b: str) -> Non
         if got == want[::-1] and want[0] != want[1]:
             raise UsageError(f"{option} `{result}` registered the other way round ({'B to A' if option == '--forward' else 'A to B'}, "
                              f"by its report.json's input checksums); expected the result of `{command}`.")
-        which = [role for role, g, w in zip(("fixed", "moving"), got, want) if g != w]
+        names = ("A", "B") if option == "--forward" else ("B", "A")  # its fixed and moving files
+        differ = [f"{role} checksum differs from {name}'s"
+                  for role, name, g, w in zip(("fixed", "moving"), names, got, want) if g != w]
         _warn("consistency", f"{option} `{result}` was registered from other files than `{command}` names "
-              f"(its report.json's {' and '.join(which)} checksum differs from "
-              f"{' and '.join(('A' if (r == 'fixed') == (option == '--forward') else 'B') for r in which)}'s); "
-              "the test is of that registration, not of A and B.")
+              f"(its report.json's {' and '.join(differ)}); the test is of that registration, not of A and B.")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -43,7 +43,7 @@ from volreg.grid import Grid, GridLike, as_grid
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
 from volreg.io._guards import check_image_data_files
-from volreg.io.images import _check_input, _check_nifti, _sitk_reason
+from volreg.io.images import _check_input, _check_nifti, _nifti_float_voxels, _sitk_reason
 from volreg.warp.linear import LinearMap
 
 __all__ = [
@@ -250,18 +250,6 @@ def write_itk_composite(
             raise VolregIOError(f"Composite transform `{p}` could not be written: {_sitk_reason(exc)}.") from None
 
 
-def _nifti_finite(nimg) -> bool:
-    """Whether a float NIfTI file's voxels are all finite, as nibabel reads them (SimpleITK reads
-    NaN and Inf in float NIfTI data as 0: a field would silently hold zero displacement there)."""
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        if np.dtype(nimg.header.get_data_dtype()).kind != "f":
-            return True
-        return bool(np.all(np.isfinite(np.asarray(nimg.dataobj))))
-
-
 def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     """Read an ANTs/ITK displacement field.
 
@@ -298,7 +286,12 @@ def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     array = sitk.GetArrayFromImage(img)  # (k, j, i, D), a copy
     # (i, j, k, D) as float64 in one more copy, C order, owning its memory.
     u = np.array(array.transpose(*range(dim - 1, -1, -1), dim), dtype=np.float64, order="C")
-    if not np.all(np.isfinite(u)) or (nimg is not None and not _nifti_finite(nimg)):
+    if nimg is not None:
+        # SimpleITK reads NaN and Inf in float NIfTI data as 0 (zero displacement there, silently):
+        # the voxels as nibabel reads them, in the same (i, j, k, D) order once the NIfTI's
+        # singleton time axis is dropped.
+        u = _nifti_float_voxels(nimg, u, p, "Displacement field")
+    if not np.all(np.isfinite(u)):
         raise VolregIOError(f"Displacement field `{p}` holds NaN or Inf; expected finite displacements in mm.")
     grid = Grid(
         u.shape[:-1],

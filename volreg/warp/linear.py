@@ -830,6 +830,9 @@ def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f:
     -------
     (len(maps),) float ndarray
     """
+    from volreg.evaluation.metrics import dice
+    from volreg.warp.resample import resample_labels
+
     lo = np.min([[b.start for b in boxes_f[v]] for v in labels], axis=0)
     hi = np.max([[b.stop for b in boxes_f[v]] for v in labels], axis=0)
     reach = (hi - lo) // 2
@@ -837,9 +840,6 @@ def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f:
     step = max(1, int(np.ceil((np.prod(hi - lo, dtype=float) / 2**18) ** (1.0 / fixed.ndim))))
     axes = [np.arange(a, b, step) for a, b in zip(lo, hi)]
     index = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, fixed.ndim)
-    from volreg.evaluation.metrics import dice
-    from volreg.warp.resample import resample_labels
-
     points = fixed.index_to_world(index)
     label_f = fixed.array[tuple(index.T)]
     out = []
