@@ -174,6 +174,30 @@ def test_an_interrupt_inside_python_code_an_extension_runs_keeps_the_exit_status
     assert f"volreg protocols: interrupted by {name}" in proc.stderr
 
 
+def test_an_interrupted_run_ends_with_its_one_line_report(tmp_path):
+    """An object the interrupt left half-built (seen: llvmlite's, while numba loads) whose
+    destructor fails on the way out printed "Exception ignored in ..." and a traceback after the
+    report; the report stays the last line, and the exit status is kept."""
+    script = tmp_path / "half_built.py"
+    script.write_text(
+        "import volreg.cli.protocols as command\n"
+        "from volreg.cli import main\n"
+        "class HalfBuilt:\n"
+        "    def __del__(self):\n"
+        "        raise AttributeError('no attribute _ptr')\n"
+        "def run(args):\n"
+        "    half = HalfBuilt()  # freed with the interrupt's traceback\n"
+        "    raise KeyboardInterrupt('SIGTERM')\n"
+        "command.run = run\n"
+        "raise SystemExit(main(['protocols']))\n")
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([sys.executable, "-m", script.stem], capture_output=True, text=True, env=env, cwd=tmp_path,
+                          timeout=120)
+    assert proc.returncode == 143, (proc.returncode, proc.stderr)
+    assert proc.stderr.strip().splitlines() == ["volreg protocols: interrupted by SIGTERM; the outputs of this run "
+                                                "were removed."], proc.stderr
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_a_signal_while_the_libraries_load_exits_cleanly(inputs, tmp_path, sig):
     """Signals 0.3-1.2 s after the start land while Python loads numpy, numba, SimpleITK, ...;

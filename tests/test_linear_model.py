@@ -279,12 +279,31 @@ def test_indices_through_a_displacement_are_those_of_the_displaced_world_points(
     np.testing.assert_allclose(index, moving.world_to_index(points.reshape(-1, 3)), rtol=0, atol=1e-10)
     np.testing.assert_allclose(indices_through(fixed, None, moving),
                                moving.world_to_index(fixed.grid_points().reshape(-1, 3)), rtol=0, atol=1e-10)
-    for method in ("label", "nearest"):
+    for method in ("label", "nearest", "gaussian"):
         at_points = resample_labels(moving, points, method=method)
         assert np.array_equal(resample_labels_at(moving, index, method=method).reshape(fixed.shape), at_points)
         assert len(np.unique(at_points)) >= 2  # a label and the background are met
     with pytest.raises(ValueError, match="displacement"):
         indices_through(fixed, u[:-1], moving)
+
+
+def test_indices_through_a_linear_map_are_those_of_the_mapped_world_points():
+    """With a linear map L (an affine with a shear and scales), the moving grid's indices of
+    L(x + u(x)) and of L(x) equal ``world_to_index`` of the mapped world points."""
+    from volreg.warp.linear import LinearMap
+
+    warp = linear_warp(3, seed=5)
+    fixed = oblique_grid()
+    moving = blob_volume(direction=rotation(25, (0.2, -0.5, 0.8)), origin=(-33.0, -29.0, -35.0),
+                         spacing=np.array([1.3, 0.9, 1.6]))
+    lin = LinearMap(rotation(17, (1.0, 0.3, -0.2)) @ np.array([[1.1, 0.1, 0.0], [0.0, 0.9, 0.05], [0.0, 0.0, 1.2]]),
+                    [4.0, -7.0, 2.5])
+    u = fields_on_grid(warp, fixed, chunk=4000)[0]
+    points = (fixed.grid_points() + u).reshape(-1, 3)
+    np.testing.assert_allclose(indices_through(fixed, u, moving, lin), moving.world_to_index(lin(points)),
+                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(indices_through(fixed, None, moving, lin),
+                               moving.world_to_index(lin(fixed.grid_points().reshape(-1, 3))), rtol=0, atol=1e-9)
 
 
 def test_grid_fields_outside_the_support_are_linear():

@@ -51,7 +51,8 @@ def test_identity_in_identity_out(volume):
     warp = KernelWarp([WarpLevel(np.zeros((2, 3)), np.zeros((2, 3)), width=10.0)], dim=3)
     points = volume.grid_points().reshape(-1, 3)
     assert np.array_equal(warp(points), points)
-    assert np.array_equal(resample_labels(volume, points.reshape(*volume.shape, 3)), volume.array)
+    for method in ("label", "gaussian"):
+        assert np.array_equal(resample_labels(volume, points.reshape(*volume.shape, 3), method=method), volume.array)
 
 
 @FAST
@@ -59,7 +60,7 @@ def test_identity_in_identity_out(volume):
 def test_warping_preserves_the_label_set(volume, warp):
     """Label resampling through any warp yields only labels of the input, in its dtype."""
     points = warp(volume.grid_points().reshape(-1, 3)).reshape(*volume.shape, 3)
-    for method in ("label", "nearest"):
+    for method in ("label", "nearest", "gaussian"):
         out = resample_labels(volume, points, method=method)
         assert set(np.unique(out).tolist()) <= set(np.unique(volume.array).tolist()) | {0}
         assert out.dtype == volume.array.dtype or np.can_cast(out.dtype, volume.array.dtype)
@@ -99,6 +100,52 @@ def test_label_resampling_follows_its_definition(volume, block, seed):
     inside = np.all((index >= -0.5) & (index <= size - 0.5), axis=1)
     expected[~inside] = 0
     assert np.array_equal(out, expected)
+
+
+@FAST
+@given(label_volumes(), st.integers(1, 3), st.integers(0, 2**31 - 1))
+def test_gaussian_label_resampling_follows_its_definition(volume, block, seed):
+    """``"gaussian"``: a point whose linear stencil holds one value takes it, a point at a voxel
+    centre that voxel's value; any other point inside the image the value (the background
+    included) whose indicator, blurred by a Gaussian of GAUSSIAN_SIGMA geometric-mean voxels over
+    the whole volume (clamped at its edges) and read by cubic B-spline, is the largest, wherever
+    the largest leads the next by more than 1e-4 (each label's blur is made on its box, padded);
+    outside the image, 0."""
+    from itertools import product
+
+    from scipy import ndimage
+
+    from volreg.warp.resample import GAUSSIAN_SIGMA
+
+    array = volume.array
+    for axis in range(3):
+        array = np.repeat(array, block, axis=axis)
+    volume = LabelVolume(array, volume.origin, volume.spacing, np.eye(3))
+    rng = np.random.default_rng(seed)
+    size = np.array(array.shape)
+    index = np.concatenate([rng.uniform(-0.5, size - 0.5, (3000, 3)),  # inside, anywhere
+                            rng.integers(0, size, (100, 3)).astype(float),  # voxel centres
+                            rng.uniform(-3, size + 2, (100, 3))])  # some outside
+    out = resample_labels(volume, volume.index_to_world(index), method="gaussian")
+
+    sigma = GAUSSIAN_SIGMA * np.exp(np.mean(np.log(volume.spacing))) / volume.spacing
+    values = np.unique(array)
+    blurred = np.stack([ndimage.map_coordinates(ndimage.gaussian_filter((array == v).astype(float), sigma,
+                                                                        mode="nearest"),
+                                                index.T, order=3, mode="nearest") for v in values])
+    order = np.sort(blurred, axis=0)
+    clear = order[-1] - order[-2] > 1e-4
+    expected = values[np.argmax(blurred, axis=0)]
+    low = np.floor(index).astype(int)
+    for r in range(len(index)):
+        corners = {int(array[tuple(np.clip(low[r] + np.array(c), 0, size - 1))]) for c in product((0, 1), repeat=3)}
+        if len(corners) == 1:
+            expected[r], clear[r] = corners.pop(), True
+        elif np.all(np.abs(index[r] - np.round(index[r])) < 1e-6):
+            expected[r], clear[r] = array[tuple(np.round(index[r]).astype(int))], True
+    inside = np.all((index >= -0.5) & (index <= size - 0.5), axis=1)
+    expected[~inside], clear[~inside] = 0, True
+    assert np.array_equal(out[clear], expected[clear])
 
 
 @pytest.mark.parametrize("shape", [(7, 5), (6, 5, 4)])

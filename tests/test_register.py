@@ -132,6 +132,27 @@ def test_report_contents(known_pair):
     assert all(s["peak_rss_gb"] > 0 for s in report["stages"])
 
 
+def test_gaussian_label_interpolation_agrees_with_itks(known_pair, tmp_path):
+    """`apply --interpolation gaussian` keeps the moving labels and their dtype, and agrees with
+    SimpleITK's label-Gaussian interpolator through the same field (its blur: 1 mm, 0.67 voxel
+    here) to Dice >= 0.97 per label, and more closely than the default (linear) label
+    interpolation of warped.nii.gz does (measured 0.989 and 0.973 on the 5765- and 328-voxel
+    labels, against 0.988 and 0.960)."""
+    d, fixed, moving, _ = known_pair
+    assert run(["apply", d / "out" / "warp.nii.gz", d / "moving.nii.gz", "--reference", d / "fixed.nii.gz",
+                "-o", tmp_path / "g.nii.gz", "--interpolation", "gaussian"]) == 0
+    ours = read_labels(tmp_path / "g.nii.gz")
+    assert ours.same_geometry(fixed) and ours.array.dtype == moving.array.dtype
+    assert set(np.unique(ours.array)) <= {0, 1, 2}
+    field = sitk.ReadImage(str(d / "out" / "warp.nii.gz"), sitk.sitkVectorFloat64)
+    res = sitk.GetArrayFromImage(sitk.Resample(sitk.ReadImage(str(d / "moving.nii.gz")),
+                                               sitk.ReadImage(str(d / "fixed.nii.gz")),
+                                               sitk.DisplacementFieldTransform(field), sitk.sitkLabelGaussian, 0)).T
+    linear = read_labels(d / "out" / "warped.nii.gz").array
+    for v in (1, 2):
+        assert dice(ours.array == v, res == v) >= max(0.97, dice(linear == v, res == v)), v
+
+
 def test_warped_labels_and_dtype(known_pair):
     d, fixed, moving, _ = known_pair
     warped = read_labels(d / "out" / "warped.nii.gz")

@@ -117,10 +117,12 @@ def _mean_dice_identity_and_warped(fixed, moving, warp, labels) -> tuple[float, 
 @pytest.mark.parametrize("moving_grid", ["2 mm", "0.8 x 0.8 x 2.5 mm oblique"])
 def test_the_same_labels_at_two_resolutions_stay_in_place(moving_grid):
     """No motion: the blobs at 1 mm against the blobs at a coarser grid.  The linear part stays
-    the identity, and the warp keeps Dice at or above the identity's; what it moves is the
-    coarse volume's discretisation (nearest-neighbour boundaries are off by up to half of its
-    voxel), measured 0.27 mm (2 mm) and 0.13 mm (oblique) on average on these small blobs (0.35
-    and 0.17 mm with distance maps measured between voxel centres)."""
+    the identity.  At 2 mm (centres half-way between the 1 mm ones) the 1 mm labels are read on
+    the 2 mm grid (`resample_finer`): what the warp moves is where they cannot tell which side of
+    a boundary a 2 mm centre lies on (16 of the 776 label voxels), measured 0.10 mm on average
+    (0.27 mm without the resampling, which follows the 2 mm staircase), Dice 0.9154 against the
+    identity's 0.9168.  On the oblique 0.8 x 0.8 x 2.5 mm grid (finer in-plane, so not resampled)
+    0.13 mm, Dice at or above the identity's."""
     fixed = _fixed(n=48, spacing=1.0)
     if moving_grid == "2 mm":
         moving = _fixed(n=24, spacing=2.0)
@@ -136,10 +138,10 @@ def test_the_same_labels_at_two_resolutions_stay_in_place(moving_grid):
     linear = result.warp.linear
     assert np.abs(linear.matrix - np.eye(3)).max() < 0.02 and np.linalg.norm(linear(x) - x, axis=1).mean() < 0.3
     u = result.warp(x) - x
-    assert np.linalg.norm(u, axis=1).mean() < (0.32 if moving_grid == "2 mm" else 0.16)
+    assert np.linalg.norm(u, axis=1).mean() < (0.13 if moving_grid == "2 mm" else 0.16)
     assert np.linalg.norm(u.mean(axis=0)) < 0.15  # no shift overall
     before, after = _mean_dice_identity_and_warped(fixed, moving, result.warp, range(1, 7))
-    assert after >= before, (before, after)
+    assert after >= before - (0.003 if moving_grid == "2 mm" else 0.0), (before, after)
 
 
 _ORGAN_AXES = np.array([40.0, 30.0, 25.0])
@@ -163,13 +165,14 @@ def _organ(shape, spacing, direction=None, count=12, seed=2):
     return grid.with_array(labels.reshape(shape))
 
 
-@pytest.mark.parametrize("moving_grid, limit", [("2 mm", 0.22), ("0.8 x 0.8 x 2.5 mm oblique", 0.1)])
+@pytest.mark.parametrize("moving_grid, limit", [("2 mm", 0.1), ("0.8 x 0.8 x 2.5 mm oblique", 0.1)])
 def test_the_same_cells_at_two_resolutions_are_moved_less_than_their_voxels_discretisation(moving_grid, limit):
     """No motion, the default protocol: 12 Voronoi cells of an ellipsoid (flat boundaries, which a
     coarse grid places up to half its voxel off over whole faces) at 1 mm against the same cells
-    at 2 mm and at 0.8 x 0.8 x 2.5 mm on a grid turned 20 degrees.  Measured mean displacement
-    over the labels 0.19 and 0.08 mm (0.24 and 0.15 mm with distance maps measured between voxel
-    centres, `distance_scale` 0); Dice at or above the identity's."""
+    at 2 mm (centres half-way between the 1 mm ones) and at 0.8 x 0.8 x 2.5 mm on a grid turned 20
+    degrees.  Measured mean displacement over the labels 0.078 and 0.082 mm (at 2 mm 0.19 mm
+    without `resample_finer`, 0.24 mm with distance maps measured between voxel centres as well);
+    Dice at or above the identity's."""
     fixed = _organ((90, 70, 60), (1.0,) * 3)
     if moving_grid == "2 mm":
         moving = _organ((45, 35, 30), (2.0,) * 3)
@@ -184,18 +187,34 @@ def test_the_same_cells_at_two_resolutions_are_moved_less_than_their_voxels_disc
     assert after >= before, (before, after)
 
 
+def test_without_resampling_the_finer_labels_the_coarse_staircase_is_followed():
+    """`resample_finer = false`: each volume's maps from its own grid, and the warp follows the
+    2 mm staircase: the 12 cells at 1 mm and 2 mm move 0.19 mm on average, against 0.078 mm with
+    the 1 mm labels read on the 2 mm grid."""
+    fixed, moving = _organ((90, 70, 60), (1.0,) * 3), _organ((45, 35, 30), (2.0,) * 3)
+    x = fixed.grid_points()[fixed.array > 0]
+    moved = {}
+    for resample in (True, False):
+        protocol = volreg.load_protocol("default")
+        protocol = dataclasses.replace(protocol, surface=dataclasses.replace(protocol.surface, resample_finer=resample))
+        warp = volreg.register_labels(fixed, moving, protocol=protocol).warp
+        moved[resample] = np.linalg.norm(warp(x) - x, axis=1).mean()
+    assert moved[False] > 2 * moved[True], moved
+
+
 def test_one_smooth_label_at_two_resolutions_is_not_moved_along_its_surface():
     """No motion, the default (affine) protocol: one ellipsoid at 1 mm and every second voxel of it.
     Every A = L R L^-1 maps the ellipsoid onto itself, so the affine fit drifts along that family
     with the grids' differences (2.95 mm on average over the label without the overlap check); the
-    drift overlaps no better than the identity, which is kept.  Measured: 0.17 mm, what the kernel
-    warp alone gives (the linear stage off)."""
+    drift overlaps no better than the identity, which is kept.  Measured: 0.00 mm (the 1 mm
+    labels read on the 2 mm grid are the 2 mm labels); without that resampling 0.17 mm, what the
+    kernel warp alone gives (the linear stage off)."""
     fine = _ellipsoid_volume((101, 81, 71), 1.0)
     coarse = volreg.LabelVolume(fine.array[::2, ::2, ::2].copy(), fine.origin, 2 * fine.spacing, fine.direction)
     result = volreg.register_labels(fine, coarse, protocol=volreg.load_protocol("default"))
     x = fine.grid_points()[fine.array > 0]
     moved = np.linalg.norm(result.warp(x) - x, axis=1)
-    assert moved.mean() < 0.25, moved.mean()
+    assert moved.mean() < 0.05, moved.mean()
     assert result.linear.log["kept_instead"] in ("identity", "start"), result.linear.log["overlap"]
 
 
@@ -207,18 +226,22 @@ def _ellipsoid_volume(shape, spacing):
     return grid.with_array((np.sum((p / [45.0, 34.0, 26.0]) ** 2, axis=-1) < 1).astype(np.uint8))
 
 
-def test_a_label_cut_by_the_moving_image_edge_is_reported_and_does_not_pull(tmp_path):
+@pytest.mark.parametrize("h_fixed, h_moving", [(1.5, 1.5), (1.0, 1.5), (1.5, 1.0)])
+def test_a_label_cut_by_the_moving_image_edge_is_reported_and_does_not_pull(tmp_path, h_fixed, h_moving):
     """A seventh blob sticks out of the moving image (cropped through it, 40-70 % kept): the label
     is reported as cut, left out of the review, and the image edge does not drag the warp: the
     part of it still in view lands as well as the whole labels do (the pose is a rigid 20 degrees,
-    15 mm)."""
+    15 mm).  Also where one grid is finer (its labels are then read on the other's grid, where
+    the moving image's edge cuts them as well)."""
     shapes = BLOBS + [Ellipsoid((7, 6, 6), (2, 4, 27))]
     a, b = rotation(20, (-0.2, 0.6, 0.3)), np.array([10.0, 8.0, -6.0])
-    fixed = posed_volume(shapes, (32, 32, 48), (1.5,) * 3, grid_around((0, 0, 7), (32, 32, 48), (1.5,) * 3))
-    moving = posed_volume(shapes, (44,) * 3, (1.5,) * 3, grid_around(b, (44,) * 3, (1.5,) * 3), matrix=a,
+    n_fixed = tuple(int(round(n * 1.5 / h_fixed)) for n in (32, 32, 48))
+    n_moving = (int(round(44 * 1.5 / h_moving)),) * 3
+    fixed = posed_volume(shapes, n_fixed, (h_fixed,) * 3, grid_around((0, 0, 7), n_fixed, (h_fixed,) * 3))
+    moving = posed_volume(shapes, n_moving, (h_moving,) * 3, grid_around(b, n_moving, (h_moving,) * 3), matrix=a,
                           translation=b)
     full = np.count_nonzero(moving.array == 7)
-    stop = next(k for k in range(44, 0, -1) if np.count_nonzero(moving.array[:, :, :k] == 7) < 0.7 * full)
+    stop = next(k for k in range(n_moving[2], 0, -1) if np.count_nonzero(moving.array[:, :, :k] == 7) < 0.7 * full)
     cropped = volreg.LabelVolume(moving.array[:, :, :stop], moving.origin, moving.spacing, moving.direction)
     assert np.count_nonzero(cropped.array == 7) > 0.4 * full
     assert all(np.count_nonzero(cropped.array == v) == np.count_nonzero(moving.array == v) for v in range(1, 7))

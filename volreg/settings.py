@@ -202,6 +202,12 @@ class SurfaceSettings:
         centres, to the boundary half-way between them (first order; each grid's own bias).
     distance_smoothing : float, voxels
         Gaussian blur of the clipped voxel signed distances.
+    resample_finer : bool
+        Where one volume's grid is coarser than the other's along every axis, read the finer
+        volume's distance maps from its labels resampled onto the coarser grid (through the
+        linear stage's map; label-preserving, Gaussian-smoothed indicators): both maps then
+        come from the same staircase, which a warp would otherwise follow.  The same 30
+        labels at 1 mm and 2 mm with no motion moved 0.11 mm on average without it.
     """
 
     smoothing: float = 1.0
@@ -212,6 +218,7 @@ class SurfaceSettings:
     min_distance_clip: float = 4.0
     distance_scale: float = 1.0
     distance_smoothing: float = 0.8
+    resample_finer: bool = True
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.smoothing) and 0 <= self.smoothing <= 10):

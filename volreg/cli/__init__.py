@@ -139,7 +139,14 @@ def _interrupted(command: str, name: str) -> int:
     _forget_unhandled_interrupt()
     kept = "".join(f" (the previous result in `{p}` was kept)" for p in kept_results()[:1])
     print(f"{PROG} {command}: interrupted by {name}; the outputs of this run were removed{kept}.", file=sys.stderr)
+    # An object the interrupt left half-built (llvmlite's, while numba loads) can fail in its
+    # destructor on the way out ("Exception ignored in ..."): the report stays the last line.
+    sys.unraisablehook = _ignore_unraisable
     return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
+
+
+def _ignore_unraisable(unraisable) -> None:
+    """A ``sys.unraisablehook`` that prints nothing."""
 
 
 def _install_sigterm():
@@ -307,6 +314,8 @@ def run() -> None:
     import atexit
 
     status = main()
+    if status in (130, 128 + int(signal.SIGTERM)):  # interrupted: the report stays the last line
+        sys.unraisablehook = _ignore_unraisable
     try:
         sys.stdout.flush()
         sys.stderr.flush()

@@ -41,8 +41,9 @@ def add_parser(commands) -> None:
                        help="images only (required for them): image whose grid the output takes (fixed space)")
     apply.add_argument("-o", "--output", metavar="OUT", type=output_path, required=True,
                        help="output: an image (.nii.gz, .nii, .nrrd, .mha), or points / mesh in INPUT's format")
-    apply.add_argument("--interpolation", choices=("label", "nearest", "linear", "bspline"), default=None,
+    apply.add_argument("--interpolation", choices=("label", "nearest", "gaussian", "linear", "bspline"), default=None,
                        help="images only: label: label-preserving (per-label signed distances, default); nearest; "
+                       "gaussian: label-preserving, Gaussian-smoothed indicators (0.8 voxel); "
                        "linear or bspline for intensity images (written as float32)")
     apply.add_argument("--force", action="store_true", help="overwrite an existing output")
     apply.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -230,7 +231,7 @@ def _run_image(args: argparse.Namespace) -> int:
             raise UsageError(f"MODEL_OR_WARP `{args.warp}` must be a model.npz, a displacement field .nii/.nii.gz "
                              "or an ITK linear transform .tfm/.txt/.mat.")
         points = at + u
-        if interpolation in ("label", "nearest"):
+        if interpolation in ("label", "nearest", "gaussian"):
             image = read_labels(args.image)
             out = resample_labels(image, points, method=interpolation, progress=progress)
             write_labels(reference.with_array(out.astype(image.array.dtype, copy=False)), args.output, force=args.force)

@@ -106,8 +106,9 @@ def linear_displacement_on_grid(linear: LinearMap | None, reference: GridLike) -
     return out
 
 
-def indices_through(reference: GridLike, displacement: np.ndarray | None, target: GridLike) -> np.ndarray:
-    """Continuous voxel indices in ``target`` of ``x + u(x)`` at every voxel centre ``x`` of ``reference``.
+def indices_through(reference: GridLike, displacement: np.ndarray | None, target: GridLike, linear=None) -> np.ndarray:
+    """Continuous voxel indices in ``target`` of ``x + u(x)`` (or ``L(x + u(x))``) at every voxel
+    centre ``x`` of ``reference``.
 
     The indices of the voxel centres themselves are affine in their own indices, so they are
     summed axis by axis like :meth:`~volreg.grid.Grid.grid_points`, and only the displacement
@@ -122,6 +123,8 @@ def indices_through(reference: GridLike, displacement: np.ndarray | None, target
         ``u(x)``; ``None``: zero (the voxel centres themselves).
     target : Grid, LabelVolume or (shape, affine)
         The grid whose indices are returned (e.g. the moving volume's).
+    linear : LinearMap, optional
+        ``L(y) = A y + b`` (world mm to world mm), applied after the displacement.
 
     Returns
     -------
@@ -134,8 +137,12 @@ def indices_through(reference: GridLike, displacement: np.ndarray | None, target
     if target.ndim != dim:
         raise ValueError(f"Expected a `target` grid of dimension {dim}, got {target.ndim}.")
     to_index = target.direction.T / target.spacing[:, None]  # world (LPS mm) -> target index, linear part
+    shift = -target.origin
+    if linear is not None:  # A y + b - origin = A (y + A^-1 (b - origin))
+        shift = np.linalg.solve(linear.matrix, linear.translation - target.origin)
+        to_index = to_index @ linear.matrix
     steps = to_index @ (reference.direction * reference.spacing[None, :])  # column d: per index step along d
-    offset = to_index @ (reference.origin - target.origin)
+    offset = to_index @ (reference.origin + shift)
     if displacement is None:
         out = np.empty((*reference.shape, dim))
         out[...] = offset

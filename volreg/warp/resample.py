@@ -21,6 +21,20 @@ label values present in the input can come out, in the input's dtype, and at
 voxel centres (the identity) the input comes back bit for bit.  ``"nearest"``
 is nearest neighbour.  The same scheme as ITK's label-Gaussian interpolator and
 greedy's ``-ri LABEL``, with linear instead of Gaussian-smoothed indicators.
+
+``"gaussian"`` is that scheme with Gaussian-smoothed indicators: each label's mask
+blurred by a Gaussian of :data:`GAUSSIAN_SIGMA` times the voxels' geometric-mean
+spacing and read at the points by cubic B-spline; a point takes the label whose
+blurred indicator is largest, the background's (one minus the labels' sum)
+included.  Between voxel centres it reads a boundary from several voxels rather
+than two, so it tells better which side of a boundary a point lies on: on labels
+sampled from analytic shapes (30 Voronoi cells of an ellipsoid, a blob with
+bumps) on oblique 1 mm grids and read at random points, it gave the wrong label
+at 0.53 % and 0.33 % of the points where ``"label"`` gave 0.99 % and 0.60 %
+(nearest neighbour 1.58 % and 1.02 %); on 1 x 1 x 1.5 mm grids 0.70 % and 0.41 %
+against 1.15 % and 0.64 %.  At voxel centres the input comes back, as with
+``"label"``.  Ties (a boundary through the point) go to the lower label value, or
+to a preferred value given per point (:func:`resample_labels_at`, ``prefer``).
 """
 
 from __future__ import annotations
@@ -41,6 +55,21 @@ ProgressCallback = Callable[[str, int, int], None]
 
 #: Stand-in for an infinite distance (mm): no boundary within the array.
 FAR_MM = 1e9
+
+#: Standard deviation of the ``"gaussian"`` label interpolation's blur, in voxels (of the
+#: geometric-mean spacing). Of 0.55-1.5, 1.0 misread the fewest random points on labels sampled
+#: from analytic shapes at 1 mm and at 1 x 1 x 1.5 mm (0.49 % and 0.29 %, 0.8 0.04 % more); with
+#: 0.8 the registrations that read one volume's labels on the other's coarser grid ended nearest
+#: the truth (`bench_pose.py` cases 1, 3 and 8: 0.28, 0.14, 0.11 mm; with 1.0 0.30, 0.15, 0.12).
+GAUSSIAN_SIGMA = 0.8
+
+#: ``"gaussian"`` with ``prefer``: a preferred value whose blurred indicator is within this of
+#: the largest is taken (a tie: the boundary passes within about a thousandth of a voxel).
+TIE = 1e-3
+
+#: How close (voxels, on every axis) a point must be to a voxel centre to take that voxel's
+#: label as it is under ``"gaussian"``.
+_AT_CENTRE = 1e-3
 
 
 def signed_distance_map(mask: np.ndarray, spacing: np.ndarray) -> np.ndarray:
@@ -130,7 +159,7 @@ def resample_labels(
     image: LabelVolume,
     points: np.ndarray,
     *,
-    method: Literal["label", "nearest"] = "label",
+    method: Literal["label", "nearest", "gaussian"] = "label",
     margin: int = 2,
     progress: ProgressCallback | None = None,
 ) -> np.ndarray:
@@ -142,12 +171,13 @@ def resample_labels(
         The labels to sample (e.g. the moving image).
     points : (..., D) float ndarray, LPS mm
         Where to sample (e.g. ``tau(x)`` on the fixed grid).
-    method : {"label", "nearest"}
+    method : {"label", "nearest", "gaussian"}
         Per-label signed distances interpolated linearly, then the most
-        negative wins (see the module notes); or nearest neighbour.
+        negative wins (see the module notes); nearest neighbour; or per-label
+        Gaussian-blurred indicators, the largest wins.
     margin : int
         Voxels around each label's bounding box where its distance map is
-        computed (beyond, the label cannot win).
+        computed (beyond, the label cannot win); ``"gaussian"`` adds the blur's reach.
     progress : callable, optional
         ``progress("resample labels", done, total)`` per label.
 
@@ -156,8 +186,8 @@ def resample_labels(
     ndarray of ``points.shape[:-1]``, ``image.array.dtype``
         Only values present in ``image`` (and 0) occur.
     """
-    if method not in ("label", "nearest"):  # before the indices are computed
-        raise ValueError(f"Expected `method` 'label' or 'nearest', got {method!r}.")
+    if method not in ("label", "nearest", "gaussian"):  # before the indices are computed
+        raise ValueError(f"Expected `method` 'label', 'nearest' or 'gaussian', got {method!r}.")
     return resample_labels_at(image, _indices(image, points), method=method, margin=margin,
                               progress=progress).reshape(np.shape(points)[:-1])
 
@@ -166,9 +196,10 @@ def resample_labels_at(
     image: LabelVolume,
     index: np.ndarray,
     *,
-    method: Literal["label", "nearest"] = "label",
+    method: Literal["label", "nearest", "gaussian"] = "label",
     margin: int = 2,
     progress: ProgressCallback | None = None,
+    prefer: np.ndarray | None = None,
 ) -> np.ndarray:
     """:func:`resample_labels` at continuous voxel indices of ``image`` rather than world points.
 
@@ -180,16 +211,22 @@ def resample_labels_at(
         :func:`volreg.warp.field.indices_through`.
     method, margin, progress
         As :func:`resample_labels`.
+    prefer : (N,) integer ndarray, optional
+        ``"gaussian"`` only: at each point a value to take on a tie, where its blurred indicator
+        is within :data:`TIE` of the largest (e.g. another volume's label at the same place).
 
     Returns
     -------
     (N,) ndarray, ``image.array.dtype``
     """
-    if method not in ("label", "nearest"):
-        raise ValueError(f"Expected `method` 'label' or 'nearest', got {method!r}.")
+    if method not in ("label", "nearest", "gaussian"):
+        raise ValueError(f"Expected `method` 'label', 'nearest' or 'gaussian', got {method!r}.")
     index = np.asarray(index, dtype=float)
     if index.ndim != 2 or index.shape[1] != image.ndim:
         raise ValueError(f"Expected `index` of shape (N, {image.ndim}), got {index.shape}.")
+    if prefer is not None and (method != "gaussian" or np.shape(prefer) != (len(index),)):
+        raise ValueError(f"Expected `prefer` of shape ({len(index)},) with method 'gaussian', got shape "
+                         f"{np.shape(prefer)} with {method!r}.")
     array = image.array
     # The image covers its voxels: continuous indices in [-1/2, n - 1/2] (as ITK).
     size = np.array(image.shape)
@@ -208,6 +245,18 @@ def resample_labels_at(
     # negative at every corner, every other label's positive (the background: all positive). Only
     # the other points, near a boundary, need the distance maps below.
     slab_order = _mixed_stencils(array, index, np.flatnonzero(valid), out)
+    if method == "gaussian":
+        # At a voxel centre the voxel's own label, as "label" gives it there.
+        near_centre = np.all(np.abs(index[slab_order] - np.round(index[slab_order])) < _AT_CENTRE, axis=1)
+        centres = slab_order[near_centre]
+        out[centres] = array[tuple(np.clip(np.round(index[centres]).astype(np.int64), 0, size - 1).T)]
+        slab_order = slab_order[~near_centre]
+        sigma = GAUSSIAN_SIGMA * float(np.exp(np.mean(np.log(image.spacing))))  # mm
+        margin = max(margin, int(np.ceil(4 * sigma / np.min(image.spacing))) + 2)
+        # The blurred indicators of the labels and the background sum to one (the blur and the
+        # spline are linear): the background's is one minus the labels' sum.
+        total = np.zeros(len(index), dtype=np.float32)
+        preferred = None if prefer is None else np.zeros(len(index), dtype=np.float32)  # its blurred indicator
     # Those points' interpolation voxels lie within one voxel diagonal of a voxel of another
     # value: the distances of a label that one of them holds are at most that long at all of
     # them, and a label none of them holds is positive at all of them. Distances clipped to
@@ -236,15 +285,34 @@ def resample_labels_at(
         near = slab_order[first:stop][touches]
         if near.size:
             crop = array[tuple(slice(a, b) for a, b in zip(lo, hi))]
-            sdf = clipped_signed_distance(crop == value, image.spacing, diagonal)
             at = (candidates[touches] - lo).T
-            d = ndimage.map_coordinates(sdf, at, order=1, mode="nearest")
+            if method == "gaussian":
+                # Minus the blurred indicator, so that the largest wins as the most negative distance.
+                blurred = ndimage.gaussian_filter((crop == value).astype(np.float32), sigma / image.spacing,
+                                                  mode="nearest")
+                d = -ndimage.map_coordinates(blurred, at, order=3, mode="nearest")
+                total[near] -= d
+                if preferred is not None:
+                    mine = prefer[near] == value
+                    preferred[near[mine]] = -d[mine]
+            else:
+                sdf = clipped_signed_distance(crop == value, image.spacing, diagonal)
+                d = ndimage.map_coordinates(sdf, at, order=1, mode="nearest")
             win = d < best[near]
             sel = near[win]
             best[sel] = d[win]
             out[sel] = value
         if progress is not None:
             progress("resample labels", n + 1, len(labels))
+    if method == "gaussian":
+        rest = 1.0 - total[slab_order]  # the background's blurred indicator
+        background = slab_order[rest > -best[slab_order]]
+        out[background] = 0
+        if preferred is not None:
+            wanted = prefer[slab_order]
+            lead = np.maximum(-best[slab_order], rest) - np.where(wanted == 0, rest, preferred[slab_order])
+            tied = lead < TIE
+            out[slab_order[tied]] = wanted[tied]
     return out
 
 
