@@ -127,6 +127,19 @@ def test_folding_rule():
     assert "0.12 %" in findings[0].message and "lambda_fold" in findings[0].message
 
 
+def test_kernel_warp_left_out_rule():
+    """A kernel warp left out for lowering the overlap is reported, with both figures and the
+    coarser grid's spacing; one that was kept is not."""
+    kept = {"dice_linear": 0.91, "dice_warp": 0.93, "margin": 0.02, "kept": "warp"}
+    assert _review(*_case(), kernel_warp=kept) == []
+    left_out = {"dice_linear": 0.969, "dice_warp": 0.885, "margin": 0.02, "kept": "linear"}
+    findings = _review(*_case(), kernel_warp=left_out, voxel_mm=5.0)
+    _one_line(findings)
+    assert [(f.label, f.figure, f.limit) for f in findings] == [(None, "kernel_warp_dice_drop", 0.02)]
+    assert findings[0].value == pytest.approx(0.084)
+    assert "0.969" in findings[0].message and "0.885" in findings[0].message and "5 mm" in findings[0].message
+
+
 def test_whole_registration_findings_come_first():
     before, after, voxels = _case()
     after[2]["mean_surface_distance_mm"] = 5.0

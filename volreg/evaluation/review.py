@@ -348,6 +348,7 @@ def review_registration(
     linear: Mapping | None = None,
     cut_labels: Iterable[int] = (),
     folded_fraction: float = 0.0,
+    kernel_warp: Mapping | None = None,
     limits: ReviewLimits = ReviewLimits(),
 ) -> list[Finding]:
     """Check a registration's figures against ``limits``; one finding per broken rule.
@@ -356,6 +357,7 @@ def review_registration(
 
     * the linear part's rotation above ``max_rotation_deg``, or a scale outside
       ``[min_scale, max_scale]`` (a wrong orientation or spacing header, or a wrong pairing);
+    * the kernel warp left out because it lowered the labels' overlap (``kernel_warp``);
     * a folded fraction above ``max_folded_fraction``;
     * the mean Dice after over the judged labels below ``min_mean_dice``;
     * a judged label's mean surface distance after above
@@ -391,6 +393,10 @@ def review_registration(
         Labels cut by the edge of either image: not judged on Dice or distance.
     folded_fraction : float
         Fraction of the fixed labels' voxels where ``det d tau / dx <= 0``.
+    kernel_warp : dict, optional
+        The kernel warp's overlap check (:func:`volreg.register.kernel_warp_overlap`:
+        ``dice_linear``, ``dice_warp``, ``margin``, ``kept``); with ``kept`` ``"linear"`` the
+        result is the linear part alone, which is reported.
     limits : ReviewLimits
 
     Returns
@@ -437,6 +443,16 @@ def review_registration(
                     f"the linear part scales the images by {_number(value, limit, 2)} along one axis "
                     f"({side} the limit {limit:.2f}), likely a wrong voxel spacing in a header or a wrong pairing "
                     "of images; check both images' spacings, or try `[linear] kind = \"rigid\"`."))
+
+    # The kernel warp, left out.
+    if kernel_warp is not None and kernel_warp.get("kept") == "linear":
+        by_linear, by_warp = float(kernel_warp["dice_linear"]), float(kernel_warp["dice_warp"])
+        findings.append(Finding(
+            None, "kernel_warp_dice_drop", by_linear - by_warp, float(kernel_warp.get("margin", 0.0)),
+            f"the kernel warp lowered the labels' pooled Dice from {by_linear:.3f} (the linear part alone) to "
+            f"{by_warp:.3f}, so the result is the linear part alone; labels only a few voxels across on the "
+            f"coarser grid (its largest spacing, {float(voxel_mm):.3g} mm, sets the features' scale) cannot "
+            "drive a warp: check the labels' size against that spacing, or use the result as a linear one."))
 
     # Folding.
     if folded_fraction > limits.max_folded_fraction:

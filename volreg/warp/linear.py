@@ -821,10 +821,13 @@ def _run(local, start, centre, bank_f, bank_m, fwd, back, f_scale, radius, max_n
     return found, info, (keep_f, keep_b)
 
 
-def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f: dict) -> np.ndarray:
+def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f: dict, pooled: bool = False
+               ) -> np.ndarray:
     """Mean Dice over ``labels`` of the fixed labels and the moving ones read through each map
     (nearest neighbour), at most about 2^18 fixed voxel centres: the labels' box widened by half
-    its size on each side, every ``step``-th voxel.
+    its size on each side, every ``step``-th voxel.  ``pooled``: the labels' overlaps and sizes
+    summed before the ratio (``sum 2 |A_v & B_v| / sum (|A_v| + |B_v|)``), so that each label
+    weighs by its size and a label of a few voxels cannot outweigh the rest.
 
     Returns
     -------
@@ -845,7 +848,12 @@ def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f:
     out = []
     for linear in maps:
         label_m = resample_labels(moving, linear(points), method="nearest")
-        out.append(float(np.mean([dice(label_f == v, label_m == v) for v in labels])))
+        if pooled:
+            both = sum(2 * np.count_nonzero((label_f == v) & (label_m == v)) for v in labels)
+            size = sum(np.count_nonzero(label_f == v) + np.count_nonzero(label_m == v) for v in labels)
+            out.append(both / size if size else 1.0)
+        else:
+            out.append(float(np.mean([dice(label_f == v, label_m == v) for v in labels])))
     return np.array(out)
 
 
