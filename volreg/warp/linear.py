@@ -829,6 +829,11 @@ def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f:
     summed before the ratio (``sum 2 |A_v & B_v| / sum (|A_v| + |B_v|)``), so that each label
     weighs by its size and a label of a few voxels cannot outweigh the rest.
 
+    Only the voxels that every map sends into the moving image count: beyond its field of view
+    the moving image says nothing (a map that squeezed the fixed labels into a moving image cut
+    through them overlapped "better" than the right one), and the maps are compared on the same
+    voxels (all of them where no voxel lies inside for every map).
+
     Returns
     -------
     (len(maps),) float ndarray
@@ -845,15 +850,25 @@ def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f:
     index = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, fixed.ndim)
     points = fixed.index_to_world(index)
     label_f = fixed.array[tuple(index.T)]
-    out = []
+    size_m = np.array(moving.shape)
+    inside = np.ones(len(points), dtype=bool)
+    read = []
     for linear in maps:
-        label_m = resample_labels(moving, linear(points), method="nearest")
+        mapped = linear(points)
+        index = moving.world_to_index(mapped)
+        inside &= np.all((index >= -0.5) & (index <= size_m - 0.5), axis=1)
+        read.append(resample_labels(moving, mapped, method="nearest"))
+    if not inside.any():
+        inside[:] = True
+    out = []
+    for label_m in read:
+        f, m = label_f[inside], label_m[inside]
         if pooled:
-            both = sum(2 * np.count_nonzero((label_f == v) & (label_m == v)) for v in labels)
-            size = sum(np.count_nonzero(label_f == v) + np.count_nonzero(label_m == v) for v in labels)
+            both = sum(2 * np.count_nonzero((f == v) & (m == v)) for v in labels)
+            size = sum(np.count_nonzero(f == v) + np.count_nonzero(m == v) for v in labels)
             out.append(both / size if size else 1.0)
         else:
-            out.append(float(np.mean([dice(label_f == v, label_m == v) for v in labels])))
+            out.append(float(np.mean([dice(f == v, m == v) for v in labels])))
     return np.array(out)
 
 
