@@ -463,3 +463,17 @@ def test_a_moving_image_cut_through_every_label_does_not_squeeze_the_fixed_ones(
     assert fit.log["cut_labels"]["moving"] == [1, 2]
     x = fixed.grid_points()[fixed.array > 0]
     assert np.linalg.norm(fit.map(x) - x, axis=1).mean() < 0.3, fit.map.describe()
+
+
+@pytest.mark.parametrize("shift", [(40.0, 0.0, 0.0), (70.0, 0.0, 0.0), (60.0, 40.0, 0.0), (0.0, 0.0, -75.0)])
+def test_images_apart_keep_the_translation_their_labels_show(shift):
+    """The blobs and the same blobs shifted by 40-75 mm, each grid centred on its blobs: where the
+    two images overlap under the identity they hold no label, so the identity aligns nothing it
+    can be scored on.  The start (the centroids' translation) is kept, within 0.5 mm."""
+    b = np.array(shift)
+    fixed = _volume(BLOBS, (64,) * 3, (1.5,) * 3, _around((0, 0, 0), (64,) * 3, (1.5,) * 3))
+    moving = _volume(BLOBS, (64,) * 3, (1.5,) * 3, _around(b, (64,) * 3, (1.5,) * 3), matrix=np.eye(3),
+                     translation=b)
+    fit = fit_linear(fixed, moving)
+    assert fit.log["overlap"]["identity"] == 0.0
+    assert np.abs(fit.map.translation - b).max() < 0.5 and np.abs(fit.map.matrix - np.eye(3)).max() < 0.01

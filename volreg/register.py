@@ -692,15 +692,16 @@ class _OnCoarser(NamedTuple):
 
 
 def _finer_on_coarser(fixed, moving, linear) -> _OnCoarser | None:
-    """The finer volume's labels on the coarser grid, where one grid is coarser along every axis.
+    """The finer volume's labels on the coarser grid, where every spacing of one grid is larger
+    than every spacing of the other.
 
     Both volumes' distance maps then come from the same staircase: the moving labels at ``L(x)``
     for the fixed voxel centres ``x``, or the fixed labels at ``L^-1(y)`` for the moving ones ``y``
     (:func:`~volreg.warp.resample.resample_labels_at`, ``"gaussian"``: Gaussian-smoothed indicators,
     which tell best which side of a boundary a point between voxel centres lies on; ties to the
     coarser volume's label there).  ``None``
-    where neither grid is coarser along every axis (the same spacing, or one finer along some axes
-    and coarser along others).
+    otherwise (the same spacing, a grid finer along some axes and coarser along others, or
+    spacings that interleave, such as 0.5 x 0.5 x 2 mm against 1 x 1 x 3 mm).
     """
     from volreg.warp.field import indices_through
     from volreg.warp.resample import resample_labels_at

@@ -203,7 +203,7 @@ class SurfaceSettings:
     distance_smoothing : float, voxels
         Gaussian blur of the clipped voxel signed distances.
     resample_finer : bool
-        Where one volume's grid is coarser than the other's along every axis, read the finer
+        Where every spacing of one volume's grid is larger than every spacing of the other's, read the finer
         volume's distance maps from its labels resampled onto the coarser grid (through the
         linear stage's map; label-preserving, Gaussian-smoothed indicators): both maps then
         come from the same staircase, which a warp would otherwise follow.  The same 30

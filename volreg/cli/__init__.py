@@ -294,8 +294,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             _precompile.stop(helpers)
         filters.__exit__(None, None, None)
         warnings.showwarning = show
+        sys.unraisablehook = unraisable  # also where an interrupt's report replaced it
         if previous is not None:
-            sys.unraisablehook = unraisable
             clear_interrupt()
             signal.signal(signal.SIGTERM, previous)
             if previous_int is not None:

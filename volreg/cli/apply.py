@@ -43,7 +43,7 @@ def add_parser(commands) -> None:
                        help="output: an image (.nii.gz, .nii, .nrrd, .mha), or points / mesh in INPUT's format")
     apply.add_argument("--interpolation", choices=("label", "nearest", "gaussian", "linear", "bspline"), default=None,
                        help="images only: label: label-preserving (per-label signed distances, default); nearest; "
-                       "gaussian: label-preserving, Gaussian-smoothed indicators (0.8 voxel); "
+                       "gaussian: label-preserving, Gaussian-smoothed indicators (0.8 x the geometric-mean spacing); "
                        "linear or bspline for intensity images (written as float32)")
     apply.add_argument("--force", action="store_true", help="overwrite an existing output")
     apply.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -450,8 +450,8 @@ def review_registration(
         findings.append(Finding(
             None, "kernel_warp_dice_drop", by_linear - by_warp, float(kernel_warp.get("margin", 0.0)),
             f"the kernel warp lowered the labels' pooled Dice from {by_linear:.3f} (the linear part alone) to "
-            f"{by_warp:.3f}, so the result is the linear part alone; labels only a few voxels across on the "
-            f"coarser grid (its largest spacing, {float(voxel_mm):.3g} mm, sets the features' scale) cannot "
+            f"{by_warp:.3f}, so the result is the linear part alone; labels only a few voxels across at the "
+            f"largest voxel spacing of the two grids ({float(voxel_mm):.3g} mm, which sets the features' scale) cannot "
             "drive a warp: check the labels' size against that spacing, or use the result as a linear one."))
 
     # Folding.

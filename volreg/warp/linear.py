@@ -829,10 +829,12 @@ def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f:
     summed before the ratio (``sum 2 |A_v & B_v| / sum (|A_v| + |B_v|)``), so that each label
     weighs by its size and a label of a few voxels cannot outweigh the rest.
 
-    Only the voxels that every map sends into the moving image count: beyond its field of view
-    the moving image says nothing (a map that squeezed the fixed labels into a moving image cut
-    through them overlapped "better" than the right one), and the maps are compared on the same
-    voxels (all of them where no voxel lies inside for every map).
+    Only voxels sent into the moving image count: beyond its field of view the moving image
+    says nothing (read as background there, a map that squeezed the fixed labels into a moving
+    image cut through them overlapped "better" than the right one).  A map under which no label
+    lies on either side of the voxels it sends inside scores 0 (nothing it aligns was seen; the
+    identity of two images apart); the others are compared on the voxels that all of them send
+    inside, each over the labels on either side there (a map with none there scores 0).
 
     Returns
     -------
@@ -851,24 +853,34 @@ def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f:
     points = fixed.index_to_world(index)
     label_f = fixed.array[tuple(index.T)]
     size_m = np.array(moving.shape)
-    inside = np.ones(len(points), dtype=bool)
-    read = []
+    wanted = np.isin(label_f, labels)
+
+    def seen(where: np.ndarray, label_m: np.ndarray) -> list:
+        present = set(np.unique(label_f[where & wanted]).tolist())
+        present |= set(np.unique(label_m[where]).tolist())
+        return [v for v in labels if v in present]
+
+    insides, reads = [], []
     for linear in maps:
         mapped = linear(points)
         index = moving.world_to_index(mapped)
-        inside &= np.all((index >= -0.5) & (index <= size_m - 0.5), axis=1)
-        read.append(resample_labels(moving, mapped, method="nearest"))
-    if not inside.any():
-        inside[:] = True
+        insides.append(np.all((index >= -0.5) & (index <= size_m - 0.5), axis=1))
+        reads.append(resample_labels(moving, mapped, method="nearest"))  # background outside
+    active = [k for k in range(len(maps)) if seen(insides[k], reads[k])]
+    common = np.logical_and.reduce([insides[k] for k in active]) if active else np.zeros(len(points), bool)
     out = []
-    for label_m in read:
-        f, m = label_f[inside], label_m[inside]
+    for k in range(len(maps)):
+        compared = seen(common, reads[k]) if k in active else []
+        if not compared:
+            out.append(0.0)
+            continue
+        f, m = label_f[common], reads[k][common]
         if pooled:
-            both = sum(2 * np.count_nonzero((f == v) & (m == v)) for v in labels)
-            size = sum(np.count_nonzero(f == v) + np.count_nonzero(m == v) for v in labels)
-            out.append(both / size if size else 1.0)
+            both = sum(2 * np.count_nonzero((f == v) & (m == v)) for v in compared)
+            size = sum(np.count_nonzero(f == v) + np.count_nonzero(m == v) for v in compared)
+            out.append(both / size)
         else:
-            out.append(float(np.mean([dice(f == v, m == v) for v in labels])))
+            out.append(float(np.mean([dice(f == v, m == v) for v in compared])))
     return np.array(out)
 
 
