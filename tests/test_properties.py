@@ -66,6 +66,20 @@ def test_warping_preserves_the_label_set(volume, warp):
         assert out.dtype == volume.array.dtype or np.can_cast(out.dtype, volume.array.dtype)
 
 
+def _blocks_and_points(volume, block: int, seed: int):
+    """``volume`` with each voxel repeated ``block`` times along every axis, and continuous
+    indices (N, 3) to sample it at: anywhere inside, at voxel centres, and some outside."""
+    array = volume.array
+    for axis in range(3):
+        array = np.repeat(array, block, axis=axis)
+    rng = np.random.default_rng(seed)
+    size = np.array(array.shape)
+    index = np.concatenate([rng.uniform(-0.5, size - 0.5, (3000, 3)),  # inside, anywhere
+                            rng.integers(0, size, (100, 3)).astype(float),  # voxel centres
+                            rng.uniform(-3, size + 2, (100, 3))])  # some outside
+    return LabelVolume(array, volume.origin, volume.spacing, np.eye(3)), index
+
+
 @FAST
 @given(label_volumes(), st.integers(1, 3), st.integers(0, 2**31 - 1))
 def test_label_resampling_follows_its_definition(volume, block, seed):
@@ -77,15 +91,8 @@ def test_label_resampling_follows_its_definition(volume, block, seed):
 
     from volreg.warp.resample import signed_distance_map
 
-    array = volume.array
-    for axis in range(3):
-        array = np.repeat(array, block, axis=axis)
-    volume = LabelVolume(array, volume.origin, volume.spacing, np.eye(3))
-    rng = np.random.default_rng(seed)
-    size = np.array(array.shape)
-    index = np.concatenate([rng.uniform(-0.5, size - 0.5, (3000, 3)),  # inside, anywhere
-                            rng.integers(0, size, (100, 3)).astype(float),  # voxel centres
-                            rng.uniform(-3, size + 2, (100, 3))])  # some outside
+    volume, index = _blocks_and_points(volume, block, seed)
+    array, size = volume.array, np.array(volume.shape)
     points = volume.index_to_world(index)
 
     out = resample_labels(volume, points)
@@ -117,15 +124,8 @@ def test_gaussian_label_resampling_follows_its_definition(volume, block, seed):
 
     from volreg.warp.resample import GAUSSIAN_SIGMA
 
-    array = volume.array
-    for axis in range(3):
-        array = np.repeat(array, block, axis=axis)
-    volume = LabelVolume(array, volume.origin, volume.spacing, np.eye(3))
-    rng = np.random.default_rng(seed)
-    size = np.array(array.shape)
-    index = np.concatenate([rng.uniform(-0.5, size - 0.5, (3000, 3)),  # inside, anywhere
-                            rng.integers(0, size, (100, 3)).astype(float),  # voxel centres
-                            rng.uniform(-3, size + 2, (100, 3))])  # some outside
+    volume, index = _blocks_and_points(volume, block, seed)
+    array, size = volume.array, np.array(volume.shape)
     out = resample_labels(volume, volume.index_to_world(index), method="gaussian")
 
     sigma = GAUSSIAN_SIGMA * np.exp(np.mean(np.log(volume.spacing))) / volume.spacing
