@@ -703,6 +703,7 @@ def _finer_on_coarser(fixed, moving, linear) -> _OnCoarser | None:
     otherwise (the same spacing, a grid finer along some axes and coarser along others, or
     spacings that interleave, such as 0.5 x 0.5 x 2 mm against 1 x 1 x 3 mm).
     """
+    from volreg.evaluation.review import _counts
     from volreg.warp.field import indices_through
     from volreg.warp.resample import resample_labels_at
 
@@ -721,8 +722,6 @@ def _finer_on_coarser(fixed, moving, linear) -> _OnCoarser | None:
     # places and is eroded or lost on the coarser grid: such a label (under 3/4 of the coarse
     # voxels its volume fills, through L; other labels keep 0.92-1.02 of them) keeps its own
     # grid's map. A sheet 1.2 mm thick at 1 mm kept 51 % on a 2 mm grid, one 1.5 mm thick 69 %.
-    from volreg.evaluation.review import _counts
-
     per_voxel = np.prod(fine.spacing) / (abs(float(np.linalg.det(through.matrix))) * np.prod(coarse.spacing))
     fine_counts, coarse_counts = _counts(fine.array), _counts(labels)
     kept = {v: box for v, box in volume.label_boxes().items()

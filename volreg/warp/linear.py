@@ -841,7 +841,8 @@ def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f:
     (len(maps),) float ndarray
     """
     from volreg.evaluation.metrics import dice
-    from volreg.warp.resample import resample_labels
+    from volreg.kernels.grid import rows_within
+    from volreg.warp.resample import resample_labels_at
 
     lo = np.min([[b.start for b in boxes_f[v]] for v in labels], axis=0)
     hi = np.max([[b.stop for b in boxes_f[v]] for v in labels], axis=0)
@@ -862,10 +863,9 @@ def _mean_dice(fixed, moving, maps: list[LinearMap], labels: list[int], boxes_f:
 
     insides, reads = [], []
     for linear in maps:
-        mapped = linear(points)
-        index = moving.world_to_index(mapped)
-        insides.append(np.all((index >= -0.5) & (index <= size_m - 0.5), axis=1))
-        reads.append(resample_labels(moving, mapped, method="nearest"))  # background outside
+        at = moving.world_to_index(linear(points))
+        insides.append(rows_within(at, np.full(moving.ndim, -0.5), size_m - 0.5))
+        reads.append(resample_labels_at(moving, at, method="nearest"))  # background outside
     active = [k for k in range(len(maps)) if seen(insides[k], reads[k])]
     common = np.logical_and.reduce([insides[k] for k in active]) if active else np.zeros(len(points), bool)
     out = []
