@@ -334,21 +334,24 @@ def _spans(points: np.ndarray, weights: np.ndarray) -> bool:
 
 def _axis_candidates(fixed: list[_LabelShape], moving: list[_LabelShape], kind: str) -> list[tuple[str, LinearMap]]:
     """Principal-axes starts: ``R = E_m diag(s) E_f^T`` for every sign choice with det +1,
-    the centroids' translation, and the volume ratio's scale (similarity, affine)."""
+    the centroids' translation, and the volume ratio's scale (similarity); for an affine map,
+    the scales along the axes that carry one union's second moments onto the other's,
+    ``A = E_m diag(s sqrt(l_m / l_f)) E_f^T`` (``l``: the moments' eigenvalues, mm^2)."""
     vf, cf, covf = _union_moments(fixed)
     vm, cm, covm = _union_moments(moving)
     d = len(cf)
     scale = 1.0 if kind == "rigid" else (vm / vf) ** (1.0 / d)
-    _, ef = np.linalg.eigh(covf)
-    _, em = np.linalg.eigh(covm)
-    ef, em = ef[:, ::-1], em[:, ::-1]
+    lf, ef = np.linalg.eigh(covf)
+    lm, em = np.linalg.eigh(covm)
+    ef, em, lf, lm = ef[:, ::-1], em[:, ::-1], lf[::-1], lm[::-1]
+    tiny = 1e-12 * max(float(lf.max()), float(lm.max()), 1e-300)
+    axes = np.sqrt(np.maximum(lm, tiny) / np.maximum(lf, tiny)) if kind == "affine" else np.full(d, scale)
     out = []
     for signs in np.ndindex(*([2] * d)):
         s = 1.0 - 2.0 * np.array(signs, dtype=float)
-        rot = em @ np.diag(s) @ ef.T
-        if np.linalg.det(rot) < 0:
+        if np.linalg.det(em @ np.diag(s) @ ef.T) < 0:
             continue
-        a = scale * rot
+        a = em @ np.diag(s * axes) @ ef.T
         label = "".join("+" if v > 0 else "-" for v in s)
         out.append((f"principal axes {label}", LinearMap(a, cm - a @ cf)))
     out.append(("centroid translation", LinearMap(scale * np.eye(d), cm - scale * cf)))
@@ -897,10 +900,12 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
        for rigid, Umeyama for similarity, least squares for affine when well
        conditioned).  Otherwise the principal axes of the labels' union,
        ``R = E_m diag(s) E_f^T`` for each sign choice with det +1, with the centroids'
-       translation and the volume ratio's scale; and the centroid translation alone.
+       translation and the volume ratio's scale (for an affine map, the scales along
+       the axes that carry one union's second moments onto the other's:
+       ``E_m diag(s sqrt(l_m / l_f)) E_f^T``); and the centroid translation alone.
        The identity is always a candidate.  Each candidate runs a few iterations at
        the coarsest level; of those whose cost is within 1.5 times the lowest, the
-       least rotated wins (a near-symmetric object also fits upside down).
+       least rotated start wins (a near-symmetric object also fits upside down).
     2. **Refinement.** Per label and volume, signed distance maps (mm, positive
        outside) on the volume's grid coarsened towards the level's spacing
        (object diameter / 16, / 32, / 64, never finer than the coarser volume's
@@ -1051,13 +1056,16 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
     for i, (family, name, cand) in enumerate(candidates):
         found, info, _ = _run(local, cand, centre, bank_f, bank_m, fwd, back, f_scale, radius,
                               _CANDIDATE_EVALUATIONS, 1e-5)
-        tried.append(dict(name=name, family=family, start=cand.describe(), cost=_finite(info["score"]),
+        described = cand.describe()
+        tried.append(dict(name=name, family=family, start=described, cost=_finite(info["score"]),
                           iterations=info["iterations"]))
-        scored.append((info["score"], found.describe()["rotation_deg"], i, family, name, found))
+        scored.append((info["score"], round(described["rotation_deg"]), i, family, name, found))
         if progress is not None:
             progress("linear start", i + 1, len(candidates))
-    # Of the starts that fit about as well as the best, the least rotated: near-symmetric
-    # anatomy fits turned upside down almost as well, and scans are rarely upside down.
+    # Of the starts that fit about as well as the best, the least rotated (whole degrees, then
+    # the order above): near-symmetric anatomy fits turned upside down almost as well, and
+    # scans are rarely upside down.  The start's rotation, not that of its few iterations: on
+    # grids too coarse for the object the coarse cost turns even the right start.
     lowest = min(row[0] for row in scored)
     near = [row for row in scored if row[0] <= _NEAR_BEST * lowest]
     _, _, index, start_family, start_name, current = min(near or scored, key=lambda row: (row[1], row[2]))
