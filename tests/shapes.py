@@ -223,3 +223,17 @@ def ball_and_shifted_cube(whole_cube: bool = True) -> tuple[np.ndarray, np.ndarr
     if not whole_cube:
         fixed[32, 14, 14] = moving[34, 14, 14] = 0
     return fixed, moving
+
+
+def thick_slice_pair():
+    """One ellipsoid (semi-axes 6 / 5 / 12 mm) on 64 x 64 x 8 voxels of 0.3 x 0.3 x 5 mm, about
+    five slices through it, and the same grid holding it stretched to 6.5 mm along x and moved
+    0.6 mm: the pull-back map is x -> A (x - c) + c + t."""
+    grid = LabelVolume(np.zeros((64, 64, 8), np.uint8), (0.0, 0.0, 0.0), (0.3, 0.3, 5.0), np.eye(3))
+    centre, axes = np.array([9.6, 9.6, 20.0]), np.array([6.0, 5.0, 12.0])
+    a, t = np.diag([6.5 / 6.0, 1.0, 1.0]), np.array([0.6, 0.0, 0.0])
+    p = grid.grid_points().reshape(-1, 3)
+    fixed = grid.with_array((np.sum(((p - centre) / axes) ** 2, axis=1) <= 1).astype(np.uint8).reshape(grid.shape))
+    back = (p - centre - t) @ np.linalg.inv(a).T + centre  # the moving voxels' fixed-space positions
+    moving = grid.with_array((np.sum(((back - centre) / axes) ** 2, axis=1) <= 1).astype(np.uint8).reshape(grid.shape))
+    return fixed, moving, lambda x: (x - centre) @ a.T + centre + t

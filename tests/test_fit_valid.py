@@ -123,3 +123,25 @@ def test_feature_samples_are_those_within_band_of_the_feature_points(problem, ba
         nearest = np.min(np.linalg.norm(samples[:, None, :] - pair.f1.points[None], axis=2), axis=1)
         assert np.array_equal(idx, np.flatnonzero(nearest < limit))
         assert 50 < len(idx) < len(samples) // 2
+
+
+@pytest.mark.parametrize("after", [1, 2])
+def test_stop_ends_the_fit_after_the_level_it_answers_true(problem, unmasked, after):
+    """`stop(warp)` is asked after each level but the last with the warp so far; where it says
+    True the finer levels are not fitted, and the levels fitted are those of the whole fit."""
+    pairs, points = problem
+    seen = []
+
+    def stop(warp):
+        seen.append(len(warp.levels))
+        return len(warp.levels) == after
+
+    early = fit_warp(pairs, points, settings=SETTINGS, stop=stop)
+    assert seen == list(range(1, after + 1))
+    assert len(early.log) == len(early.warp.levels) == after < len(unmasked.warp.levels)
+    for la, lb in zip(early.warp.levels, unmasked.warp.levels):
+        np.testing.assert_array_equal(la.coeffs, lb.coeffs)
+    asked = []
+    whole = fit_warp(pairs, points, settings=SETTINGS, stop=lambda warp: asked.append(len(warp.levels)) or False)
+    assert asked == list(range(1, len(unmasked.warp.levels)))  # not after the last level
+    _same_warp(whole.warp, unmasked.warp)

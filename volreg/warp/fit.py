@@ -798,6 +798,7 @@ def fit_warp(
     prior: Callable[[np.ndarray], np.ndarray] | None = None,
     valid: Callable[[np.ndarray], np.ndarray] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
+    stop: Callable[[KernelWarp], bool] | None = None,
 ) -> RegistrationResult:
     """Fit the kernel warp coarse to fine (paper Sections 3.4-3.5).
 
@@ -830,12 +831,16 @@ def fit_warp(
         everywhere, with identical results.
     progress : callable, optional
         ``progress(stage, done, total)`` after each level.
+    stop : callable, optional
+        ``stop(warp) -> bool`` after each level but the last, given the warp fitted so far:
+        ``True`` ends the fit there (the finer levels are not fitted), e.g. where a check
+        outside the locational cost shows the coarse levels already going wrong.
 
     Returns
     -------
     RegistrationResult
         The warp (its ``settings`` with ``pad`` and ``min_width`` resolved) and one log
-        entry per level: ``level``, ``width`` (mm), ``samples``, ``centres``,
+        entry per level fitted: ``level``, ``width`` (mm), ``samples``, ``centres``,
         ``iterations``, ``converged``, ``fold_points``, ``fold_rounds``, ``fold_scale``,
         ``objective_start``, ``objective``, ``terms_start``, ``terms``, ``seconds``;
         with ``valid``, also ``valid_samples`` (the samples where it holds).
@@ -862,4 +867,6 @@ def fit_warp(
         log.append(dict(level=level, width=width, **entry, seconds=time.perf_counter() - t0))
         if progress is not None:
             progress("fit warp", level + 1, len(widths))
+        if stop is not None and level + 1 < len(widths) and stop(warp):
+            break
     return RegistrationResult(warp, log)
