@@ -43,7 +43,13 @@ Methods:
 
 ``--diagnose`` also prints, for volreg, the locational cost's terms at the fitted warp and at the
 true map (see :func:`diagnose`): where the truth costs more than the fitted warp, the cost itself
-prefers the sliding answer, and no optimiser can recover the truth from it.
+prefers the sliding answer, and no optimiser can recover the truth from it.  And two properties of
+each map over the warp volume's samples: its bending energy (mean squared second derivative) and
+its mean displacement.
+
+``--regulariser-power P`` (a candidate measured, not in the library): each level's regulariser
+(10) weighted by ``(W / w)^P`` (w the level's kernel width, W the coarsest's; ``P:REF`` sets W to
+REF mm instead), so that finer levels cost more for the same coefficients.
 """
 
 from __future__ import annotations
@@ -219,13 +225,53 @@ def _mean_curvature(f, x: np.ndarray) -> np.ndarray:
     return (np.trace(h, axis1=1, axis2=2) - np.einsum("ni,nij,nj->n", n, h, n)) / (2 * norm)
 
 
+def _bending(warp, x: np.ndarray, step: float = 0.5) -> float:
+    """Mean over ``x`` of the squared second derivatives of a map, ``sum_ijk (d^2 tau_i / dx_j dx_k)^2``
+    (1/mm^2), by central differences of its Jacobian (``step`` mm)."""
+    total = 0.0
+    for k in range(x.shape[1]):
+        d = np.zeros(x.shape[1])
+        d[k] = step
+        total += np.mean(np.sum((warp.jacobian(x + d) - warp.jacobian(x - d)) ** 2, axis=(1, 2))) / (2 * step) ** 2
+    return float(total)
+
+
+def level_weighted_regulariser(power: float, reference: float | None) -> None:
+    """Weight each level's regulariser Gram matrix by ``(reference / width)^power`` (reference:
+    the coarsest level's width when None): ``--regulariser-power``, measured, not kept."""
+    import volreg.warp.fit as fit
+
+    original = fit._level_objective
+
+    def weighted(width, centres, grid, samples, fold, warp, inputs):
+        ref = reference or fit._level_schedule(inputs.diameter, inputs.settings)[0][0]
+        plain = fit.kernel_matrix
+        first = []
+
+        def kernel_matrix(points, grid, w):
+            m = plain(points, grid, w)
+            if not first:  # the first call is the centres' Gram matrix K_cc
+                first.append(True)
+                return m * (ref / width) ** power
+            return m
+
+        fit.kernel_matrix = kernel_matrix
+        try:
+            return original(width, centres, grid, samples, fold, warp, inputs)
+        finally:
+            fit.kernel_matrix = plain
+
+    fit._level_objective = weighted
+
+
 def diagnose(f1, f2, warp, truth, vertices: np.ndarray, settings, diameter: float) -> dict:
     """The locational cost's terms and a curvature mismatch, at the fitted warp and at the truth.
 
     Over the finest level's samples within the band (as the cost counts them): mean squared
     distance residual (3), mean squared gradient residual (4), the same with the target's
     gradient pulled back through the map's Jacobian (J^T grad f2(tau), the rotation-aware
-    term); at the source vertices: the rms difference of the mean curvatures of f1 and f2.
+    term); at the source vertices: the rms difference of the mean curvatures of f1 and f2; over
+    all the warp volume's samples, the map's bending energy (:func:`_bending`) and mean |tau(x) - x|.
     """
     from scipy.spatial import cKDTree
 
@@ -233,17 +279,19 @@ def diagnose(f1, f2, warp, truth, vertices: np.ndarray, settings, diameter: floa
 
     st = settings.resolved(diameter)
     x = octree_sample(f1.points, st.pad, st.min_width, fraction=st.fraction)
+    volume = x
     band = 0.5 * min(f1.widths) if st.band is None else st.band
     x = x[np.isfinite(cKDTree(f1.points).query(x, distance_upper_bound=band)[0])]
     a, ga = f1.evaluate(x)
     k1 = _mean_curvature(f1, vertices)
     out = {}
-    for name, tau, jac, tv in (("fitted", warp(x), warp.jacobian(x), warp(vertices)),
-                               ("truth", truth(x), truth.jacobian(x), truth(vertices))):
+    for name, tau_map in (("fitted", warp), ("truth", truth)):
+        tau, jac, tv = tau_map(x), tau_map.jacobian(x), tau_map(vertices)
         b, gb = f2.evaluate(tau)
         out[name] = (np.mean((a - b) ** 2), np.mean(np.sum((ga - gb) ** 2, axis=1)),
                      np.mean(np.sum((ga - np.einsum("nji,nj->ni", jac, gb)) ** 2, axis=1)),
-                     float(np.sqrt(np.mean((k1 - _mean_curvature(f2, tv)) ** 2))))
+                     float(np.sqrt(np.mean((k1 - _mean_curvature(f2, tv)) ** 2))),
+                     _bending(tau_map, volume), float(np.mean(np.linalg.norm(tau_map(volume) - volume, axis=1))))
     return out
 
 
@@ -359,7 +407,13 @@ def main() -> None:
                         help="finest implicit-surface width (mm) for both surfaces, instead of the shape's default")
     parser.add_argument("--diagnose", action="store_true",
                         help="also print the cost terms and curvature mismatch at the fitted warp and the truth")
+    parser.add_argument("--regulariser-power", default="",
+                        help="P or P:REF: each level's regulariser weighted by (REF / width)^P (REF: the coarsest "
+                             "width); a candidate measured, not in the library")
     args = parser.parse_args()
+    if args.regulariser_power:
+        power, _, ref = args.regulariser_power.partition(":")
+        level_weighted_regulariser(float(power), float(ref) if ref else None)
     if args.symmetric and (args.pre != "none" or args.landmarks or args.coarse_features):
         parser.error("--symmetric fits the plain pair both ways; it does not combine with --pre, --landmarks "
                      "or --coarse-features")
@@ -387,12 +441,13 @@ def main() -> None:
         print(f"| {name} | {method} | {np.mean(errs):.2f} ({', '.join(f'{e:.2f}' for e in errs)}) |")
     if diagnosed:
         print("\n| pair | distance term (mm^2), fitted / truth | gradient term, fitted / truth "
-              "| rotation-aware gradient term, fitted / truth | mean-curvature mismatch (1/mm), fitted / truth |")
-        print("|---|---|---|---|---|")
+              "| rotation-aware gradient term, fitted / truth | mean-curvature mismatch (1/mm), fitted / truth "
+              "| bending energy (1/mm^2), fitted / truth | mean displacement (mm), fitted / truth |")
+        print("|---|---|---|---|---|---|---|")
         for name, t in diagnosed:
             f, g = t["fitted"], t["truth"]
             print(f"| {name} | {f[0]:.4f} / {g[0]:.4f} | {f[1]:.4f} / {g[1]:.4f} | {f[2]:.4f} / {g[2]:.4f} "
-                  f"| {f[3]:.4f} / {g[3]:.4f} |")
+                  f"| {f[3]:.4f} / {g[3]:.4f} | {f[4]:.5f} / {g[4]:.5f} | {f[5]:.2f} / {g[5]:.2f} |")
 
 
 if __name__ == "__main__":
