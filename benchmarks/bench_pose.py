@@ -33,7 +33,13 @@ Cases, generated with known answers (seeded):
 9. no motion: case 5 with one label (the ellipsoid's outline, its cells merged), a lone smooth organ;
 10. thick slices: one ellipsoid (semi-axes 6 / 5 / 12 mm) on 64 x 64 x 8 voxels of 0.3 x 0.3 x 5 mm
     (about five slices through it), against the same grid holding it stretched to 6.5 mm along x and
-    moved 0.6 mm (an affine truth).
+    moved 0.6 mm (an affine truth);
+11. the folded brain phantom of case 7 with an envelope of semi-axes 70 / 88 / 60 mm (a brain's
+    proportions; case 7's 78 / 93 / 78 is a spheroid, whose turn about its long axis only the folds
+    show) at 2 mm (fixed: every second voxel of its 1 mm labels) against a moving volume of 1 mm voxels,
+    posed by 20 degrees and 31 mm, plus a smooth warp (up to 8 mm): the 1 mm labels are the source;
+12. case 11 with case 7's spheroidal envelope: its moments do not show its turn about the long axis,
+    only its folds do.
 
 The true pull-back map is tau_true = L o beta: a fixed point x is first moved by the smooth warp beta
 (x + the bumps' displacement, defined about the fixed object; the identity in cases 3 and 5-10), then by
@@ -41,7 +47,8 @@ the pose L(x) = A (x - c) + c + t (c: the centroid of the fixed labels; A = rota
 t: the shift). The moving volume holds, at each voxel centre y of its grid, the label of the source
 labels at tau_true^-1(y) = beta^-1(L^-1(y)) (beta inverted by fixed-point iteration), by nearest
 neighbour: the source labels are the analytic label functions in cases 3-6 and the native frog
-(1 x 1 x 1.5 mm, of which the 3 mm fixed volume is the block mode) in cases 1-2. The moving grid is the
+(1 x 1 x 1.5 mm, of which the 3 mm fixed volume is the block mode) in cases 1-2, the 1 mm phantom in
+cases 11-12. The moving grid is the
 box of the moving object plus a margin, in its own spacing and direction. Volumes are written as NIfTI.
 
 Methods, each a fresh process timed from process start to exit (wall seconds; peak RSS of that process,
@@ -109,6 +116,8 @@ from common import (
 from shapes import bumpy_ellipsoid, rotation
 
 REFERENCES = ("identity", "truth")
+#: Case 11's brain envelope, semi-axes (mm): three different axes, as a brain's.
+BRAIN_11_AXES = (70.0, 88.0, 60.0)
 DEFAULT_METHODS = "identity,truth,volreg,ants,greedy"
 
 
@@ -275,7 +284,7 @@ def _small_organ(shape, spacing: float):
 
 
 def make_case(number: int) -> Case:
-    """Build case ``number`` (1-10): fixed and moving volumes, the true map and a description."""
+    """Build case ``number`` (1-12): fixed and moving volumes, the true map and a description."""
     from volreg.grid import Grid
 
     if number in (1, 2):
@@ -346,6 +355,18 @@ def make_case(number: int) -> Case:
         moving = _posed_moving(fixed, truth, labels, (0.8, 0.8, 2.5), direction=rotation(20, (1.0, 0.3, 0.2)))
         return Case(6, "30 labels 1 mm vs 0.8 x 0.8 x 2.5 mm oblique, no motion", fixed, moving, truth,
                     "none (identity); moving direction 20 deg oblique")
+    if number in (11, 12):
+        from bench_speed import cortex_phantom
+        from volreg.grid import LabelVolume
+        from volreg.warp.resample import resample_labels
+
+        native = cortex_phantom(1.0, axes=BRAIN_11_AXES if number == 11 else None)
+        fixed = LabelVolume(native.array[::2, ::2, ::2].copy(), native.origin, 2 * native.spacing, native.direction)
+        pose = Pose(rotation(20, (0.4, -0.2, 1.0)), _centroid(fixed), 31.0 * unit((0.5, 0.7, -0.3)))
+        truth = Truth(pose, smooth_bumps(fixed, 8.0, seed=1))
+        moving = _posed_moving(fixed, truth, lambda p: resample_labels(native, p, method="nearest"), (1.0, 1.0, 1.0))
+        title = "brain phantom 2 mm vs 1 mm" if number == 11 else "spheroidal brain phantom 2 mm vs 1 mm"
+        return Case(number, title, fixed, moving, truth, "20 deg about (0.4, -0.2, 1), 31 mm, bumps up to 8 mm")
     if number == 7:
         from bench_speed import cortex_phantom
         from volreg.grid import LabelVolume
@@ -354,7 +375,7 @@ def make_case(number: int) -> Case:
         coarse = LabelVolume(fine.array[::2, ::2, ::2].copy(), fine.origin, 2 * fine.spacing, fine.direction)
         truth = Truth(Pose(np.eye(3), _centroid(coarse), np.zeros(3)), None)
         return Case(7, "brain phantom 2 mm vs 1 mm, no motion", coarse, fine, truth, "none (identity)")
-    raise ValueError(f"Expected a `case` from 1 to 10, got {number!r}.")
+    raise ValueError(f"Expected a `case` from 1 to 12, got {number!r}.")
 
 
 # ----------------------------------------------------------------------------- running the methods
@@ -441,7 +462,7 @@ def _summary(block, limit: int = 400) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=1, help="runs per case and method (medians are shown)")
-    parser.add_argument("--cases", default="1,2,3,4,5", help="comma-separated subset of 1-10")
+    parser.add_argument("--cases", default="1,2,3,4,5", help="comma-separated subset of 1-12")
     parser.add_argument("--protocol", default=None, help="passed to `volreg register --protocol` (a preset or a TOML file)")
     parser.add_argument("--methods", default=DEFAULT_METHODS,
                         help=f"comma-separated subset of {','.join(REFERENCES + ('volreg',) + PEERS)}")

@@ -90,10 +90,11 @@ MARGIN = 6.0  # mm of background around the envelope
 # ----------------------------------------------------------------------------- the cases
 
 
-def cortex_phantom(spacing: float, *, seed: int = 7):
+def cortex_phantom(spacing: float, *, seed: int = 7, axes=None):
     """The folded two-label phantom on an axis-aligned grid of ``spacing`` mm (origin at the centre).
 
-    Brain is `tests/shapes.py`'s folded blob (:func:`folded_blob_inside`) with semi-axes BRAIN_AXES,
+    Brain is `tests/shapes.py`'s folded blob (:func:`folded_blob_inside`) with semi-axes ``axes``
+    (mm; default BRAIN_AXES),
     sulci SULCUS_DEPTH deep along the zero set of a fold pattern of FOLD_WAVELENGTH. Brain within
     CORTEX mm of the outside (Euclidean distance transform) is grey (1), the rest white (2).
 
@@ -106,14 +107,15 @@ def cortex_phantom(spacing: float, *, seed: int = 7):
 
     from volreg.grid import LabelVolume
 
-    half = BRAIN_AXES + MARGIN
+    axes = BRAIN_AXES if axes is None else np.asarray(axes, float)
+    half = axes + MARGIN
     shape = tuple(int(n) for n in np.floor(2 * half / spacing) + 1)
     origin = -(np.array(shape) - 1) * spacing / 2.0
     brain = np.zeros(shape, bool)
     ii, jj = np.meshgrid(np.arange(shape[1]), np.arange(shape[2]), indexing="ij")
     for i in range(shape[0]):  # slab by slab: 6 M points at 1 mm
         x = origin + spacing * np.stack([np.full(ii.shape, i), ii, jj], axis=-1).reshape(-1, 3)
-        inside = folded_blob_inside(x, axes=BRAIN_AXES, depth=SULCUS_DEPTH, wavelength=FOLD_WAVELENGTH, seed=seed)
+        inside = folded_blob_inside(x, axes=axes, depth=SULCUS_DEPTH, wavelength=FOLD_WAVELENGTH, seed=seed)
         brain[i] = inside.reshape(ii.shape)
     depth = ndimage.distance_transform_edt(brain, sampling=spacing)
     labels = np.where(brain, np.where(depth <= CORTEX, 1, 2), 0).astype(np.uint8)
