@@ -916,7 +916,12 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
        shrinking), under a soft-L1 loss of scale twice the level's spacing, each
        label weighted by its boundary area.  ``scipy.optimize.least_squares`` with
        the analytic Jacobian; the parameters are about the fixed centroid
-       (translation, rotation vector or angle, log-scale, or the full matrix).
+       (translation, rotation vector or angle, log-scale, or the full matrix).  For an
+       affine map the starts' iterations and every level but the finest fit a
+       similarity about the start's matrix, the finest level the full matrix: a smooth
+       object turned is matched by a stretch along oblique axes as well as by the
+       turn, and a coarse affine fit took the stretch (a spheroid turned 20 degrees:
+       6 degrees found, its long axis 11 degrees off).
     3. **Partial fields of view.** Samples of a label cut by the edge of either image
        (:func:`cut_labels`) whose image falls outside the other volume's field of view
        less two of its voxels carry no cost, and cut labels are left out of the
@@ -1022,6 +1027,12 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
     spacings = [h for h, _, _ in levels]
     counts = [min(_LEVEL_SAMPLES[i], _LEVEL_TOTAL[i] // len(drive)) for _, i, _ in levels]
     local = _Local(kind, dim)
+    # For an affine map the starts and every level but the finest fit a similarity about the
+    # start's matrix (which keeps the start's own stretch), the finest the whole affine map: a
+    # smooth object turned can be matched by a stretch along oblique axes as well (every
+    # ``A = L R L^-1`` maps an ellipsoid of semi-axes ``L`` onto itself), and a coarse affine fit
+    # stopped there, short of the turn that the finer levels' detail then needed.
+    coarse_local = _Local("similarity", dim) if kind == "affine" and len(spacings) > 1 else local
 
     # Candidates.
     uncut = [v for v in drive if v not in cut]
@@ -1054,7 +1065,7 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
     tried = []
     scored = []
     for i, (family, name, cand) in enumerate(candidates):
-        found, info, _ = _run(local, cand, centre, bank_f, bank_m, fwd, back, f_scale, radius,
+        found, info, _ = _run(coarse_local, cand, centre, bank_f, bank_m, fwd, back, f_scale, radius,
                               _CANDIDATE_EVALUATIONS, 1e-5)
         described = cand.describe()
         tried.append(dict(name=name, family=family, start=described, cost=_finite(info["score"]),
@@ -1087,7 +1098,8 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
             # 1e-5 at every level: the last level at 1e-8 took 15 evaluations instead of 6 on the
             # 100-label parcellation (0.1 s) and moved the map by 1e-6 of its matrix and 1e-5 mm,
             # far below what the kernel warp then corrects.
-            found, info, used = _run(local, current, centre, bank_f, bank_m, fwd, back, f_scale, radius,
+            level_local = local if level == len(spacings) - 1 else coarse_local
+            found, info, used = _run(level_local, current, centre, bank_f, bank_m, fwd, back, f_scale, radius,
                                      _LEVEL_EVALUATIONS, _LEVEL_TOLERANCE)
             iterations += info["iterations"]
             if not np.isfinite(info["cost"]):
