@@ -269,3 +269,34 @@ def test_signals_held_for_a_swap_while_other_threads_run():
         for t in others:
             t.join()
         signal.signal(signal.SIGTERM, previous)
+
+
+@pytest.mark.parametrize("made_by_another", ["folder", "file"])
+def test_a_parent_folder_made_meanwhile_by_another_process(tmp_path, monkeypatch, made_by_another):
+    """Batch workers create the same parent folder: where another process makes it between the
+    check and `mkdir`, the folder is used, and only the folders this call made are reported; where
+    a file took its place, the error names it."""
+    from pathlib import Path
+
+    from volreg.errors import VolregIOError
+    from volreg.io._atomic import make_directory
+
+    shared = tmp_path / "out" / "pairs"
+    real_mkdir = Path.mkdir
+
+    def racing(self, *args, **kwargs):
+        if self == shared:
+            if made_by_another == "folder":
+                os.mkdir(self)
+            else:
+                self.write_text("")
+        return real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", racing)
+    if made_by_another == "folder":
+        assert make_directory(shared / "s0") == [tmp_path / "out", shared / "s0"]
+        assert (shared / "s0").is_dir()
+    else:
+        with pytest.raises(VolregIOError, match="pairs. could not be created: File exists"):
+            make_directory(shared / "s0")
+        assert shared.is_file()

@@ -175,6 +175,11 @@ def make_directory(path: str | os.PathLike[str]) -> list[Path]:
     for d in reversed(missing):
         try:
             d.mkdir()
+        except FileExistsError as exc:
+            if d.is_dir():  # made meanwhile by another process (batch workers share the parents)
+                continue
+            _remove_directories(created)
+            raise VolregIOError(f"Output directory `{d}` could not be created: {exc.strerror}.") from exc
         except OSError as exc:
             _remove_directories(created)
             raise VolregIOError(f"Output directory `{d}` could not be created: {exc.strerror}.") from exc
