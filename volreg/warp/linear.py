@@ -132,6 +132,12 @@ _FOV_MARGIN_VOXELS = 2.0
 #: A start whose score is within this factor of the best one's competes on rotation: the
 #: least rotated of them wins.
 _NEAR_BEST = 1.5
+#: Where two of the labels' second moments differ by less than this fraction, their turn about
+#: the third axis is searched at the finest level (:func:`_free_axis`), in steps of
+#: ``_TURN_STEP_DEG``; of the turns whose score is within ``_TURN_TIE`` of the best, the smallest.
+_TURN_AXIS_TOL = 0.1
+_TURN_STEP_DEG = 5.0
+_TURN_TIE = 0.02
 
 
 @dataclass(frozen=True, eq=False)
@@ -921,7 +927,13 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
        similarity about the start's matrix, the finest level the full matrix: a smooth
        object turned is matched by a stretch along oblique axes as well as by the
        turn, and a coarse affine fit took the stretch (a spheroid turned 20 degrees:
-       6 degrees found, its long axis 11 degrees off).
+       6 degrees found, its long axis 11 degrees off).  Where the principal axes
+       started the fit and two of the union's second moments are within 10 % of each
+       other, the turn about the third axis is not shown at the coarse levels (a
+       spheroidal brain shows it only by its folds): before the finest level is
+       solved, its cost is evaluated at turns about that axis in steps of 5 degrees
+       and the lowest kept (of those within 2 % of it, the smallest turn), logged as
+       ``turn_search``.
     3. **Partial fields of view.** Samples of a label cut by the edge of either image
        (:func:`cut_labels`) whose image falls outside the other volume's field of view
        less two of its voxels carry no cost, and cut labels are left out of the
@@ -1081,6 +1093,12 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
     near = [row for row in scored if row[0] <= _NEAR_BEST * lowest]
     _, _, index, start_family, start_name, current = min(near or scored, key=lambda row: (row[1], row[2]))
     chosen_start = candidates[index][2]
+    # Where the labels' moments are (nearly) symmetric about an axis and no spread of label
+    # centroids shows the turn about it, only finer detail does (a spheroidal brain's folds):
+    # the coarse levels cannot tell, and the finest level's cost is searched over that turn.
+    by_centroids = any(family == "centroids" and name != "centroid translation" for family, name, _ in candidates)
+    turn_axis = None if by_centroids or dim != 3 else _free_axis([shapes_f[v] for v in (uncut or drive)])
+    turn_log = None
 
     # Coarse to fine.
     level_log = []
@@ -1094,6 +1112,9 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
         fwd.weights, back.weights = fwd.weights / norm, back.weights / norm
         f_scale = 2.0 * h
         iterations = 0
+        if turn_axis is not None and level == len(spacings) - 1 and len(spacings) > 1:
+            current, turn_log = _turn_search(current, turn_axis, centre, lambda m: _run(
+                coarse_local, m, centre, bank_f, bank_m, fwd, back, f_scale, radius, 1, _LEVEL_TOLERANCE)[1]["score"])
         for _ in range(3):  # solve again while the field-of-view masks change
             # 1e-5 at every level: the last level at 1e-8 took 15 evaluations instead of 6 on the
             # 100-label parcellation (0.1 s) and moved the map by 1e-6 of its matrix and 1e-5 mm,
@@ -1140,4 +1161,56 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
         map=current.describe(),
         seconds=time.perf_counter() - t_begin,
     )
+    if turn_log is not None:
+        log["turn_search"] = turn_log
     return LinearFit(current, log)
+
+
+def _free_axis(shapes: list[_LabelShape]) -> np.ndarray | None:
+    """The axis (3,) about which the union's second moments are nearly symmetric (two of them
+    within :data:`_TURN_AXIS_TOL` of each other), or None."""
+    _, _, cov = _union_moments(shapes)
+    lam, vec = np.linalg.eigh(cov)  # ascending
+    if lam[2] <= 0:
+        return None
+    if (lam[2] - lam[1]) / lam[2] < _TURN_AXIS_TOL:
+        return vec[:, 0]
+    if (lam[1] - lam[0]) / max(lam[1], 1e-300) < _TURN_AXIS_TOL:
+        return vec[:, 2]
+    return None
+
+
+def _turned(linear: LinearMap, axis: np.ndarray, centre: np.ndarray, angle: float) -> LinearMap:
+    """``x -> L(R (x - c) + c)``: ``linear`` after a turn by ``angle`` (rad) about ``axis``
+    (unit, (3,)) through ``centre`` (mm)."""
+    from scipy.spatial.transform import Rotation
+
+    rot = Rotation.from_rotvec(angle * np.asarray(axis, float)).as_matrix()
+    return LinearMap(linear.matrix @ rot, linear.matrix @ (centre - rot @ centre) + linear.translation)
+
+
+def _turn_search(current: LinearMap, axis: np.ndarray, centre: np.ndarray, score) -> tuple[LinearMap, dict]:
+    """``current`` turned about ``axis`` through ``centre`` by the multiple of :data:`_TURN_STEP_DEG`
+    whose ``score(map)`` is lowest (of those within :data:`_TURN_TIE` of it, the smallest turn),
+    and a JSON-ready log: the axis, the turn (degrees), its score and the lowest score more than
+    three steps from it (the runner-up: close to the best where the labels do not show the turn)."""
+    import time
+
+    t0 = time.perf_counter()
+    angles = np.arange(0.0, 360.0, _TURN_STEP_DEG)
+    maps = [_turned(current, axis, centre, np.radians(a)) for a in angles]
+    scores = np.array([score(m) for m in maps])
+    size = np.abs((angles + 180.0) % 360.0 - 180.0)  # |turn|, degrees
+    finite = np.isfinite(scores)
+    if not finite.any():
+        return current, dict(axis=[float(v) for v in axis], degrees=0.0, score=None, runner_up=None,
+                             seconds=time.perf_counter() - t0)
+    best = float(scores[finite].min())
+    near = np.flatnonzero(finite & (scores <= best * (1.0 + _TURN_TIE)))
+    pick = int(near[np.argmin(size[near])])
+    apart = np.abs((angles - angles[pick] + 180.0) % 360.0 - 180.0) > 3 * _TURN_STEP_DEG
+    others = scores[apart & finite]
+    return maps[pick], dict(axis=[float(v) for v in axis], degrees=float(size[pick] * np.sign(180.0 - angles[pick])
+                                                                          if angles[pick] else 0.0),
+                            score=float(scores[pick]), runner_up=float(others.min()) if others.size else None,
+                            seconds=time.perf_counter() - t0)
