@@ -1200,7 +1200,8 @@ def _turn_search(current: LinearMap, axis: np.ndarray, centre: np.ndarray, score
     angles = np.arange(0.0, 360.0, _TURN_STEP_DEG)
     maps = [_turned(current, axis, centre, np.radians(a)) for a in angles]
     scores = np.array([score(m) for m in maps])
-    size = np.abs((angles + 180.0) % 360.0 - 180.0)  # |turn|, degrees
+    signed = (angles + 180.0) % 360.0 - 180.0  # the turn in (-180, 180], degrees
+    size = np.abs(signed)
     finite = np.isfinite(scores)
     if not finite.any():
         return current, dict(axis=[float(v) for v in axis], degrees=0.0, score=None, runner_up=None,
@@ -1210,7 +1211,5 @@ def _turn_search(current: LinearMap, axis: np.ndarray, centre: np.ndarray, score
     pick = int(near[np.argmin(size[near])])
     apart = np.abs((angles - angles[pick] + 180.0) % 360.0 - 180.0) > 3 * _TURN_STEP_DEG
     others = scores[apart & finite]
-    return maps[pick], dict(axis=[float(v) for v in axis], degrees=float(size[pick] * np.sign(180.0 - angles[pick])
-                                                                          if angles[pick] else 0.0),
-                            score=float(scores[pick]), runner_up=float(others.min()) if others.size else None,
-                            seconds=time.perf_counter() - t0)
+    return maps[pick], dict(axis=[float(v) for v in axis], degrees=float(signed[pick]), score=float(scores[pick]),
+                            runner_up=float(others.min()) if others.size else None, seconds=time.perf_counter() - t0)
