@@ -374,6 +374,7 @@ def register_labels(
         boxes = _world_boxes(fixed, cut["fixed"]) + _world_boxes(moving, cut["moving"], back)
         valid = _field_of_view_test(fixed, moving, linear, margin, boxes)
     checked = labels if landmarks is None else []  # landmarks may ask for what the labels do not show
+    boxes = (boxes_f or fixed.label_boxes()) if checked else {}  # for both overlap checks
 
     def whole(phi):
         return phi if linear.is_identity else phi.then(linear)
@@ -383,12 +384,12 @@ def register_labels(
         # labels' overlap beyond the margin, the finer ones are not fitted (the check below
         # then drops the warp).  Only the first: finer levels seldom turn what it started.
         first = len(phi.levels) == 1
-        return first and kernel_warp_overlap(fixed, moving, whole(phi), linear, checked)[1]["kept"] == "linear"
+        return first and kernel_warp_overlap(fixed, moving, whole(phi), linear, checked, boxes)[1]["kept"] == "linear"
 
     result = fit_warp(pairs, points, landmarks=landmarks, settings=protocol.warp, prior=prior, valid=valid,
                       progress=progress, stop=stop if checked else None)
     warp = whole(result.warp)
-    warp, kernel_warp = kernel_warp_overlap(fixed, moving, warp, linear, checked)
+    warp, kernel_warp = kernel_warp_overlap(fixed, moving, warp, linear, checked, boxes)
     kernel_warp["levels_fitted"] = len(result.log)
     stages.append(dict(stage="fit warp", seconds=time.perf_counter() - t0))
     return LabelRegistration(warp, result.log, labels=used, skipped=skipped, stages=stages,
@@ -396,7 +397,7 @@ def register_labels(
                              cut_labels=cut, kernel_warp=kernel_warp)
 
 
-def kernel_warp_overlap(fixed, moving, warp, linear, labels: list[int]):
+def kernel_warp_overlap(fixed, moving, warp, linear, labels: list[int], boxes: dict | None = None):
     """Keep the kernel warp only where it does not lower the labels' overlap.
 
     The pooled Dice over ``labels`` (``sum 2 |A_v & B_v| / sum (|A_v| + |B_v|)``: each label
@@ -417,6 +418,8 @@ def kernel_warp_overlap(fixed, moving, warp, linear, labels: list[int]):
         Its linear part ``L``.
     labels : list of int
         The labels compared; none: nothing is checked.
+    boxes : dict, optional
+        ``fixed.label_boxes()``, where the caller has them already.
 
     Returns
     -------
@@ -431,7 +434,8 @@ def kernel_warp_overlap(fixed, moving, warp, linear, labels: list[int]):
 
     if not labels or not warp.levels:
         return warp, dict(dice_linear=None, dice_warp=None, margin=KERNEL_DICE_MARGIN, kept="warp")
-    by_linear, by_warp = _mean_dice(fixed, moving, [linear, warp], labels, fixed.label_boxes(), pooled=True)
+    boxes = fixed.label_boxes() if boxes is None else boxes
+    by_linear, by_warp = _mean_dice(fixed, moving, [linear, warp], labels, boxes, pooled=True)
     log = dict(dice_linear=float(by_linear), dice_warp=float(by_warp), margin=KERNEL_DICE_MARGIN,
                kept="warp")
     if by_warp < by_linear - KERNEL_DICE_MARGIN:
