@@ -82,8 +82,8 @@ def run_one(method: str) -> dict:
             write_labels(b, os.path.join(d, "b.nii.gz"))
             ia = ants.image_read(os.path.join(d, "a.nii.gz"), pixeltype="float")
             ib = ants.image_read(os.path.join(d, "b.nii.gz"), pixeltype="float")
-            reg_ab = ants.registration(ia, ib, type_of_transform="SyNOnly")
-            reg_ba = ants.registration(ib, ia, type_of_transform="SyNOnly")
+            reg_ab = ants.registration(ia, ib, type_of_transform="SyNOnly", outprefix=os.path.join(d, "ab_"))
+            reg_ba = ants.registration(ib, ia, type_of_transform="SyNOnly", outprefix=os.path.join(d, "ba_"))
             out["seconds"] = time.perf_counter() - t0
             u_ab, grid_a = read_displacement(reg_ab["fwdtransforms"][0])
             inverse = [t for t in reg_ab["invtransforms"] if t.endswith("InverseWarp.nii.gz")]

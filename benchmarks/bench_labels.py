@@ -96,7 +96,7 @@ def _peer(method: str, fixed, moving, d: str):
 
         f = ants.image_read(f_path, pixeltype="float")
         m = ants.image_read(m_path, pixeltype="float")
-        reg = ants.registration(f, m, type_of_transform=method.split("-")[1])
+        reg = ants.registration(f, m, type_of_transform=method.split("-")[1], outprefix=os.path.join(d, "ants_"))
         if method == "ants-SyNOnly":
             return _read_field(reg["fwdtransforms"][0]), ants.create_jacobian_determinant_image(
                 f, reg["fwdtransforms"][0]).numpy()

@@ -114,7 +114,8 @@ def run_peer(method: str, fixed: str, moving: str, out: str) -> None:
 
         f = ants.image_read(fixed, pixeltype="float")
         m = ants.image_read(moving, pixeltype="float")
-        reg = ants.registration(f, m, type_of_transform="SyN" if method == "ants" else method.split("-", 1)[1])
+        reg = ants.registration(f, m, type_of_transform="SyN" if method == "ants" else method.split("-", 1)[1],
+                                outprefix=str(out_dir / "ants_"))
         # the forward transforms (warp, then affine) composed into one field on the fixed grid
         composed = ants.apply_transforms(f, m, reg["fwdtransforms"], compose=str(out_dir / "composed"))
         shutil.move(composed, out_dir / "warp.nii.gz")
