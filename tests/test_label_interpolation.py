@@ -81,6 +81,36 @@ def test_a_tie_goes_to_the_preferred_label():
         resample_labels_at(volume, index, method="label", prefer=np.ones(3, np.uint8))
 
 
+
+def test_between_equally_near_voxel_centres_split_between_labels_the_preferred_label_is_taken():
+    """A ball of radius 5 voxels, read at the corners of its voxels (where a grid of twice the
+    spacing has its centres): where the eight nearest voxels hold the ball and the background,
+    the labels do not tell, and ``prefer`` is taken, either value; a value none of the eight
+    holds is not, and a point off the corners keeps its own reading."""
+    from volreg.warp.resample import resample_labels_at
+
+    shape = (16, 16, 16)
+    i = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1)
+    volume = LabelVolume((np.linalg.norm(i - 7.5, axis=-1) < 5.0).astype(np.uint8), (0.0, 0.0, 0.0),
+                         (1.0, 1.0, 1.0), np.eye(3))
+    corners = np.stack(np.meshgrid(*[np.arange(0.5, 15.0) for _ in range(3)], indexing="ij"), -1).reshape(-1, 3)
+    low = np.floor(corners).astype(int)
+    eight = np.stack([volume.array[tuple((low + [a, b, c]).T)] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+    split = eight.min(axis=0) != eight.max(axis=0)
+    assert split.sum() > 100
+    own = resample_labels_at(volume, corners, method="gaussian")
+    assert 0 < np.count_nonzero(own[split]) < split.sum()  # the blur reads some of them each way
+    for preferred in (0, 1):
+        prefer = np.full(len(corners), preferred, np.uint8)
+        read = resample_labels_at(volume, corners, method="gaussian", prefer=prefer)
+        assert np.all(read[split] == preferred)
+        assert np.array_equal(read[~split], own[~split])
+    absent = resample_labels_at(volume, corners, method="gaussian", prefer=np.full(len(corners), 7, np.uint8))
+    assert np.array_equal(absent, own)
+    off = corners[split] + [0.2, 0.0, 0.0]  # no longer equally near: read as it lies
+    assert np.array_equal(resample_labels_at(volume, off, method="gaussian", prefer=np.zeros(len(off), np.uint8)),
+                          resample_labels_at(volume, off, method="gaussian"))
+
 def test_a_label_one_finer_voxel_thick_keeps_its_own_map():
     """A sheet 1.2 mm thick (one or two voxels at 1 mm) has a blurred indicator mostly below the
     background's, so read on a 2 mm grid it is left in patches; it keeps the map of its own
@@ -96,11 +126,13 @@ def test_a_label_one_finer_voxel_thick_keeps_its_own_map():
         out[(np.abs(p @ normal + 10) < 0.6) & (np.abs(p[:, 1]) < 12) & (np.abs(p[:, 2]) < 12)] = 2  # the sheet
         return out
 
-    def volume(n, spacing):
-        grid = LabelVolume(np.zeros((n,) * 3, np.uint8), (-(n - 1) * spacing / 2,) * 3, (spacing,) * 3, np.eye(3))
+    def volume(n, spacing, shift=0.0):
+        grid = LabelVolume(np.zeros((n,) * 3, np.uint8), (shift - (n - 1) * spacing / 2,) * 3, (spacing,) * 3,
+                           np.eye(3))
         return grid.with_array(labels(grid.grid_points().reshape(-1, 3)).reshape((n,) * 3))
 
-    fine, coarse = volume(60, 1.0), volume(30, 2.0)
+    # The coarse centres off the fine voxels' corners (there the coarse labels would settle the split ones).
+    fine, coarse = volume(60, 1.0), volume(30, 2.0, shift=0.3)
     assert np.count_nonzero(fine.array == 2) > 500
     on_coarse = _finer_on_coarser(fine, coarse, LinearMap.identity(3))
     assert on_coarse.side == "fixed"

@@ -118,11 +118,13 @@ def _mean_dice_identity_and_warped(fixed, moving, warp, labels) -> tuple[float, 
 def test_the_same_labels_at_two_resolutions_stay_in_place(moving_grid):
     """No motion: the blobs at 1 mm against the blobs at a coarser grid.  The linear part stays
     the identity.  At 2 mm (centres half-way between the 1 mm ones) the 1 mm labels are read on
-    the 2 mm grid (`resample_finer`): what the warp moves is where they cannot tell which side of
-    a boundary a 2 mm centre lies on (16 of the 776 label voxels), measured 0.10 mm on average
-    (0.27 mm without the resampling, which follows the 2 mm staircase), Dice 0.9154 against the
-    identity's 0.9168.  On the oblique 0.8 x 0.8 x 2.5 mm grid (finer in-plane, so not resampled)
-    0.13 mm, Dice at or above the identity's."""
+    the 2 mm grid (`resample_finer`), and where the eight 1 mm voxels nearest a 2 mm centre are
+    split between two labels the 2 mm label is taken there: both maps then agree, and the warp
+    is the identity (measured 0.000 mm; 0.10 mm when the blur decided those 16 of the 776 label
+    voxels, 0.27 mm without the resampling, which follows the 2 mm staircase).  On the oblique
+    0.8 x 0.8 x 2.5 mm grid (finer in-plane, so not resampled) 0.13 mm, mostly along the slices'
+    normal, where 2.5 mm slices place each blob's caps; Dice above the identity's (0.9613
+    against 0.9474)."""
     fixed = _fixed(n=48, spacing=1.0)
     if moving_grid == "2 mm":
         moving = _fixed(n=24, spacing=2.0)
@@ -138,10 +140,10 @@ def test_the_same_labels_at_two_resolutions_stay_in_place(moving_grid):
     linear = result.warp.linear
     assert np.abs(linear.matrix - np.eye(3)).max() < 0.02 and np.linalg.norm(linear(x) - x, axis=1).mean() < 0.3
     u = result.warp(x) - x
-    assert np.linalg.norm(u, axis=1).mean() < (0.13 if moving_grid == "2 mm" else 0.16)
+    assert np.linalg.norm(u, axis=1).mean() < (0.01 if moving_grid == "2 mm" else 0.16)
     assert np.linalg.norm(u.mean(axis=0)) < 0.15  # no shift overall
     before, after = _mean_dice_identity_and_warped(fixed, moving, result.warp, range(1, 7))
-    assert after >= before - (0.003 if moving_grid == "2 mm" else 0.0), (before, after)
+    assert after >= before, (before, after)
 
 
 _ORGAN_AXES = np.array([40.0, 30.0, 25.0])
@@ -165,14 +167,15 @@ def _organ(shape, spacing, direction=None, count=12, seed=2):
     return grid.with_array(labels.reshape(shape))
 
 
-@pytest.mark.parametrize("moving_grid, limit", [("2 mm", 0.1), ("0.8 x 0.8 x 2.5 mm oblique", 0.1)])
+@pytest.mark.parametrize("moving_grid, limit", [("2 mm", 0.01), ("0.8 x 0.8 x 2.5 mm oblique", 0.1)])
 def test_the_same_cells_at_two_resolutions_are_moved_less_than_their_voxels_discretisation(moving_grid, limit):
     """No motion, the default protocol: 12 Voronoi cells of an ellipsoid (flat boundaries, which a
     coarse grid places up to half its voxel off over whole faces) at 1 mm against the same cells
     at 2 mm (centres half-way between the 1 mm ones) and at 0.8 x 0.8 x 2.5 mm on a grid turned 20
-    degrees.  Measured mean displacement over the labels 0.078 and 0.082 mm (at 2 mm 0.19 mm
-    without `resample_finer`, 0.24 mm with distance maps measured between voxel centres as well);
-    Dice at or above the identity's."""
+    degrees.  Measured mean displacement over the labels 0.000 and 0.082 mm (at 2 mm 0.078 mm
+    when the blur decided the 2 mm centres between split 1 mm voxels, 0.19 mm without
+    `resample_finer`, 0.24 mm with distance maps measured between voxel centres as well); Dice
+    at or above the identity's."""
     fixed = _organ((90, 70, 60), (1.0,) * 3)
     if moving_grid == "2 mm":
         moving = _organ((45, 35, 30), (2.0,) * 3)
@@ -189,7 +192,7 @@ def test_the_same_cells_at_two_resolutions_are_moved_less_than_their_voxels_disc
 
 def test_without_resampling_the_finer_labels_the_coarse_staircase_is_followed():
     """`resample_finer = false`: each volume's maps from its own grid, and the warp follows the
-    2 mm staircase: the 12 cells at 1 mm and 2 mm move 0.19 mm on average, against 0.078 mm with
+    2 mm staircase: the 12 cells at 1 mm and 2 mm move 0.19 mm on average, against 0.00 mm with
     the 1 mm labels read on the 2 mm grid."""
     fixed, moving = _organ((90, 70, 60), (1.0,) * 3), _organ((45, 35, 30), (2.0,) * 3)
     x = fixed.grid_points()[fixed.array > 0]

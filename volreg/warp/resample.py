@@ -313,7 +313,35 @@ def resample_labels_at(
             lead = np.maximum(-best[slab_order], rest) - np.where(wanted == 0, rest, preferred[slab_order])
             tied = lead < TIE
             out[slab_order[tied]] = wanted[tied]
+            _prefer_between_centres(array, index, slab_order, prefer, out)
     return out
+
+
+def _prefer_between_centres(array: np.ndarray, index: np.ndarray, rows: np.ndarray, prefer: np.ndarray,
+                            out: np.ndarray) -> None:
+    """At the rows of ``index`` equally near to several voxel centres -- half-way between them
+    along some axes, on them along the others, as where a grid of twice the spacing has its
+    centres at the corners of eight voxels -- take ``prefer`` where one of those nearest voxels
+    holds it (in place in ``out``).
+
+    There the labels do not tell which value the point has: the nearest samples are split, and
+    a blur decides by farther voxels, whose curved boundaries pull it inwards (a ball of radius
+    5 voxels, blurred by 0.8 voxel, reads as one 0.13 voxel smaller; of 9 voxels, 0.07 smaller).
+    """
+    frac = index[rows] - np.floor(index[rows])
+    half = np.abs(frac - 0.5) < _AT_CENTRE
+    mid = np.all(half | (frac < _AT_CENTRE) | (frac > 1.0 - _AT_CENTRE), axis=1) & np.any(half, axis=1)
+    rows, half = rows[mid], half[mid]
+    if not rows.size:
+        return
+    low = np.where(half, np.floor(index[rows]), np.round(index[rows])).astype(np.int64)
+    wanted = prefer[rows]
+    holds = np.zeros(len(rows), dtype=bool)
+    for corner in range(2 ** index.shape[1]):
+        bits = (corner >> np.arange(index.shape[1])) & 1
+        at = np.clip(low + half * bits, 0, np.array(array.shape) - 1)
+        holds |= array[tuple(at.T)] == wanted
+    out[rows[holds]] = wanted[holds]
 
 
 def resample_image(
