@@ -197,7 +197,8 @@ def test_too_small_label(tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["surface", str(path), "-o", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert re.fullmatch(r"volreg surface: error: Label 2 has 2 voxels, fewer than min_voxels=8\.?\n", err), err
+    assert re.fullmatch(r"volreg surface: error: Label 2 has 2 voxels, fewer than min_voxels=8 in `.*small\.nii\.gz`, "
+                        r"too few for a surface; pass --skip-small to skip such labels, or --labels .*\n", err), err
     assert _files(out) == set()
     assert main(["surface", str(path), "-o", str(out), "--quiet", "--skip-small"]) == 0
     assert "warning: Skipping label 2" in capsys.readouterr().err

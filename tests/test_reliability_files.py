@@ -400,6 +400,21 @@ def test_nifti_dims_both_readers_agree_on_valid_files(tmp_path):
     assert np.array_equal(read_labels(tmp_path / "d.nii").array, cube)
 
 
+
+def test_nifti2_is_refused_as_such(tmp_path, capsys):
+    """A NIfTI-2 file (which SimpleITK does not read) is named as NIfTI-2, not as a header with
+    zero voxel sizes (its pixdim lies elsewhere than NIfTI-1's)."""
+    cube = _cube().array
+    nib.save(nib.Nifti2Image(cube, np.diag([2.0, 2.0, 2.0, 1.0])), str(tmp_path / "n2.nii"))
+    with pytest.raises(VolregIOError, match=r"is NIfTI-2, .* expected NIfTI-1"):
+        read_labels(tmp_path / "n2.nii")
+    write_labels(_cube(), tmp_path / "f.nii.gz")
+    assert main(["register", str(tmp_path / "f.nii.gz"), str(tmp_path / "n2.nii"), "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "NIfTI-2" in err and "pixdim" not in err, err
+    assert not (tmp_path / "o").exists()
+
+
 # ----------------------------------------------------------------------------- batch
 
 BATCH_PROTOCOL = "[protocol]\nname = \"{name}\"\n[warp]\nmin_width = 12.0\npad = 6.0\nmax_iter = {iters}\n"

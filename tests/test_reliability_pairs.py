@@ -143,6 +143,47 @@ def test_apply_warns_when_the_field_covers_part_of_the_reference(pair, tmp_path,
     assert "covers 12.5 % of the voxels of --reference" in err and "not warped" in err, err
 
 
+@pytest.mark.parametrize("warp", ["model.npz", "warp.nii.gz"])
+def test_apply_refuses_an_image_the_warp_does_not_reach(pair, tmp_path, capsys, warp):
+    """INPUT 500 mm from where the warp sends the reference voxels: the output would be all
+    background, which one line refuses; INPUT 20 mm along (14 of its 32 columns are reached) is
+    resampled, with a warning."""
+    from volreg.cli import main
+    from volreg.io import read_labels, write_labels
+
+    b = read_labels(pair / "B.nii.gz")
+    for shift, code in ((500.0, 2), (20.0, 0)):
+        moving = tmp_path / f"m{int(shift)}.nii.gz"
+        write_labels(LabelVolume(b.array, b.origin + [shift, 0.0, 0.0], b.spacing, b.direction), moving)
+        out = tmp_path / f"o{int(shift)}.nii.gz"
+        capsys.readouterr()
+        assert main(["apply", str(pair / "ab" / warp), str(moving), "--reference", str(pair / "A.nii.gz"),
+                     "-o", str(out), "--quiet"]) == code
+        err = _error(capsys)
+        if code:
+            assert "sends every voxel of --reference" in err and "outside INPUT" in err, err
+            assert not out.exists()
+        else:
+            assert re.search(r"warning: warp .* sends only 43\.8 % of the voxels of --reference", err), err
+            assert read_labels(out).array.any()
+
+
+def test_apply_refuses_an_image_of_other_dimension(pair, tmp_path, capsys):
+    """A 2-D image through a 3-D registration: one line, not a traceback."""
+    from volreg.cli import main
+    from volreg.io import read_labels, write_labels
+
+    b = read_labels(pair / "B.nii.gz")
+    write_labels(LabelVolume(b.array[:, :, 16].copy(), b.origin[:2], b.spacing[:2], np.eye(2)), tmp_path / "m2.nii.gz")
+    for warp in ("model.npz", "warp.nii.gz", "linear.tfm"):
+        capsys.readouterr()
+        assert main(["apply", str(pair / "ab" / warp), str(tmp_path / "m2.nii.gz"), "--reference", str(pair / "A.nii.gz"),
+                     "-o", str(tmp_path / "o.nii.gz")]) == 2
+        err = _error(capsys)
+        assert re.search(r"INPUT `.*m2\.nii\.gz` is 2-D but --reference `.*A\.nii\.gz` is 3-D", err), err
+        assert not (tmp_path / "o.nii.gz").exists()
+
+
 def test_an_empty_output_name_is_refused(pair, tmp_path, capsys, monkeypatch):
     """`-o ""` would name the working folder."""
     from volreg.cli import main

@@ -97,6 +97,36 @@ def _warn_partial_cover(field, points, warp_path, reference_path) -> None:
               "model.npz of the registration, which holds the whole map, or a warp written on the reference's grid).")
 
 
+#: Below this share of the reference voxels sent into INPUT, ``apply`` warns.
+LANDS_INSIDE_WARN = 0.5
+
+
+def _check_lands_inside(source, points, args) -> None:
+    """Refuse a warp that sends every reference voxel outside INPUT (the output would be all
+    background), and warn where it sends under :data:`LANDS_INSIDE_WARN` of them inside."""
+    import numpy as np
+
+    from volreg.register import world_box
+
+    index = source.world_to_index(points.reshape(-1, source.ndim))
+    inside = np.all((index >= -0.5) & (index <= np.array(source.shape) - 0.5), axis=1)
+    share = float(inside.mean()) if inside.size else 0.0
+    if share == 0.0:
+        lo, hi = world_box(source)
+        flat = points.reshape(-1, source.ndim)
+        raise UsageError(
+            f"Warp `{args.warp}` sends every voxel of --reference `{args.reference}` outside INPUT `{args.image}` "
+            f"(INPUT covers {np.round(lo, 1).tolist()}..{np.round(hi, 1).tolist()} mm, LPS; the warped voxels lie in "
+            f"{np.round(flat.min(axis=0), 1).tolist()}..{np.round(flat.max(axis=0), 1).tolist()} mm), so the output "
+            "would be empty; expected INPUT in the warp's moving space (check the pairing of the warp, the image and "
+            "--reference, or their origins)."
+        )
+    if share < LANDS_INSIDE_WARN:
+        _warn("apply", f"warp `{args.warp}` sends only {100 * share:.1f} % of the voxels of --reference "
+              f"`{args.reference}` into INPUT `{args.image}`; the rest are background (0) in the output (check the "
+              "pairing of the warp and the image, or their origins).")
+
+
 def run(args: argparse.Namespace) -> int:
     """``volreg apply MODEL_OR_WARP INPUT (--reference REF | --from fixed|moving) -o OUT``."""
     kind = _kind(args.image)
@@ -205,6 +235,15 @@ def _run_image(args: argparse.Namespace) -> int:
     interpolation = args.interpolation or "label"
     start = time.perf_counter()
     reference = read_grid(args.reference)
+    if interpolation in ("label", "nearest", "gaussian"):
+        image = read_labels(args.image)
+        source = image
+    else:
+        array, origin, spacing, direction = read_image(args.image)
+        source = Grid(array.shape[: len(spacing)], origin, spacing, direction)
+    if source.ndim != reference.ndim:
+        raise UsageError(f"INPUT `{args.image}` is {source.ndim}-D but --reference `{args.reference}` is "
+                         f"{reference.ndim}-D; expected an image of the warp's moving space, as many axes as the reference.")
     at = reference.grid_points()  # (X, Y, Z, 3) mm
     name = args.warp.name.lower()
     with ProgressBars(quiet=args.quiet) as progress:
@@ -231,12 +270,11 @@ def _run_image(args: argparse.Namespace) -> int:
             raise UsageError(f"MODEL_OR_WARP `{args.warp}` must be a model.npz, a displacement field .nii/.nii.gz "
                              "or an ITK linear transform .tfm/.txt/.mat.")
         points = at + u
+        _check_lands_inside(source, points, args)
         if interpolation in ("label", "nearest", "gaussian"):
-            image = read_labels(args.image)
             out = resample_labels(image, points, method=interpolation, progress=progress)
             write_labels(reference.with_array(out.astype(image.array.dtype, copy=False)), args.output, force=args.force)
         else:
-            array, origin, spacing, direction = read_image(args.image)
             values = resample_image(array, Grid(array.shape, origin, spacing, direction), points, order=1 if interpolation == "linear" else 3)
             write_scalar(values, reference, args.output, force=args.force)
     print(f"{PROG} apply: {args.image} -> {args.output} ({interpolation}) in {time.perf_counter() - start:.1f} s")

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 from volreg import __version__
 from volreg.cli._common import PROG, _float_at_least, _label_list, _listing, _warn, output_path
-from volreg.errors import UsageError
+from volreg.errors import SurfaceError, UsageError
 from volreg.settings import SurfaceSettings
 
 if TYPE_CHECKING:  # the pipeline is imported when the command runs
@@ -113,13 +113,17 @@ def run(args: argparse.Namespace) -> int:
             with warnings.catch_warnings(record=True) as caught:
                 # label_surfaces warns for each label it skips (on_small="warn").
                 warnings.simplefilter("always")
-                surfaces = label_surfaces(
-                    volume,
-                    labels,
-                    on_small="warn" if args.skip_small else "error",
-                    smoothing=args.smoothing,
-                    progress=progress,
-                )
+                try:
+                    surfaces = label_surfaces(
+                        volume,
+                        labels,
+                        on_small="warn" if args.skip_small else "error",
+                        smoothing=args.smoothing,
+                        progress=progress,
+                    )
+                except SurfaceError as exc:  # a stray speck of a label, common in segmentations
+                    raise UsageError(f"{str(exc).rstrip('.')} in `{args.image}`, too few for a surface; pass "
+                                     "--skip-small to skip such labels, or --labels to choose the labels.") from exc
             for w in caught:
                 _warn("surface", str(w.message))
             if not surfaces:

@@ -91,9 +91,12 @@ def _check_nifti_dims(path: Path, suffix: str, what: str) -> None:
         if sizeof == 348:
             dim = np.frombuffer(block[40:56], dtype=f"{order}i2").astype(np.int64)
             break
-        if sizeof == 540 and len(block) >= 540:
-            dim = np.frombuffer(block[16:80], dtype=f"{order}i8")
-            break
+        if sizeof == 540:
+            raise VolregIOError(
+                f"{what} `{path}` is NIfTI-2, which SimpleITK (volreg's reader) does not read; expected NIfTI-1 "
+                "(convert it, e.g. with nibabel: nib.save(nib.Nifti1Image(np.asarray(img.dataobj), img.affine), "
+                "'out.nii.gz'))."
+            )
     else:
         return  # not NIfTI: nibabel reports it
     n = int(dim[0])
