@@ -7,7 +7,7 @@ import pytest
 
 from volreg import LabelVolume
 from volreg.warp.field import displacement_on_grid
-from volreg.warp.inverse import InverseWarp, _newton_steps, invert_points
+from volreg.warp.inverse import CHORD_STEPS, InverseWarp, _newton_steps, invert_points
 from volreg.warp.model import KernelWarp, WarpLevel
 
 
@@ -120,7 +120,8 @@ def test_grid_start_from_the_sampled_forward_field(dim):
 
 def test_a_start_within_tol_is_kept_without_the_jacobian():
     """Starts already within ``tol`` of their targets are checked by one evaluation of tau alone
-    (no Jacobian) and kept as they are; starts further off go on with Newton to ``tol``."""
+    (no Jacobian) and kept as they are; starts a little off are polished by chord steps (tau
+    alone, the linear part for the Jacobian); starts further off go on with Newton to ``tol``."""
     warp = smooth_warp(3)
     y = np.random.default_rng(5).uniform(20, 80, (4000, 3))
     exact = invert_points(warp, y).points
@@ -142,9 +143,15 @@ def test_a_start_within_tol_is_kept_without_the_jacobian():
     assert orders == [0] and np.array_equal(kept.points, exact + shift)
     assert kept.converged.all() and kept.residual.max() <= 1e-4
     orders.clear()
-    shift[1::2] = 0.05  # 0.09 mm off: Newton
+    shift[1::2] = 2e-4  # 3.5e-4 mm off: chord steps (|du/dx| up to 0.4 here: each shrinks it 3-4 times)
+    chord = invert_points(Counting(), y, tol=1e-4, start=lambda _: exact + shift)
+    assert 1 not in orders and len(orders) <= 1 + CHORD_STEPS
+    assert chord.converged.all() and chord.residual.max() <= 1e-4
+    assert np.array_equal(chord.points[::2], exact[::2] + shift[::2])
+    orders.clear()
+    shift[1::2] = 0.5  # 0.9 mm off: chord steps, then Newton
     polished = invert_points(Counting(), y, tol=1e-4, start=lambda _: exact + shift)
-    assert orders[:2] == [0, 1]
+    assert orders[: 1 + CHORD_STEPS] == [0] * (1 + CHORD_STEPS) and 1 in orders
     assert polished.converged.all() and polished.residual.max() <= 1e-4
     assert np.array_equal(polished.points[::2], exact[::2] + shift[::2])
 

@@ -966,7 +966,7 @@ def _inverse_on_moving_grid(warp, moving, progress, fixed=None, displacement=Non
     To :data:`INVERSE_GRID_TOL` of the moving grid's smallest spacing.  Given the warp's
     ``displacement`` on the ``fixed`` grid, each voxel starts from its interpolated inverse
     (:class:`~volreg.warp.inverse.GridStart`), which one exact evaluation of the warp checks;
-    Newton's method goes on only where that is not within the tolerance.
+    chord steps, then Newton's method, go on only where that is not within the tolerance.
     """
     from volreg.warp.field import displacement_on_grid
     from volreg.warp.inverse import GridStart, InverseWarp, _linear_of
@@ -1052,8 +1052,9 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
         },
         "inverse": {
             "method": "start from a fixed point on the sampled forward field (else from the linear part's "
-                      "inverse), checked exactly at every voxel of the moving grid; Newton iteration with "
-                      "the analytic Jacobian where above the tolerance",
+                      "inverse), checked exactly at every voxel of the moving grid; where above the "
+                      "tolerance, chord steps (the linear part's matrix for the Jacobian), then Newton "
+                      "iteration with the analytic Jacobian",
             "tolerance_mm": inverse.tol,
             "max_residual_mm": inverse.max_residual,
             "unconverged_voxels": inverse.unconverged,

@@ -126,7 +126,10 @@ def invert_points(
         where a Newton step follows: a start within ``tol`` of its target costs
         one evaluation of ``tau`` alone, one further off one evaluation more
         than without the check (so a start pays where it is mostly within
-        ``tol``, as :class:`GridStart`'s are at 1e-3 voxel).
+        ``tol``, as :class:`GridStart`'s are at 1e-3 voxel).  A start further off
+        first takes up to :data:`CHORD_STEPS` chord steps (:func:`_chord_steps`:
+        ``tau`` alone, the linear part's matrix for the Jacobian), and Newton's
+        method only where those do not reach ``tol``.
     progress : callable, optional
         ``progress("invert warp", done, total)`` after each chunk.
 
@@ -181,6 +184,8 @@ def invert_points(
         rn = np.linalg.norm(r, axis=1)
         active = np.flatnonzero(rn > tol)
         if start is not None and active.size:
+            active = _chord_steps(warp, x, r, rn, y, active, tol, np.eye(warp.dim) if affine is None else a_inv)
+        if start is not None and active.size:
             _, jac[active] = warp.evaluate(x[active], order=1)
         it = 0
         while active.size and it < max_iter:
@@ -211,6 +216,39 @@ def invert_points(
             progress("invert warp", min(s + chunk, len(inside)), len(inside))
     return InverseSolution(points=x_all, residual=res_all, iterations=worst_iter, converged=res_all <= tol)
 
+
+
+#: Chord steps (:func:`_chord_steps`) tried from a start before Newton's method.
+CHORD_STEPS = 2
+
+
+def _chord_steps(warp, x: np.ndarray, r: np.ndarray, rn: np.ndarray, y: np.ndarray, active: np.ndarray,
+                 tol: float, a_inv: np.ndarray) -> np.ndarray:
+    """Up to :data:`CHORD_STEPS` steps ``x <- x - A^-1 (tau(x) - y)`` at the rows ``active`` (in
+    place in ``x``, the residuals ``r`` and their norms ``rn``); the rows Newton's method must
+    still take on.
+
+    The linear part's matrix ``A`` stands in for the Jacobian ``J = A (I + du/dx)``: each step
+    costs one evaluation of ``tau`` without the Jacobian (about half the cost of one with it) and
+    shrinks the error by about ``|du/dx|``, so from a start a few micrometres off
+    (:class:`GridStart` on a 2 mm grid: 39 % of a posed 1 mm brain's voxels above 1e-3 mm, at
+    most 0.012 mm) one or two steps reach the tolerance.  A row a step does not improve (near a
+    fold, where ``du/dx`` is large) keeps its value and is left to Newton's method.
+    """
+    newton = []
+    for _ in range(CHORD_STEPS):
+        if not active.size:
+            break
+        xa = x[active] - r[active] @ a_inv.T
+        ta, = warp.evaluate(xa, order=0)
+        ra = ta - y[active]
+        rna = np.linalg.norm(ra, axis=1)
+        better = rna < rn[active]
+        newton.append(active[~better])
+        upd = active[better]
+        x[upd], r[upd], rn[upd] = xa[better], ra[better], rna[better]
+        active = upd[rn[upd] > tol]
+    return np.sort(np.concatenate(newton + [active]))
 
 
 def _newton_steps(jac: np.ndarray, r: np.ndarray, det_floor: float, a_inv: np.ndarray) -> np.ndarray:
