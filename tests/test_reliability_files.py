@@ -415,6 +415,40 @@ def test_nifti2_is_refused_as_such(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+
+def test_a_full_disk_is_reported_in_one_line(tmp_path, capsys, monkeypatch):
+    """No space left while the outputs are written: one line, exit status 1, nothing left."""
+    import errno
+
+    import volreg.io
+
+    write_labels(_cube(), tmp_path / "f.nii.gz")
+
+    def full(obj, path, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    monkeypatch.setattr(volreg.io, "write_json", full)
+    out = tmp_path / "o"
+    assert main(["register", str(tmp_path / "f.nii.gz"), str(tmp_path / "f.nii.gz"), "-o", str(out), "--quiet",
+                 "--protocol", "fast"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "No space left on device writing" in err and "outputs were removed" in err, err
+    assert not out.exists()
+
+
+def test_c_libraries_stderr_is_held_and_dropped_on_failure(capfd):
+    """What a C library prints to file descriptor 2 in the block (HDF5's error stack) is passed
+    on when the block succeeds and dropped when it raises (its error is reported by itself)."""
+    from volreg.io.fields import c_stderr_held
+
+    with c_stderr_held():
+        os.write(2, b"kept\n")
+    with pytest.raises(RuntimeError), c_stderr_held():
+        os.write(2, b"HDF5-DIAG: dropped\n")
+        raise RuntimeError("could not write")
+    assert capfd.readouterr().err == "kept\n"
+
+
 # ----------------------------------------------------------------------------- batch
 
 BATCH_PROTOCOL = "[protocol]\nname = \"{name}\"\n[warp]\nmin_width = 12.0\npad = 6.0\nmax_iter = {iters}\n"

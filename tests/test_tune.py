@@ -72,7 +72,8 @@ def test_protocol_round_trips_through_toml(tmp_path):
 
 
 @pytest.mark.parametrize("grid, words", [("bogus=1,2", "Unknown setting `warp.bogus`"),
-                                         ("lambda_loc=-5", "lambda_loc"), ("max_iter=2.5", "max_iter")])
+                                         ("lambda_loc=-5", "lambda_loc"), ("max_iter=2.5", "max_iter"),
+                                         ("lambda_loc=10,10.0", "given twice")])
 def test_bad_grid_refused_before_registering(pair, tmp_path, capsys, grid, words):
     assert run(["tune", pair / "a.nii.gz", pair / "b.nii.gz", "-o", tmp_path / "out", "--grid", grid]) == 2
     err = capsys.readouterr().err.strip()

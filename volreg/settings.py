@@ -349,6 +349,8 @@ def settings_from_mapping(cls, values: Mapping[str, Any], where: str):
             ok = isinstance(value, bool)
         elif "int" in want and "float" not in want:
             ok = isinstance(value, int) and not isinstance(value, bool)
+            if ok and not -(2**63) <= value < 2**63:  # TOML integers are 64-bit; Python's reader takes any
+                raise ProtocolError(f"Expected `{where}.{key}` to be an integer of at most 64 bits, got {value!r}.")
         elif "float" in want:
             ok = isinstance(value, (int, float)) and not isinstance(value, bool)
             value = float(value) if ok else value

@@ -273,6 +273,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:
         if _signalled:
             return _interrupted(args.command, _signalled[0])
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            where = f" writing `{exc.filename}`" if exc.filename is not None else ""
+            print(f"{PROG} {args.command}: error: {exc.strerror or 'no space left on device'}{where}; the outputs "
+                  "were removed; expected room for them on the output's device (free some, or write elsewhere).",
+                  file=sys.stderr)
+            return 1
         if exc.errno not in (errno.ENAMETOOLONG, errno.ELOOP):
             raise
         # a path over the system's limits (NAME_MAX per component, PATH_MAX in all), wherever it is met

@@ -72,6 +72,8 @@ def parse_grid(specs: list[str]) -> dict[str, list[float]]:
                 raise UsageError(f"--grid: `{key}` value {token!r} is not a number.") from None
             if not math.isfinite(value):
                 raise UsageError(f"--grid: `{key}` value {token!r} is not finite.")
+            if value in grid[key]:  # the same registration twice
+                raise UsageError(f"--grid: `{key}` value {token!r} is given twice; expected distinct values.")
             grid[key].append(int(value) if key == "max_iter" and value.is_integer() else value)
     if not grid or any(not values for values in grid.values()):
         raise UsageError("--grid: expected at least one value for every setting, such as lambda_loc=10,100.")

@@ -31,8 +31,13 @@ told what the file is.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import os
 import re
+import shutil
+import sys
+import tempfile
 from pathlib import Path
 
 import nibabel as nib
@@ -245,9 +250,40 @@ def write_itk_composite(
     composite.AddTransform(sitk.DisplacementFieldTransform(field))  # takes the field's pixels over
     with atomic_output(p, force=force) as tmp:
         try:
-            sitk.WriteTransform(composite, str(tmp))
+            with c_stderr_held():  # HDF5 prints its error stack (a hundred lines on a full disk) before ITK raises
+                sitk.WriteTransform(composite, str(tmp))
         except RuntimeError as exc:
+            if shutil.disk_usage(Path(tmp).parent).free < u.nbytes:  # HDF5 says only "H5Dwrite failed"
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(p)) from None
             raise VolregIOError(f"Composite transform `{p}` could not be written: {_sitk_reason(exc)}.") from None
+
+
+@contextlib.contextmanager
+def c_stderr_held():
+    """Hold what C libraries write to the process's standard error (file descriptor 2) during the
+    block in a temporary file, and pass it on afterwards unless the block raised: its error is
+    then reported in one line of its own.
+
+    Python's ``sys.stderr`` is flushed first; other threads' writes in the meantime are held too.
+    """
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        failed = False
+        try:
+            yield
+        except BaseException:
+            failed = True
+            raise
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            if not failed:
+                held.seek(0)
+                text = held.read()
+                if text:
+                    os.write(2, text)
 
 
 def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:

@@ -52,6 +52,8 @@ PROTOCOL_DIR = _protocol_dir()
 
 #: The settings sections of a protocol file, after ``[protocol]``: fields of :class:`~volreg.settings.Protocol`.
 _SECTIONS = ("surface", "warp", "linear", "review", "outputs")
+_SECTION_CLASSES = {"surface": SurfaceSettings, "warp": WarpSettings, "linear": LinearSettings,
+                    "review": ReviewSettings, "outputs": OutputSettings, "protocol": None}
 
 
 def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
@@ -83,6 +85,14 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
         data = tomllib.loads(raw)
     except tomllib.TOMLDecodeError as exc:
         raise ProtocolError(f"Protocol `{path}` is not valid TOML: {exc}.") from None
+    loose = sorted(k for k, v in data.items() if not isinstance(v, Mapping))
+    if loose:
+        owners = [s for s, cls in _SECTION_CLASSES.items()
+                  if (loose[0] in ("name", "description") if cls is None else
+                      loose[0] in {f.name for f in dataclasses.fields(cls)})]
+        where = f"under [{owners[0]}]" if owners else "under a section"
+        raise ProtocolError(f"Setting `{loose[0]}` in `{path}` lies outside any section; expected it {where} "
+                            "(a [section] line above it).")
     unknown = set(data) - {"protocol", *_SECTIONS}
     if unknown:
         raise ProtocolError(f"Unknown section [{sorted(unknown)[0]}] in `{path}`; "
@@ -91,6 +101,9 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
     if not isinstance(head, Mapping) or set(head) - {"name", "description"}:
         extra = sorted(set(head) - {"name", "description"}) if isinstance(head, Mapping) else ["?"]
         raise ProtocolError(f"Unknown setting `protocol.{extra[0]}` in `{path}`; expected name, description.")
+    for key in ("name", "description"):
+        if key in head and not isinstance(head[key], str):
+            raise ProtocolError(f"Expected `protocol.{key}` to be a string (in quotes), got {head[key]!r} (in `{path}`).")
     try:
         return Protocol(
             name=str(head.get("name", path.stem)),
