@@ -184,6 +184,45 @@ def test_apply_refuses_an_image_of_other_dimension(pair, tmp_path, capsys):
         assert not (tmp_path / "o.nii.gz").exists()
 
 
+def test_apply_takes_the_h5_fields_register_writes(pair, tmp_path, capsys):
+    """warp.h5 and inverse_warp.h5 (ITK HDF5 composite transforms holding one field) apply as
+    their NIfTI twins do; an HDF5 transform holding anything else is refused in one line."""
+    import SimpleITK as sitk
+
+    from volreg.cli import main
+    from volreg.io import read_labels
+
+    for warp, out in (("warp.nii.gz", "by_nifti.nii.gz"), ("warp.h5", "by_h5.nii.gz")):
+        assert main(["apply", str(pair / "ab" / warp), str(pair / "B.nii.gz"), "--reference", str(pair / "A.nii.gz"),
+                     "-o", str(tmp_path / out), "--quiet"]) == 0
+    assert np.array_equal(read_labels(tmp_path / "by_h5.nii.gz").array, read_labels(tmp_path / "by_nifti.nii.gz").array)
+    points = np.array([[14.0, 16.0, 16.0], [20.0, 15.0, 17.0]])
+    np.savetxt(tmp_path / "p.csv", points, delimiter=",", header="x,y,z", comments="")
+    for warp in ("inverse_warp.nii.gz", "inverse_warp.h5"):
+        assert main(["apply", str(pair / "ab" / warp), str(tmp_path / "p.csv"), "--from", "moving",
+                     "-o", str(tmp_path / f"{warp.replace('.', '_')}.csv")]) == 0
+    a, b = (np.loadtxt(tmp_path / f"{w}.csv", delimiter=",", skiprows=1, usecols=(0, 1, 2))
+            for w in ("inverse_warp_nii_gz", "inverse_warp_h5"))
+    np.testing.assert_allclose(a, b, atol=1e-4)  # the NIfTI field holds float32, the HDF5 one float64
+    sitk.WriteTransform(sitk.AffineTransform(3), str(tmp_path / "affine.h5"))
+    capsys.readouterr()
+    assert main(["apply", str(tmp_path / "affine.h5"), str(pair / "B.nii.gz"), "--reference", str(pair / "A.nii.gz"),
+                 "-o", str(tmp_path / "o.nii.gz")]) == 2
+    assert "holds AffineTransform; expected one displacement field" in _error(capsys)
+    assert not (tmp_path / "o.nii.gz").exists()
+
+
+@pytest.mark.parametrize("name", ["o.nii.gz.nii.gz", "o.img.nii", "o.NII.nii.gz"])
+def test_an_output_name_the_nifti_writer_would_change_is_refused(pair, tmp_path, capsys, name):
+    """ITK's NIfTI writer writes o.nii.gz for o.nii.gz.nii.gz (and an Analyze pair for o.img.nii),
+    leaving the named file empty: such names are refused, and nothing is written."""
+    from volreg.cli import main
+
+    assert main(["apply", str(pair / "ab" / "model.npz"), str(pair / "B.nii.gz"), "--reference", str(pair / "A.nii.gz"),
+                 "-o", str(tmp_path / name)]) == 2
+    assert "ends in two image suffixes; expected one, such as `o.nii" in _error(capsys)
+    assert list(tmp_path.iterdir()) == []
+
 def test_an_empty_output_name_is_refused(pair, tmp_path, capsys, monkeypatch):
     """`-o ""` would name the working folder."""
     from volreg.cli import main

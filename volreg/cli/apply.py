@@ -30,8 +30,9 @@ def add_parser(commands) -> None:
         "direction you want.",
     )
     apply.add_argument("warp", metavar="MODEL_OR_WARP", type=Path,
-                       help="model.npz, a displacement field (warp.nii.gz: fixed -> moving; inverse_warp.nii.gz: "
-                       "moving -> fixed) or an ITK linear transform (.tfm, .txt, .mat)")
+                       help="model.npz, a displacement field (warp.nii.gz or warp.h5: fixed -> moving; "
+                       "inverse_warp.nii.gz or inverse_warp.h5: moving -> fixed) or an ITK linear transform "
+                       "(.tfm, .txt, .mat)")
     apply.add_argument("image", metavar="INPUT", type=Path,
                        help="image in moving space, or landmarks / mesh in the space --from names")
     apply.add_argument("--from", dest="space", choices=tuple(_DIRECTIONS), default=None,
@@ -152,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _read_warp(path: Path, space: str):
     """The map to apply and whether to invert it: (KernelWarp | LinearMap | DisplacementField, inverse)."""
-    from volreg.io.fields import read_displacement, read_itk_linear
+    from volreg.io.fields import read_displacement, read_itk_composite, read_itk_linear
     from volreg.warp.model import KernelWarp
     from volreg.warp.points import DisplacementField
 
@@ -161,8 +162,8 @@ def _read_warp(path: Path, space: str):
         return KernelWarp.load(path), space == "moving"
     if name.endswith((".tfm", ".txt", ".mat")):
         return read_itk_linear(path), space == "moving"
-    if name.endswith((".nii", ".nii.gz")):
-        u, grid = read_displacement(path)
+    if name.endswith((".nii", ".nii.gz", ".h5", ".hdf5")):
+        u, grid = read_itk_composite(path) if name.endswith((".h5", ".hdf5")) else read_displacement(path)
         inverse_name = "inverse" in name
         if space == "fixed" and inverse_name:
             _warn("apply", f"`{path}` is applied as it is (p + u(p)); with --from fixed it must be the fixed -> moving "
@@ -172,7 +173,7 @@ def _read_warp(path: Path, space: str):
                   "field on the moving grid (inverse_warp.nii.gz, ANTs' *InverseWarp.nii.gz), but its name does not "
                   "say inverse.")
         return DisplacementField(u, grid), False
-    raise UsageError(f"MODEL_OR_WARP `{path}` must be a model.npz, a displacement field .nii/.nii.gz "
+    raise UsageError(f"MODEL_OR_WARP `{path}` must be a model.npz, a displacement field .nii/.nii.gz or .h5 "
                      "or an ITK linear transform .tfm/.txt/.mat.")
 
 
@@ -226,7 +227,7 @@ def _run_image(args: argparse.Namespace) -> int:
 
     from volreg.grid import Grid
     from volreg.io import read_grid, read_image, read_labels, write_labels, write_scalar
-    from volreg.io.fields import read_displacement, read_itk_linear
+    from volreg.io.fields import read_displacement, read_itk_composite, read_itk_linear
     from volreg.progress import ProgressBars
     from volreg.warp.field import displacement_on_grid, linear_displacement_on_grid
     from volreg.warp.model import KernelWarp
@@ -256,8 +257,9 @@ def _run_image(args: argparse.Namespace) -> int:
         elif name.endswith((".tfm", ".txt", ".mat")):
             linear = read_itk_linear(args.warp, dim=reference.ndim)
             u = linear_displacement_on_grid(linear, reference)
-        elif name.endswith(".nii") or name.endswith(".nii.gz"):
-            u_field, grid = read_displacement(args.warp)
+        elif name.endswith((".nii", ".nii.gz", ".h5", ".hdf5")):
+            u_field, grid = (read_itk_composite(args.warp) if name.endswith((".h5", ".hdf5"))
+                             else read_displacement(args.warp))
             if grid.ndim != reference.ndim:
                 raise UsageError(f"Warp `{args.warp}` is {grid.ndim}-D but --reference `{args.reference}` is {reference.ndim}-D.")
             if grid.same_geometry(reference):
@@ -268,7 +270,7 @@ def _run_image(args: argparse.Namespace) -> int:
                 u = np.stack([resample_image(u_field[..., d], grid, at, order=1) for d in range(grid.ndim)], axis=-1)
         else:
             raise UsageError(f"MODEL_OR_WARP `{args.warp}` must be a model.npz, a displacement field .nii/.nii.gz "
-                             "or an ITK linear transform .tfm/.txt/.mat.")
+                             "or .h5, or an ITK linear transform .tfm/.txt/.mat.")
         points = at + u
         _check_lands_inside(source, points, args)
         if interpolation in ("label", "nearest", "gaussian"):

@@ -47,7 +47,7 @@ import SimpleITK as sitk
 from volreg.grid import Grid, GridLike, as_grid
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
-from volreg.io._guards import check_image_data_files
+from volreg.io._guards import check_image_data_files, check_readable
 from volreg.io.images import _check_input, _check_nifti, _nifti_float_voxels, _sitk_reason
 from volreg.warp.linear import LinearMap
 
@@ -55,6 +55,7 @@ __all__ = [
     "write_displacement",
     "read_displacement",
     "write_itk_composite",
+    "read_itk_composite",
     "write_itk_linear",
     "read_itk_linear",
 ]
@@ -285,6 +286,51 @@ def c_stderr_held():
                 if text:
                     os.write(2, text)
 
+
+def read_itk_composite(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
+    """Read the displacement field of an ITK HDF5 transform file holding one, as
+    :func:`write_itk_composite` writes it (``warp.h5``, ``inverse_warp.h5``).
+
+    Returns
+    -------
+    displacement : (*shape, D) float64 ndarray, LPS mm
+    grid : Grid
+        The field's grid.
+
+    Raises
+    ------
+    VolregIOError
+        One line naming the file: missing, unreadable, or holding anything but one displacement
+        field (ANTs' composite files of an affine map and a warp: apply those with ANTs, or pass
+        the NIfTI field).
+    """
+    p = Path(path)
+    if not p.exists():
+        raise VolregIOError(f"Transform `{p}` does not exist.")
+    if not p.is_file():
+        raise VolregIOError(f"Transform `{p}` is not a regular file.")
+    check_readable(p, "Transform")
+    try:
+        with c_stderr_held():  # HDF5 prints its error stack on a file that is not HDF5
+            transform = sitk.ReadTransform(str(p))
+    except RuntimeError as exc:
+        raise VolregIOError(f"Transform `{p}` could not be read as an ITK HDF5 transform: {_sitk_reason(exc)}.") from None
+    parts = [transform]
+    if type(transform).__name__ == "CompositeTransform":
+        parts = [transform.GetNthTransform(i).Downcast() for i in range(transform.GetNumberOfTransforms())]
+    if len(parts) != 1 or type(parts[0]).__name__ != "DisplacementFieldTransform":
+        kinds = ", ".join(t.GetName() for t in parts) or "no transform"
+        raise VolregIOError(f"Transform `{p}` holds {kinds}; expected one displacement field, as volreg writes "
+                            "warp.h5 (pass the NIfTI field, warp.nii.gz, or apply this file with antsApplyTransforms).")
+    img = parts[0].GetDisplacementField()
+    dim = img.GetDimension()
+    array = sitk.GetArrayFromImage(img)  # (k, j, i, D)
+    u = np.array(array.transpose(*range(dim - 1, -1, -1), dim), dtype=np.float64, order="C")
+    if not np.all(np.isfinite(u)):
+        raise VolregIOError(f"Transform `{p}` holds NaN or Inf; expected finite displacements.")
+    grid = Grid(u.shape[:dim], np.array(img.GetOrigin()), np.array(img.GetSpacing()),
+                np.array(img.GetDirection()).reshape(dim, dim))
+    return u, grid
 
 def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     """Read an ANTs/ITK displacement field.

@@ -646,12 +646,32 @@ def read_grid(path: str | os.PathLike[str]) -> Grid:
         raise VolregIOError(f"Image `{p}` has invalid geometry: {exc}") from exc
 
 
+#: Name endings before ``.nii`` / ``.nii.gz`` that ITK's NIfTI writer takes as the suffix: it writes
+#: ``x.nii.gz`` for ``x.nii.gz.nii.gz`` and an Analyze pair for ``x.img.nii``, and leaves the named
+#: file as it was.
+_NIFTI_MANGLED_STEMS = (".nii", ".nii.gz", ".hdr", ".img", ".hdr.gz", ".img.gz")
+
+
+def _unmangled(stem: str) -> str:
+    """``stem`` without the longest of :data:`_NIFTI_MANGLED_STEMS` it ends with."""
+    for ending in sorted(_NIFTI_MANGLED_STEMS, key=len, reverse=True):
+        if stem.lower().endswith(ending):
+            return stem[: len(stem) - len(ending)]
+    return stem
+
+
 def _check_output_suffix(path: Path, what: str) -> str:
     suffix = _suffix(path)
     if suffix not in WRITE_SUFFIXES:
         raise VolregIOError(
             f"{what} `{path}` has unsupported suffix {suffix!r}; expected one of {', '.join(WRITE_SUFFIXES)} "
             "(detached-header .nhdr/.mhd are read-only)."
+        )
+    stem = path.name[: len(path.name) - len(suffix)]
+    if suffix in (".nii", ".nii.gz") and stem.lower().endswith(_NIFTI_MANGLED_STEMS):
+        raise VolregIOError(
+            f"{what} `{path}` ends in two image suffixes; expected one, such as `{_unmangled(stem)}{suffix}` "
+            "(ITK's NIfTI writer would write a file of another name)."
         )
     return suffix
 
@@ -669,6 +689,8 @@ def _write_sitk(array: np.ndarray, like: Grid | LabelVolume, path: Path, suffix:
             writer.Execute(img)
         except RuntimeError as exc:
             raise VolregIOError(f"{what} `{path}` could not be written: {_sitk_reason(exc)}.") from exc
+        if os.path.getsize(tmp) == 0:  # the writer wrote another file than the one named
+            raise VolregIOError(f"{what} `{path}` could not be written: the image writer left it empty.")
 
 
 def write_labels(volume: LabelVolume, path: str | os.PathLike[str], *, force: bool = False) -> None:
