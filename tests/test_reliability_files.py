@@ -416,6 +416,19 @@ def test_nifti2_is_refused_as_such(tmp_path, capsys):
 
 
 
+def test_labels_scaled_into_fractions_by_the_header_are_named_so(tmp_path):
+    """uint8 labels with scl_slope 0.5 read as halves: the error names the scaling, not float32
+    voxels the file does not hold; a slope of 2 gives whole numbers, read as labels."""
+    cube = _cube().array
+    for slope in (0.5, 2.0):
+        img = nib.Nifti1Image(cube, np.eye(4))
+        img.header.set_slope_inter(slope, 0.0)
+        nib.save(img, str(tmp_path / f"s{slope}.nii.gz"))
+    with pytest.raises(VolregIOError, match=r"stores uint8 voxels that its header scales by scl_slope 0.5 and "
+                                            r"scl_inter 0 into non-integral values \(e.g. 0.5\)"):
+        read_labels(tmp_path / "s0.5.nii.gz")
+    assert set(np.unique(read_labels(tmp_path / "s2.0.nii.gz").array)) == {0, 2 * int(cube.max())}
+
 def test_a_full_disk_is_reported_in_one_line(tmp_path, capsys, monkeypatch):
     """No space left while the outputs are written: one line, exit status 1, nothing left."""
     import errno

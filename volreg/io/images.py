@@ -510,6 +510,24 @@ def _read_sitk(
     return array, origin, spacing, direction
 
 
+def _nifti_scaling(path: Path) -> tuple[str, float, float] | None:
+    """How a NIfTI file scales its stored values: (stored dtype, ``scl_slope``, ``scl_inter``) where
+    those are not 1 and 0; ``None`` for other files or none."""
+    if _suffix(path) not in (".nii", ".nii.gz"):
+        return None
+    try:
+        with warnings.catch_warnings(), _nibabel_quiet():
+            warnings.simplefilter("ignore")
+            img = nib.load(str(path))  # the loaded header's own fields are reset: the proxy holds them
+        header = img.header
+        slope, inter = float(getattr(img.dataobj, "slope", np.nan)), float(getattr(img.dataobj, "inter", np.nan))
+    except Exception:  # the scaling is a hint only
+        return None
+    if (np.isnan(slope) or slope in (0.0, 1.0)) and (np.isnan(inter) or inter == 0.0):
+        return None
+    return str(header.get_data_dtype()), slope, 0.0 if np.isnan(inter) else inter
+
+
 def _as_integer_labels(array: np.ndarray, path: Path, what: str) -> np.ndarray:
     """Cast a float array holding whole numbers to the smallest integer dtype holding them."""
     finite = np.isfinite(array)
@@ -575,7 +593,18 @@ def read_labels(path: str | os.PathLike[str]) -> LabelVolume:
     p = Path(path)
     array, origin, spacing, direction = _read_sitk(p, what)
     if array.dtype.kind == "f":
-        array = _as_integer_labels(array, p, what)
+        try:
+            array = _as_integer_labels(array, p, what)
+        except VolregIOError:
+            scaling = _nifti_scaling(p)
+            finite = array[np.isfinite(array)]
+            odd = finite[finite != np.round(finite)]
+            if scaling is None or not odd.size:
+                raise
+            stored, slope, inter = scaling
+            raise VolregIOError(f"{what} `{p}` stores {stored} voxels that its header scales by scl_slope {slope:g} "
+                                f"and scl_inter {inter:g} into non-integral values (e.g. {float(odd[0]):g}); expected "
+                                "integer labels, stored unscaled (scl_slope 1, scl_inter 0).") from None
     elif array.dtype.kind not in "iub":
         raise VolregIOError(f"{what} `{p}` has {array.dtype} voxels; expected integer labels.")
     try:
