@@ -47,6 +47,7 @@ def test_a_file_overrides_and_keeps_the_rest(tmp_path):
         ("[outputs]\nitk_h5 = 'no'\n", "`outputs.itk_h5` to be bool"),
         ("[outputs]\nnifti = false\n", "Unknown setting `outputs.nifti`"),
         ("[warp]\nmax_iter = 99999999999999999999\n", "`warp.max_iter` to be an integer of at most 64 bits"),
+        ("[warp]\nlambda_loc = 1" + "0" * 400 + "\n", "`warp.lambda_loc` to be a finite number"),
         ("[protocol]\nname = 5\n", "`protocol.name` to be a string"),
         ("alpha = 3.0\n[warp]\npad = 5.0\n", r"Setting `alpha` .* lies outside any section; expected it under \[warp\]"),
         ("name = 'x'\n", r"Setting `name` .* expected it under \[protocol\]"),

@@ -209,10 +209,14 @@ def test_apply_takes_the_h5_fields_register_writes(pair, tmp_path, capsys):
     assert main(["apply", str(tmp_path / "affine.h5"), str(pair / "B.nii.gz"), "--reference", str(pair / "A.nii.gz"),
                  "-o", str(tmp_path / "o.nii.gz")]) == 2
     assert "holds AffineTransform; expected one displacement field" in _error(capsys)
+    (tmp_path / "text.h5").write_text("not HDF5\n")
+    assert main(["apply", str(tmp_path / "text.h5"), str(pair / "B.nii.gz"), "--reference", str(pair / "A.nii.gz"),
+                 "-o", str(tmp_path / "o.nii.gz")]) == 2
+    assert "is not an HDF5 file" in _error(capsys)
     assert not (tmp_path / "o.nii.gz").exists()
 
 
-@pytest.mark.parametrize("name", ["o.nii.gz.nii.gz", "o.img.nii", "o.NII.nii.gz"])
+@pytest.mark.parametrize("name", ["o.nii.gz.nii.gz", "o.img.nii", "o.NII.nii.gz", "o.nia.nii.gz"])
 def test_an_output_name_the_nifti_writer_would_change_is_refused(pair, tmp_path, capsys, name):
     """ITK's NIfTI writer writes o.nii.gz for o.nii.gz.nii.gz (and an Analyze pair for o.img.nii),
     leaving the named file empty: such names are refused, and nothing is written."""

@@ -353,7 +353,11 @@ def settings_from_mapping(cls, values: Mapping[str, Any], where: str):
                 raise ProtocolError(f"Expected `{where}.{key}` to be an integer of at most 64 bits, got {value!r}.")
         elif "float" in want:
             ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-            value = float(value) if ok else value
+            try:
+                value = float(value) if ok else value
+            except OverflowError:  # an integer of hundreds of digits (Python's TOML reader takes any size)
+                raise ProtocolError(f"Expected `{where}.{key}` to be a finite number, got an integer of "
+                                    f"{len(str(abs(value)))} digits.") from None
         else:
             ok = isinstance(value, str)
         if not ok:

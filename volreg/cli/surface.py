@@ -121,7 +121,10 @@ def run(args: argparse.Namespace) -> int:
                         smoothing=args.smoothing,
                         progress=progress,
                     )
-                except SurfaceError as exc:  # a stray speck of a label, common in segmentations
+                except SurfaceError as exc:
+                    if "min_voxels" not in str(exc):
+                        raise
+                    # a stray speck of a label, common in segmentations
                     raise UsageError(f"{str(exc).rstrip('.')} in `{args.image}`, too few for a surface; pass "
                                      "--skip-small to skip such labels, or --labels to choose the labels.") from exc
             for w in caught:

@@ -31,13 +31,10 @@ told what the file is.
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import os
 import re
 import shutil
-import sys
-import tempfile
 from pathlib import Path
 
 import nibabel as nib
@@ -250,41 +247,16 @@ def write_itk_composite(
     composite = sitk.CompositeTransform(d)
     composite.AddTransform(sitk.DisplacementFieldTransform(field))  # takes the field's pixels over
     with atomic_output(p, force=force) as tmp:
+        # On a full disk HDF5 prints its error stack (a hundred lines on stderr) before ITK raises
+        # with "H5Dwrite failed": a disk without room for the field is reported before writing.
+        if shutil.disk_usage(Path(tmp).parent).free < u.nbytes + (1 << 20):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(p))
         try:
-            with c_stderr_held():  # HDF5 prints its error stack (a hundred lines on a full disk) before ITK raises
-                sitk.WriteTransform(composite, str(tmp))
+            sitk.WriteTransform(composite, str(tmp))
         except RuntimeError as exc:
             if shutil.disk_usage(Path(tmp).parent).free < u.nbytes:  # HDF5 says only "H5Dwrite failed"
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(p)) from None
             raise VolregIOError(f"Composite transform `{p}` could not be written: {_sitk_reason(exc)}.") from None
-
-
-@contextlib.contextmanager
-def c_stderr_held():
-    """Hold what C libraries write to the process's standard error (file descriptor 2) during the
-    block in a temporary file, and pass it on afterwards unless the block raised: its error is
-    then reported in one line of its own.
-
-    Python's ``sys.stderr`` is flushed first; other threads' writes in the meantime are held too.
-    """
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as held:
-        os.dup2(held.fileno(), 2)
-        failed = False
-        try:
-            yield
-        except BaseException:
-            failed = True
-            raise
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            if not failed:
-                held.seek(0)
-                text = held.read()
-                if text:
-                    os.write(2, text)
 
 
 def read_itk_composite(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
@@ -311,8 +283,15 @@ def read_itk_composite(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
         raise VolregIOError(f"Transform `{p}` is not a regular file.")
     check_readable(p, "Transform")
     try:
-        with c_stderr_held():  # HDF5 prints its error stack on a file that is not HDF5
-            transform = sitk.ReadTransform(str(p))
+        with open(p, "rb") as fh:
+            signature = fh.read(8)
+    except OSError as exc:
+        raise VolregIOError(f"Transform `{p}` cannot be read: {exc.strerror}.") from None
+    if signature != b"\x89HDF\r\n\x1a\n":  # HDF5 would print its error stack on anything else
+        raise VolregIOError(f"Transform `{p}` is not an HDF5 file; expected an ITK HDF5 transform (.h5), as "
+                            "register writes warp.h5.")
+    try:
+        transform = sitk.ReadTransform(str(p))
     except RuntimeError as exc:
         raise VolregIOError(f"Transform `{p}` could not be read as an ITK HDF5 transform: {_sitk_reason(exc)}.") from None
     parts = [transform]

@@ -678,7 +678,7 @@ def read_grid(path: str | os.PathLike[str]) -> Grid:
 #: Name endings before ``.nii`` / ``.nii.gz`` that ITK's NIfTI writer takes as the suffix: it writes
 #: ``x.nii.gz`` for ``x.nii.gz.nii.gz`` and an Analyze pair for ``x.img.nii``, and leaves the named
 #: file as it was.
-_NIFTI_MANGLED_STEMS = (".nii", ".nii.gz", ".hdr", ".img", ".hdr.gz", ".img.gz")
+_NIFTI_MANGLED_STEMS = (".nii", ".nii.gz", ".nia", ".nia.gz", ".hdr", ".img", ".hdr.gz", ".img.gz")
 
 
 def _unmangled(stem: str) -> str:
@@ -705,6 +705,19 @@ def _check_output_suffix(path: Path, what: str) -> str:
     return suffix
 
 
+def _remove_written_beside(tmp: Path) -> None:
+    """Remove the files a writer made beside the temporary output ``tmp`` under names of its own
+    (ITK's NIfTI writer drops an ending it takes for the suffix): those starting with ``tmp``'s
+    unique prefix (``.tmp-<token>-``, :func:`~volreg.io._atomic.atomic_output`)."""
+    parts = tmp.name.split("-", 2)
+    if len(parts) < 3 or parts[0] != ".tmp":
+        return
+    prefix = f"{parts[0]}-{parts[1]}-"
+    for other in tmp.parent.iterdir():
+        if other.name.startswith(prefix) and other != tmp and other.is_file():
+            other.unlink(missing_ok=True)
+
+
 def _write_sitk(array: np.ndarray, like: Grid | LabelVolume, path: Path, suffix: str, force: bool, what: str) -> None:
     img = sitk.GetImageFromArray(np.ascontiguousarray(array.T), isVector=False)
     img.SetOrigin(tuple(float(v) for v in like.origin))
@@ -719,6 +732,7 @@ def _write_sitk(array: np.ndarray, like: Grid | LabelVolume, path: Path, suffix:
         except RuntimeError as exc:
             raise VolregIOError(f"{what} `{path}` could not be written: {_sitk_reason(exc)}.") from exc
         if os.path.getsize(tmp) == 0:  # the writer wrote another file than the one named
+            _remove_written_beside(Path(tmp))
             raise VolregIOError(f"{what} `{path}` could not be written: the image writer left it empty.")
 
 

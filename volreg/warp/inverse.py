@@ -122,14 +122,13 @@ def invert_points(
         rows where it has none (e.g. :class:`GridStart`); those rows, and every
         row without ``start``, start from ``L^-1(y) - A^-1 u(L^-1(y))``.  A good
         start saves evaluations; the answer is the same to within ``tol``.  The
-        starts are checked first without the Jacobian, which is evaluated only
-        where a Newton step follows: a start within ``tol`` of its target costs
-        one evaluation of ``tau`` alone, one further off one evaluation more
-        than without the check (so a start pays where it is mostly within
-        ``tol``, as :class:`GridStart`'s are at 1e-3 voxel).  A start further off
-        first takes up to :data:`CHORD_STEPS` chord steps (:func:`_chord_steps`:
-        ``tau`` alone, the linear part's matrix for the Jacobian), and Newton's
-        method only where those do not reach ``tol``.
+        starts are checked first without the Jacobian: a start within ``tol`` of
+        its target costs one evaluation of ``tau`` alone (so a start pays where
+        it is mostly within ``tol``, as :class:`GridStart`'s are at 1e-3 voxel).
+        A start further off then takes up to :data:`CHORD_STEPS` chord steps
+        (:func:`_chord_steps`: one evaluation of ``tau`` each, the linear part's
+        matrix for the Jacobian), and the Jacobian and Newton's steps only where
+        those do not reach ``tol``.
     progress : callable, optional
         ``progress("invert warp", done, total)`` after each chunk.
 
