@@ -205,6 +205,29 @@ def test_apply_linear_intensity(known_pair, tmp_path):
     assert 0 <= out.min() and out.max() <= 200.0 + 1e-3
 
 
+def test_apply_nearest_to_an_intensity_image(known_pair, tmp_path):
+    """`--interpolation nearest` on an intensity image (fractions, NaN): every output voxel holds
+    one of the input's values (NaN where the nearest voxel is NaN, 0 outside the image), written as
+    float32, and follows the labels' own resampling."""
+    d, fixed, moving, _ = known_pair
+    values = moving.array.T * 0.37 + 0.5
+    values[0, 0, 0] = np.nan
+    sitk_img = sitk.GetImageFromArray(values.astype(np.float32).copy())
+    sitk_img.SetSpacing(tuple(moving.spacing))
+    sitk_img.SetOrigin(tuple(moving.origin))
+    sitk.WriteImage(sitk_img, str(tmp_path / "intensity.nii.gz"))
+    assert run(["apply", d / "out" / "model.npz", tmp_path / "intensity.nii.gz", "--reference", d / "fixed.nii.gz",
+                "-o", tmp_path / "nn.nii.gz", "--interpolation", "nearest"]) == 0
+    img = nib.load(tmp_path / "nn.nii.gz")
+    out = np.asarray(img.dataobj)
+    assert out.dtype == np.float32 and out.shape == fixed.shape
+    allowed = np.append(np.unique(values[np.isfinite(values)].astype(np.float32)), 0.0)  # 0 outside the image
+    assert np.all(np.isin(out[np.isfinite(out)], allowed))
+    labels = read_labels(d / "out" / "warped.nii.gz").array  # the same map, by nearest neighbour here
+    inside = np.isfinite(out) & (out != 0)
+    assert inside.mean() > 0.5
+    assert np.mean(np.isclose(out[inside], labels[inside] * np.float32(0.37) + np.float32(0.5))) > 0.97
+
 def test_identity_registration(tmp_path, capsys):
     """Registering a volume to itself: labels bit-identical, |u| <= 0.01 voxel."""
     vol = blob_volume()

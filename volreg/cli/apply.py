@@ -236,11 +236,16 @@ def _run_image(args: argparse.Namespace) -> int:
     interpolation = args.interpolation or "label"
     start = time.perf_counter()
     reference = read_grid(args.reference)
-    if interpolation in ("label", "nearest", "gaussian"):
+    as_labels = interpolation in ("label", "nearest", "gaussian")
+    if interpolation == "nearest":  # labels, or intensities (NaN, fractions) read as they are
+        array, origin, spacing, direction = read_image(args.image)
+        as_labels = bool(np.all(np.isfinite(array)) and np.all(array == np.round(array)))
+    if as_labels:
         image = read_labels(args.image)
         source = image
     else:
-        array, origin, spacing, direction = read_image(args.image)
+        if interpolation != "nearest":
+            array, origin, spacing, direction = read_image(args.image)
         source = Grid(array.shape[: len(spacing)], origin, spacing, direction)
     if source.ndim != reference.ndim:
         raise UsageError(f"INPUT `{args.image}` is {source.ndim}-D but --reference `{args.reference}` is "
@@ -273,11 +278,12 @@ def _run_image(args: argparse.Namespace) -> int:
                              "or .h5, or an ITK linear transform .tfm/.txt/.mat.")
         points = at + u
         _check_lands_inside(source, points, args)
-        if interpolation in ("label", "nearest", "gaussian"):
+        if as_labels:
             out = resample_labels(image, points, method=interpolation, progress=progress)
             write_labels(reference.with_array(out.astype(image.array.dtype, copy=False)), args.output, force=args.force)
         else:
-            values = resample_image(array, Grid(array.shape, origin, spacing, direction), points, order=1 if interpolation == "linear" else 3)
+            order = {"nearest": 0, "linear": 1}.get(interpolation, 3)
+            values = resample_image(array, Grid(array.shape, origin, spacing, direction), points, order=order)
             write_scalar(values, reference, args.output, force=args.force)
     print(f"{PROG} apply: {args.image} -> {args.output} ({interpolation}) in {time.perf_counter() - start:.1f} s")
     return 0
