@@ -63,6 +63,31 @@ def test_outputs(pair):
     assert report["target_diameter_mm"] == pytest.approx(np.linalg.norm(np.ptp(TRUTH(v), axis=0)), rel=1e-6)
 
 
+def test_a_shifted_target_is_reached_through_the_centroids(pair, tmp_path):
+    """The target moved 12 mm (30 % of the diameter) on top of the known warp: the warp starts
+    from the centroids' translation (report.json `translation_mm`) and finds the known partners
+    as without the shift, within 1 % of the diameter. A cap cut from the source, lying in place
+    on the target, is not moved to the target's centroid (one surface a part of the other)."""
+    d, v, faces = pair
+    shift = np.array([12.0, 0.0, 0.0])
+    tgt = pv.read(d / "tgt.vtk")
+    tgt.points = np.array(tgt.points) + shift
+    tgt.save(tmp_path / "shifted.vtk")
+    assert run(["register-surfaces", d / "src.vtk", tmp_path / "shifted.vtk", "-o", tmp_path / "out", "--protocol",
+                d / "p.toml", "--quiet"]) == 0
+    warp = KernelWarp.load(tmp_path / "out" / "model.npz")
+    err = np.linalg.norm(warp(v) - (TRUTH(v) + shift), axis=1)
+    assert err.mean() <= 0.01 * DIAMETER, err.mean()
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["translation_mm"] == pytest.approx(list(warp.linear.translation))
+    assert abs(report["translation_mm"][0] - 12.0) < 1.5
+    cap = pv.read(d / "src.vtk").clip(normal="z", origin=(0.0, 0.0, 8.0), invert=False)  # z >= 8 mm
+    assert 0 < cap.n_points < 0.5 * len(v)
+    cap.save(tmp_path / "cap.vtk")
+    assert run(["register-surfaces", tmp_path / "cap.vtk", d / "tgt.vtk", "-o", tmp_path / "cap_out", "--protocol",
+                d / "p.toml", "--quiet"]) == 0
+    assert json.loads((tmp_path / "cap_out" / "report.json").read_text())["translation_mm"] == [0.0, 0.0, 0.0]
+
 def test_landmarks_are_hit(pair, tmp_path):
     """With landmarks (lambda_p = 1e6) the training landmarks land within 0.05 % of the diameter."""
     d, v, _ = pair

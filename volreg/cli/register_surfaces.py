@@ -75,8 +75,8 @@ def run(args: argparse.Namespace) -> int:
         closest, distance, _ = closest_points(warped, target.vertices, target.triangles)
         target_diameter = diameter(target.vertices)
         late = review_surface_distance(distance, target_diameter, limits,
-                                       hint="Check that SOURCE and TARGET are in the same frame and unit, and roughly aligned "
-                                            "(surfaces get no linear stage).")
+                                       hint="Check that SOURCE and TARGET are in the same frame and unit, and turned alike "
+                                            "(surfaces are aligned by their centroids only).")
         _warn_findings("register-surfaces", late)
         findings += late
         report = {
@@ -92,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
             "distance_to_target_mm": {"mean": float(distance.mean()), "median": float(np.median(distance)),
                                       "p95": float(np.percentile(distance, 95)), "max": float(distance.max())},
             "target_diameter_mm": target_diameter,
+            # the centroids' translation the warp starts from (register_surfaces' align_centroids), or zeros
+            "translation_mm": [float(v) for v in warp.linear.translation],
             "source_diameter_mm": diameter(source.vertices),
             "review": {"plausible": not findings, "findings": [f.to_dict() for f in findings],
                        "limits": asdict(limits)},
