@@ -151,6 +151,18 @@ def test_consistency_pairs(cohort, tmp_path):
     reviews = [d["review"] for d in json.loads((pair / "consistency.json").read_text())["directions"].values()]
     assert len(reviews) == 2
     assert (row["review"] == "ok") == all(r["plausible"] for r in reviews)
+    # the larger of the two directions' folded fractions
+    folded = [d["folded_fraction"] for d in json.loads((pair / "consistency.json").read_text())["directions"].values()]
+    assert float(row["folded_fraction"]) == pytest.approx(max(folded))
+
+
+def test_the_review_cell_names_the_direction_of_each_finding():
+    from volreg.cli.batch import _review_cell
+
+    found = {"findings": [{"message": "mean Dice 0.00"}]}
+    assert _review_cell({"forward": {"findings": []}, "backward": found}) == "backward: mean Dice 0.00"
+    assert _review_cell({"": found}) == "mean Dice 0.00"
+    assert _review_cell({"forward": {"findings": []}, "backward": {"findings": []}}) == "ok"
 
 
 def test_an_interrupt_waits_for_worker_processes_being_launched(monkeypatch):

@@ -228,14 +228,16 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
                 inputs = {"A": {"path": str(fpath), "sha256": sha[0]}, "B": {"path": str(mpath), "sha256": sha[1]}}
                 rep = write_consistency_test(a, b, out, protocol=proto, force=True, inputs=inputs, progress=progress)
                 fwd = rep["directions"]["forward"]["mean_dice"]
+                directions = rep["directions"]
                 row.update(mean_dice_before=fwd["before"], mean_dice_after=fwd["after"],
                            consistency_mean_mm=rep["region"]["mean_mm"], consistency_p95_mm=rep["region"]["p95_mm"],
-                           review=_review_cell([d["review"] for d in rep["directions"].values()]))
+                           folded_fraction=max(d["folded_fraction"] for d in directions.values()),
+                           review=_review_cell({name: d["review"] for name, d in directions.items()}))
             else:
                 inputs = {"fixed": {"path": str(fpath), "sha256": sha[0]}, "moving": {"path": str(mpath), "sha256": sha[1]}}
                 rep = write_registration(a, b, out, protocol=proto, force=True, inputs=inputs, progress=progress)
                 row.update(mean_dice_before=rep["mean_dice"]["before"], mean_dice_after=rep["mean_dice"]["after"],
-                           folded_fraction=rep["jacobian"]["folded_fraction"], review=_review_cell([rep["review"]]))
+                           folded_fraction=rep["jacobian"]["folded_fraction"], review=_review_cell({"": rep["review"]}))
         row.update(status="done", error="", seconds=time.perf_counter() - start, fixed_sha256=sha[0], moving_sha256=sha[1],
                    settings_sha256=fingerprint)
         write_json({k: v for k, v in row.items() if k != "redone"}, out / "batch_row.json", force=True)
@@ -244,9 +246,13 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
     return row
 
 
-def _review_cell(reviews: list[dict]) -> str:
-    """The batch.csv cell of a pair's plausibility reviews: "ok", or their findings' messages joined by " | "."""
-    messages = [f["message"] for review in reviews for f in review.get("findings", [])]
+def _review_cell(reviews: dict[str, dict]) -> str:
+    """The batch.csv cell of a pair's plausibility reviews (by direction: "forward", "backward";
+    one, unnamed, for a registration): "ok", or their findings' messages joined by " | ", each
+    after its direction's name where there are two."""
+    named = len(reviews) > 1
+    messages = [f"{name}: {f['message']}" if named else f["message"]
+                for name, review in reviews.items() for f in review.get("findings", [])]
     return " | ".join(messages) if messages else "ok"
 
 

@@ -350,7 +350,7 @@ def write_consistency_test(
                                       inputs=inputs, progress=progress, on_fit=on_fit)
             forward, backward = both.forward.warp, both.backward.warp
             directions = {name: {"outdir": str(outdir / name), "mean_dice": rep["mean_dice"], "seconds": rep["seconds"],
-                                 "review": rep["review"]}
+                                 "folded_fraction": rep["jacobian"]["folded_fraction"], "review": rep["review"]}
                           for name, rep in both.reports.items()}
         figures, error = consistency_test(a, b, forward, backward, progress=progress)
         report = {
