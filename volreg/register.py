@@ -119,7 +119,11 @@ def register_surfaces(
     if len(sources) != len(targets):
         raise ValueError(f"Expected as many `target` objects as `source` objects, got {len(targets)} and {len(sources)}.")
     data = [_surface_points(x) for x in sources + targets]
-    points = np.concatenate([d.points if isinstance(d, ImplicitSurface) else d[0] for d in data[:len(sources)]])
+
+    def points_of(objects) -> np.ndarray:
+        return np.concatenate([d.points if isinstance(d, ImplicitSurface) else d[0] for d in objects])
+
+    points = points_of(data[:len(sources)])
     # Surfaces given as points are fitted about as finely as the warp's finest level at least
     # (features coarser than a level cannot pin it): down to its width / sqrt(2), so that the
     # halving widths of a target of another size also reach it, but not below 3 vertex spacings
@@ -141,8 +145,7 @@ def register_surfaces(
     fits = list(thread_map(fit, data))  # independent fits: numba releases the GIL
     shift = None
     if align_centroids and len(points):
-        others = np.concatenate([d.points if isinstance(d, ImplicitSurface) else d[0] for d in data[len(sources):]])
-        shift = centroid_shift(points, others)
+        shift = centroid_shift(points, points_of(data[len(sources):]))
     if shift is None:
         pairs = [FeaturePair(f1, f2) for f1, f2 in zip(fits[:len(sources)], fits[len(sources):])]
         return fit_warp(pairs, points, landmarks=landmarks, settings=settings, progress=progress)

@@ -301,15 +301,22 @@ def read_itk_composite(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
         kinds = ", ".join(t.GetName() for t in parts) or "no transform"
         raise VolregIOError(f"Transform `{p}` holds {kinds}; expected one displacement field, as volreg writes "
                             "warp.h5 (pass the NIfTI field, warp.nii.gz, or apply this file with antsApplyTransforms).")
-    img = parts[0].GetDisplacementField()
-    dim = img.GetDimension()
-    array = sitk.GetArrayFromImage(img)  # (k, j, i, D)
-    u = np.array(array.transpose(*range(dim - 1, -1, -1), dim), dtype=np.float64, order="C")
+    u, grid = _field_of_image(parts[0].GetDisplacementField())
     if not np.all(np.isfinite(u)):
         raise VolregIOError(f"Transform `{p}` holds NaN or Inf; expected finite displacements.")
-    grid = Grid(u.shape[:dim], np.array(img.GetOrigin()), np.array(img.GetSpacing()),
+    return u, grid
+
+
+def _field_of_image(img: sitk.Image) -> tuple[np.ndarray, Grid]:
+    """A SimpleITK vector image of D components on a D-D grid as ``(u, grid)``: ``u`` (i, j[, k], D)
+    float64, C order, owning its memory (the image's (k, j, i, D) array in one more copy)."""
+    dim = img.GetDimension()
+    array = sitk.GetArrayFromImage(img)  # (k, j, i, D), a copy
+    u = np.array(array.transpose(*range(dim - 1, -1, -1), dim), dtype=np.float64, order="C")
+    grid = Grid(u.shape[:-1], np.array(img.GetOrigin()), np.array(img.GetSpacing()),
                 np.array(img.GetDirection()).reshape(dim, dim))
     return u, grid
+
 
 def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     """Read an ANTs/ITK displacement field.
@@ -344,9 +351,7 @@ def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
             f"Displacement field `{p}` has {img.GetNumberOfComponentsPerPixel()} components on a {dim}-D grid; "
             "expected a 2-D or 3-D vector image with one component per axis (ANTs/ITK warp)."
         )
-    array = sitk.GetArrayFromImage(img)  # (k, j, i, D), a copy
-    # (i, j, k, D) as float64 in one more copy, C order, owning its memory.
-    u = np.array(array.transpose(*range(dim - 1, -1, -1), dim), dtype=np.float64, order="C")
+    u, grid = _field_of_image(img)
     if nimg is not None:
         # SimpleITK reads NaN and Inf in float NIfTI data as 0 (zero displacement there, silently):
         # the voxels as nibabel reads them, in the same (i, j, k, D) order once the NIfTI's
@@ -354,12 +359,6 @@ def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
         u = _nifti_float_voxels(nimg, u, p, "Displacement field")
     if not np.all(np.isfinite(u)):
         raise VolregIOError(f"Displacement field `{p}` holds NaN or Inf; expected finite displacements in mm.")
-    grid = Grid(
-        u.shape[:-1],
-        np.array(img.GetOrigin()),
-        np.array(img.GetSpacing()),
-        np.array(img.GetDirection()).reshape(dim, dim),
-    )
     return u, grid
 
 

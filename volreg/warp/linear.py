@@ -1152,11 +1152,11 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
     # object (a few thick slices) it can run into a degenerate map the coarse samples favour.
     # The labels' overlap checks it: the chosen start is kept instead of the fitted map where its
     # mean Dice is as high, to KEEP_MARGIN (and above 0: on voxels where neither overlaps a label
-    # the two are not told apart), then the identity instead of that likewise. Two maps at a time, each pair on
-    # the voxels both send into the moving image: all three at once were compared on the voxels
-    # every one of them sends inside, which for images far apart (33 mm on a 40 mm grid) is a
-    # corner far from the labels, where the centroids' translation beat a fit that had found the
-    # 22 degree turn, and the identity one that had found a 45 mm shift.
+    # the two are not told apart), then the identity instead of that likewise. Two maps at a
+    # time, each pair on the voxels both send into the moving image: all three at once were
+    # compared on the voxels every one of them sends inside, which for images far apart (33 mm on
+    # a 40 mm grid) is a corner far from the labels, where the centroids' translation beat a fit
+    # that had found the 22 degree turn, and the identity one that had found a 45 mm shift.
     maps = [("identity", LinearMap.identity(dim)), ("start", chosen_start), ("refined", current)]
     overlap = {}
     pick = len(maps) - 1
