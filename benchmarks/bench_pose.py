@@ -42,7 +42,10 @@ Cases, generated with known answers (seeded):
     only its folds do;
 13. case 7's spheroidal phantom at 3 mm (every third voxel of its 1 mm labels) against its 1 mm labels
     read at 3 mm voxels, turned 40 degrees about (0.2, 1, 0.1) (mostly about its long axis), moved
-    30 mm and deformed by a smooth warp (up to 6 mm).
+    30 mm and deformed by a smooth warp (up to 6 mm);
+14. no motion: case 7's phantom at 1 mm (fixed) against its 1 mm labels read by nearest neighbour at
+    0.8 x 0.8 x 2.5 mm voxels on case 4's oblique grid (moving): the thick slices cut the 2.5 mm grey
+    shell at every angle.
 
 The true pull-back map is tau_true = L o beta: a fixed point x is first moved by the smooth warp beta
 (x + the bumps' displacement, defined about the fixed object; the identity in cases 3 and 5-10), then by
@@ -51,7 +54,7 @@ t: the shift). The moving volume holds, at each voxel centre y of its grid, the 
 labels at tau_true^-1(y) = beta^-1(L^-1(y)) (beta inverted by fixed-point iteration), by nearest
 neighbour: the source labels are the analytic label functions in cases 3-6 and the native frog
 (1 x 1 x 1.5 mm, of which the 3 mm fixed volume is the block mode) in cases 1-2, the 1 mm phantom in
-cases 11-13. The moving grid is the
+cases 11-14. The moving grid is the
 box of the moving object plus a margin, in its own spacing and direction. Volumes are written as NIfTI.
 
 Methods, each a fresh process timed from process start to exit (wall seconds; peak RSS of that process,
@@ -287,7 +290,7 @@ def _small_organ(shape, spacing: float):
 
 
 def make_case(number: int) -> Case:
-    """Build case ``number`` (1-13): fixed and moving volumes, the true map and a description."""
+    """Build case ``number`` (1-14): fixed and moving volumes, the true map and a description."""
     from volreg.grid import Grid
 
     if number in (1, 2):
@@ -383,6 +386,16 @@ def make_case(number: int) -> Case:
         moving = _posed_moving(fixed, truth, lambda p: resample_labels(native, p, method="nearest"), (1.0, 1.0, 1.0))
         title = "brain phantom 2 mm vs 1 mm" if number == 11 else "spheroidal brain phantom 2 mm vs 1 mm"
         return Case(number, title, fixed, moving, truth, "20 deg about (0.4, -0.2, 1), 31 mm, bumps up to 8 mm")
+    if number == 14:
+        from bench_speed import cortex_phantom
+        from volreg.warp.resample import resample_labels
+
+        fine = cortex_phantom(1.0)
+        truth = Truth(Pose(np.eye(3), _centroid(fine), np.zeros(3)), None)
+        moving = _posed_moving(fine, truth, lambda p: resample_labels(fine, p, method="nearest"), (0.8, 0.8, 2.5),
+                               direction=rotation(20, (1.0, 0.3, 0.2)))
+        return Case(14, "brain phantom 1 mm vs 0.8 x 0.8 x 2.5 mm oblique, no motion", fine, moving, truth,
+                    "none (identity); moving direction 20 deg oblique")
     if number == 7:
         from bench_speed import cortex_phantom
         from volreg.grid import LabelVolume
@@ -391,7 +404,7 @@ def make_case(number: int) -> Case:
         coarse = LabelVolume(fine.array[::2, ::2, ::2].copy(), fine.origin, 2 * fine.spacing, fine.direction)
         truth = Truth(Pose(np.eye(3), _centroid(coarse), np.zeros(3)), None)
         return Case(7, "brain phantom 2 mm vs 1 mm, no motion", coarse, fine, truth, "none (identity)")
-    raise ValueError(f"Expected a `case` from 1 to 13, got {number!r}.")
+    raise ValueError(f"Expected a `case` from 1 to 14, got {number!r}.")
 
 
 # ----------------------------------------------------------------------------- running the methods
@@ -478,7 +491,7 @@ def _summary(block, limit: int = 400) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=1, help="runs per case and method (medians are shown)")
-    parser.add_argument("--cases", default="1,2,3,4,5", help="comma-separated subset of 1-13")
+    parser.add_argument("--cases", default="1,2,3,4,5", help="comma-separated subset of 1-14")
     parser.add_argument("--protocol", default=None, help="passed to `volreg register --protocol` (a preset or a TOML file)")
     parser.add_argument("--methods", default=DEFAULT_METHODS,
                         help=f"comma-separated subset of {','.join(REFERENCES + ('volreg',) + PEERS)}")

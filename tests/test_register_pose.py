@@ -206,6 +206,40 @@ def test_the_same_labels_at_two_resolutions_stay_in_place(moving_grid):
     assert after >= before, (before, after)
 
 
+def test_a_brain_sized_label_map_on_thick_oblique_slices_stays_in_place():
+    """No motion: a folded two-label brain-like map (the envelope 156 x 186 x 156 mm, sulci 12 mm
+    deep about 9 mm apart, a grey shell 2.5 mm thick around a white core) at 1 mm against the
+    same map read by nearest neighbour at 0.8 x 0.8 x 2.5 mm on a grid turned 20 degrees, so
+    that the thick slices cut the shell at every angle.  Measured 0.049 mm mean displacement
+    over the labels (p95 0.086 mm), Dice 0.9461 as the identity's."""
+    from scipy import ndimage
+
+    from shapes import folded_blob_inside
+
+    axes = np.array([78.0, 93.0, 78.0])
+    shape = tuple(int(n) for n in 2 * (axes + 6) + 1)
+    grid = volreg.LabelVolume(np.zeros(shape, np.uint8), grid_around((0, 0, 0), shape, (1.0,) * 3), (1.0,) * 3,
+                              np.eye(3))
+    brain = folded_blob_inside(grid.grid_points().reshape(-1, 3), axes=axes, depth=12.0,
+                               wavelength=18.0).reshape(shape)
+    fixed = grid.with_array(np.where(brain, np.where(ndimage.distance_transform_edt(brain) <= 2.5, 1, 2), 0)
+                            .astype(np.uint8))
+    direction, spacing = rotation(20, (1.0, 0.3, 0.2)), (0.8, 0.8, 2.5)
+    shape = (270, 270, 87)
+    moving = volreg.LabelVolume(np.zeros(shape, np.uint8), grid_around((0, 0, 0), shape, spacing, direction),
+                                spacing, direction)
+    moving = moving.with_array(volreg.resample_labels(fixed, moving.grid_points().reshape(-1, 3),
+                                                      method="nearest").reshape(shape))
+    assert np.array_equal(np.unique(moving.array), [0, 1, 2])
+    result = volreg.register_labels(fixed, moving, protocol=volreg.load_protocol("default"))
+    assert result.warp.linear.is_identity and not result.cut_labels["fixed"] and not result.cut_labels["moving"]
+    x = fixed.grid_points()[fixed.array > 0]
+    moved = np.linalg.norm(result.warp(x) - x, axis=1)
+    assert moved.mean() < 0.1, moved.mean()
+    before, after = _mean_dice_identity_and_warped(fixed, moving, result.warp, (1, 2))
+    assert after >= before, (before, after)
+
+
 _ORGAN_AXES = np.array([40.0, 30.0, 25.0])
 
 
