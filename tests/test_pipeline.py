@@ -182,6 +182,9 @@ def test_fold_barrier_on_its_active_set_fits_as_the_barrier_on_every_point(shape
         (WarpSettings(min_width=4.0, sample_scale=2.0), [32, 16, 8, 4], [8, 8, 8, 8]),
         (WarpSettings(min_width=4.0, sample_spacing=1.0), [32, 16, 8, 4], [4, 4, 2, 1]),
         (WarpSettings(), [32, 16, 8, 4], [4, 4, 4, 4]),  # min_width: 1/16 of the diameter
+        # min_width wider than the coarsest level: that level alone, sampled at its own width
+        (WarpSettings(min_width=60.0), [32], [32]),
+        (WarpSettings(min_width=60.0, sample_scale=0.5), [32], [16]),
     ],
 )
 def test_level_schedule(settings, widths, steps):
@@ -191,6 +194,27 @@ def test_level_schedule(settings, widths, steps):
 
     got_widths, got_steps = _level_schedule(64.0, settings.resolved(64.0))
     assert got_widths == widths and got_steps == steps
+
+
+def test_a_min_width_wider_than_the_object_fits_one_level_and_no_samples_are_refused():
+    """min_width 60 mm on a 20 mm circle: one level of half the diameter, fitted (octree boxes
+    of 60 mm held no sample, and the objective divided by their count); a sample spacing that
+    leaves no sample is refused naming it."""
+    from volreg.errors import ProtocolError
+    from volreg.features.implicit import ImplicitSurface
+    from volreg.warp.fit import fit_warp
+    from volreg.warp.objective import FeaturePair
+
+    t = np.linspace(0, 2 * np.pi, 80, endpoint=False)
+    normals = np.c_[np.cos(t), np.sin(t)]
+    f1 = ImplicitSurface(10.0 * normals, normals)
+    f2 = ImplicitSurface(10.5 * normals + [1.0, 0.0], normals)
+    result = fit_warp([FeaturePair(f1, f2)], 10.0 * normals, settings=WarpSettings(min_width=60.0))
+    assert len(result.log) == 1 and result.log[0]["samples"] > 0
+    moved = result.warp(10.0 * normals) - 10.0 * normals
+    assert np.all(np.isfinite(moved)) and moved[:, 0].mean() > 0.1  # towards the shifted circle
+    with pytest.raises(ProtocolError, match="sample_spacing"):
+        fit_warp([FeaturePair(f1, f2)], 10.0 * normals, settings=WarpSettings(min_width=4.0, sample_spacing=500.0))
 
 
 def test_fold_guard_shrinks_a_folding_level_by_powers_of_0_7():

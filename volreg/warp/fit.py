@@ -358,10 +358,12 @@ def _level_schedule(diameter: float, settings: WarpSettings) -> tuple[list[float
         Per level, the octree size of the locational-cost samples (see
         ``WarpSettings.sample_spacing``).
     """
-    min_width = settings.min_width
     widths = [diameter / 2]
-    while widths[-1] / 2 >= min_width * (1 - 1e-9):
+    while widths[-1] / 2 >= settings.min_width * (1 - 1e-9):
         widths.append(widths[-1] / 2)
+    # A min_width wider than the coarsest level leaves that level alone: its samples as if
+    # min_width were its width (octree boxes wider than the object would hold no sample).
+    min_width = min(settings.min_width, widths[-1])
     spacing = settings.sample_scale * min_width if settings.sample_spacing is None else settings.sample_spacing
     # Samples of the locational cost: the finest level's boxes at every level (the paper
     # samples each level at its own boxes, which leaves a coarse level a few dozen points
@@ -419,6 +421,11 @@ class _SampleSet:
         s = inputs.settings
         dim = inputs.points.shape[1]
         samples = octree_sample(inputs.points, s.pad, step, fraction=s.fraction, tree=inputs.tree)
+        if len(samples) == 0:
+            raise ProtocolError(
+                f"The warp settings sample_spacing {step:g} mm, fraction {s.fraction:g} and pad {s.pad:g} mm give no "
+                f"sample of the locational cost around objects {np.round(np.ptp(inputs.points, axis=0), 1).tolist()} "
+                "mm across; expected a smaller `sample_spacing` (mm) or `sample_scale`.")
         # Fold-check points: the samples and their octree children, a lattice of at most half
         # min_width; samples that dense (sample_scale <= 0.5) are checked as they are.
         check = samples if step <= 0.5 * s.min_width * (1 + 1e-9) else _with_children(samples)
