@@ -949,6 +949,25 @@ def test_unplaced_slicer_control_points_are_not_landmarks(tmp_path):
         read_landmarks(none)
 
 
+@pytest.mark.parametrize("content, part", [
+    ([[-16, -16, 16]], "holds list data at the top"),
+    ({"markups": {"controlPoints": []}}, "has a `markups` dict, not a list"),
+    ({"markups": [[-16, -16, 16]]}, "markup 1 is not an object"),
+    ({"markups": [{"controlPoints": {"position": [1, 2, 3]}}]}, "markup 1 is not an object"),
+    ({"markups": [{"controlPoints": [{"position": [1, 2, 3]}, [-16, -16, 16]]}]}, "control point 2 is not an object"),
+    ({"markups": [{"controlPoints": [{"label": "F-1"}]}]}, "control point 1 is not an object with a `position`"),
+])
+def test_markups_of_the_wrong_shape_are_refused_in_one_line(tmp_path, content, part):
+    """Valid JSON that is not a Slicer markups file: a line naming the file and the part."""
+    from volreg.io.landmarks import read_landmarks
+
+    path = tmp_path / "bad.mrk.json"
+    path.write_text(json.dumps(content))
+    with pytest.raises(VolregIOError, match=r"bad\.mrk\.json") as info:
+        read_landmarks(path)
+    assert part in str(info.value) and "\n" not in str(info.value)
+
+
 def test_landmark_pairs_with_an_unplaced_point_are_left_out(tmp_path, capsys):
     import argparse
 

@@ -74,14 +74,27 @@ def _read_mrk_json(path: Path, text: str) -> np.ndarray:
     """The control points, with a row of NaN for each one not placed (``positionStatus``
     ``"undefined"``): their order pairs them with another file's."""
     data = json.loads(text)
+    expected = "expected a Slicer markups file: an object whose `markups` list holds objects with `controlPoints`"
+    if not isinstance(data, dict):
+        raise VolregIOError(f"Landmark file `{path}` holds {type(data).__name__} data at the top; {expected}.")
+    if not isinstance(data.get("markups", []), list):
+        raise VolregIOError(f"Landmark file `{path}` has a `markups` {type(data['markups']).__name__}, not a list; "
+                            f"{expected}.")
     points = []
-    for markup in data.get("markups", []):
+    for number, markup in enumerate(data.get("markups", []), start=1):
+        if not isinstance(markup, dict) or not isinstance(markup.get("controlPoints", []), list):
+            raise VolregIOError(f"Landmark file `{path}` markup {number} is not an object with a `controlPoints` list; "
+                                f"{expected}.")
         ras = _frame(markup.get("coordinateSystem", "LPS"), path)
         scale = _units_mm(markup.get("coordinateUnits", "mm"), path)
         for cp in markup.get("controlPoints", []):
-            if str(cp.get("positionStatus", "defined")).lower() in _UNPLACED:
+            unplaced = isinstance(cp, dict) and str(cp.get("positionStatus", "defined")).lower() in _UNPLACED
+            if unplaced:
                 points.append(np.full(3, np.nan))
                 continue
+            if not isinstance(cp, dict) or "position" not in cp:
+                raise VolregIOError(f"Landmark file `{path}` control point {len(points) + 1} is not an object with a "
+                                    f"`position`; {expected}.")
             p = np.asarray(cp["position"], dtype=float) * scale
             if p.shape != (3,):
                 raise VolregIOError(f"Landmark file `{path}` control point {len(points) + 1} has position "
