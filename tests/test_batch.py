@@ -249,3 +249,35 @@ def test_a_pair_redone_another_way_keeps_no_earlier_result(cohort, tmp_path):
     assert (pair / "warp.nii.gz").is_file() and (pair / "batch_row.json").is_file()
     assert not (pair / "consistency.json").exists() and not (pair / "forward").exists()
     assert not (pair / "backward").exists()
+
+
+@pytest.mark.parametrize("address", ["scheduler-host", "tcp://scheduler-host", "tcp://:8786", "tcp://host:99999"])
+def test_a_scheduler_address_without_host_or_port_is_refused_before_any_folder(tmp_path, capsys, address):
+    (tmp_path / "m.csv").write_text("id,path\na,a.nii.gz\nb,b.nii.gz\n")
+    for name in ("a", "b"):
+        write_labels(blob_volume(shape=(8, 8, 8)), tmp_path / f"{name}.nii.gz")
+    out = tmp_path / "new" / "out"
+    assert main(["batch", str(tmp_path / "m.csv"), "-o", str(out), "--scheduler", address, "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and f"--scheduler `{address}`" in err and "tcp://HOST:8786" in err
+    assert not (tmp_path / "new").exists()
+
+
+def test_an_unreachable_scheduler_is_one_line_and_leaves_no_folder(tmp_path, capsys, monkeypatch):
+    import socket
+
+    from volreg.cli import batch
+
+    monkeypatch.setattr(batch, "SCHEDULER_TIMEOUT_S", 2.0)
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    (tmp_path / "m.csv").write_text("id,path\na,a.nii.gz\nb,b.nii.gz\n")
+    for name in ("a", "b"):
+        write_labels(blob_volume(shape=(8, 8, 8)), tmp_path / f"{name}.nii.gz")
+    out = tmp_path / "new" / "out"
+    assert main(["batch", str(tmp_path / "m.csv"), "-o", str(out), "--scheduler", f"tcp://127.0.0.1:{port}",
+                 "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "no Dask scheduler answered within 2 s" in err
+    assert not (tmp_path / "new").exists()

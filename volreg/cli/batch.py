@@ -11,6 +11,7 @@ pair is recorded with its error and does not stop the others; Dask retries the t
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import hashlib
 import io
@@ -346,6 +347,32 @@ def _await_worker_launches(wait_s: float = 5.0) -> None:
         time.sleep(0.02)
 
 
+#: Seconds to wait for the Dask scheduler named by ``--scheduler`` to answer.
+SCHEDULER_TIMEOUT_S = 30.0
+
+
+def _check_scheduler_address(address: str) -> None:
+    """Refuse a ``--scheduler`` that is not a Dask address (``tcp://HOST:PORT``, ``HOST:PORT``,
+    ``tls://...``, ``inproc://...``) before any folder is made.
+
+    Raises
+    ------
+    UsageError
+        Naming the address and the form expected.
+    """
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address, strict=False)
+        if scheme in ("tcp", "tls"):
+            host, port = parse_host_port(location)
+            if not host or not 0 < int(port) < 65536:
+                raise ValueError("no host or port out of range")
+    except (ValueError, TypeError) as exc:
+        raise UsageError(f"--scheduler `{address}`: {' '.join(str(exc).split())}; expected a Dask scheduler address "
+                         "such as tcp://HOST:8786.") from None
+
+
 def run(args: argparse.Namespace) -> int:
     """``volreg batch MANIFEST -o OUTDIR``: every pair as a Dask task; exit status 1 if any failed."""
     try:
@@ -371,14 +398,26 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"MANIFEST `{args.manifest}` gives no pair to register; expected at least two subjects "
                          "(or --template).")
     folders = pair_folders(pairs, args.manifest)
+    if args.scheduler:
+        _check_scheduler_address(args.scheduler)
     outdir: Path = args.output
-    make_directory(outdir)
+    created = make_directory(outdir)
     rows: list[dict] = []
     client = cluster = None
     try:
         # inside the try: an interrupt while the cluster starts is reported like any other
         if args.scheduler:
-            client = Client(args.scheduler)
+            try:
+                client = Client(args.scheduler, timeout=SCHEDULER_TIMEOUT_S)
+            except OSError as exc:  # refused, unreachable or timed out
+                for folder in reversed(created):  # nothing was written: the folders made for it go
+                    with contextlib.suppress(OSError):
+                        folder.rmdir()
+                reason = " ".join(str(exc).split()) or type(exc).__name__
+                print(f"{PROG} batch: error: --scheduler `{args.scheduler}`: no Dask scheduler answered within "
+                      f"{SCHEDULER_TIMEOUT_S:g} s ({reason[:200]}); expected the address of a running scheduler.",
+                      file=sys.stderr)
+                return 1
         else:
             cluster = LocalCluster(n_workers=args.workers or 2, threads_per_worker=1, processes=True,
                                    dashboard_address=":0")
