@@ -510,3 +510,22 @@ def test_vtk_suffixes_cover_every_format_read_through_pyvista():
 
     through_pyvista = set(MESH_SUFFIXES) | {s for s in MESH_FORMATS if s != ".gii"} | {".vti"} & set(READ_SUFFIXES)
     assert through_pyvista <= set(VTK_SUFFIXES)
+
+
+@pytest.mark.parametrize("closed", [(2,), (1, 2)])
+def test_register_with_its_output_streams_closed_writes_every_output(disc2d, tmp_path, closed):
+    """`volreg register A B -o OUT 2>&-` (and `>&- 2>&-`): Python starts with no stream there, and
+    the first progress line ended the command with exit status 1 and no output."""
+    out = tmp_path / "out"
+
+    def close():
+        for fd in closed:
+            os.close(fd)
+
+    proc = subprocess.run([sys.executable, "-m", "volreg", "register", str(disc2d), str(disc2d), "-o", str(out),
+                           "--protocol", "fast"], preexec_fn=close, cwd=tmp_path, timeout=300,
+                          **({} if 1 in closed else {"stdout": subprocess.PIPE}))
+    assert proc.returncode == 0
+    assert {"warp.nii.gz", "inverse_warp.nii.gz", "report.json", "model.npz"} <= _files(out)
+    if 1 not in closed:
+        assert b"mean Dice" in proc.stdout

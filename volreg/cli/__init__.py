@@ -174,6 +174,16 @@ def _unraisable_hook(previous):
     return hook
 
 
+def _open_closed_streams() -> None:
+    """Standard output or error closed when the command started (``2>&-``): Python then has no
+    stream there, and the first progress line or warning would end the command.  Such a stream
+    writes to the null device instead (which takes the closed descriptor, so that libraries
+    writing to it directly lose their messages as well)."""
+    for name in ("stdout", "stderr"):
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(os.devnull, "w", encoding="utf-8"))  # noqa: SIM115 (lives with the process)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``volreg`` command line.
 
@@ -197,6 +207,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         Anything other than volreg's input errors (:class:`~volreg.errors.VolregError` and
         its subclasses) is a bug and propagates with its traceback.
     """
+    _open_closed_streams()
     parser = build_parser()
     try:
         args = parser.parse_args(None if argv is None else list(argv))
