@@ -247,6 +247,42 @@ def test_mesh_moves_its_vertices_and_keeps_its_faces(saved, tmp_path, suffix):
         assert stale.min() < np.cos(np.radians(5.0))  # the warp turns the surface by more than that
 
 
+def test_ply_keeps_its_vertex_colours_and_texture_coordinates(saved, tmp_path, capsys):
+    d, warp = saved
+    sphere = smooth_sphere()
+    colours = np.random.default_rng(5).integers(0, 256, (sphere.n_points, 3)).astype(np.uint8)
+    sphere.point_data["RGB"] = colours
+    sphere.active_texture_coordinates = np.asarray(sphere.points[:, :2] / 60.0, np.float32)
+    sphere.save(str(tmp_path / "in.ply"), texture="RGB")
+    source = pv.read(str(tmp_path / "in.ply"))
+    assert {"RGB", "TCoords"} <= set(source.point_data.keys())  # what a coloured PLY reads as
+    assert apply(d / "model.npz", tmp_path / "in.ply", "--from", "fixed", "-o", tmp_path / "out.ply") == 0
+    assert "warning" not in capsys.readouterr().err
+    out = pv.read(str(tmp_path / "out.ply"))
+    assert np.array_equal(np.asarray(out.point_data["RGB"]), colours)
+    assert np.array_equal(np.asarray(out.point_data["TCoords"]), np.asarray(source.point_data["TCoords"]))
+    assert np.abs(np.asarray(out.points) - warp(np.asarray(source.points, float))).max() <= 1e-4
+
+
+def test_ply_colours_it_cannot_hold_are_named_in_a_warning(saved, tmp_path, capsys):
+    """Vertex colours with alpha and face colours without: a PLY writer holds one colour array by name."""
+    d, _ = saved
+    points = [[20, 20, 20], [40, 20, 20], [20, 40, 20], [20, 20, 40]]
+    rows = [f"{x} {y} {z} 10 20 30 40" for x, y, z in points]
+    (tmp_path / "in.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nproperty uchar alpha\n"
+        "element face 2\nproperty list uchar int vertex_indices\nproperty uchar red\nproperty uchar green\n"
+        "property uchar blue\nend_header\n" + "\n".join(rows) + "\n3 0 1 2 200 0 0\n3 0 1 3 0 200 0\n")
+    source = pv.read(str(tmp_path / "in.ply"))
+    assert "RGBA" in source.point_data.keys() and "RGB" in source.cell_data.keys()
+    assert apply(d / "model.npz", tmp_path / "in.ply", "--from", "fixed", "-o", tmp_path / "out.ply") == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert len(lines) == 1 and "cell array `RGB`" in lines[0] and "in.ply" in lines[0], lines
+    out = pv.read(str(tmp_path / "out.ply"))
+    assert np.array_equal(np.asarray(out.point_data["RGBA"]), np.tile([10, 20, 30, 40], (4, 1)))
+
+
 def test_quad_mesh_keeps_quads(saved, tmp_path):
     d, warp = saved
     pv.Plane(center=(30, 30, 30), i_resolution=5, j_resolution=4, i_size=20, j_size=20).save(str(tmp_path / "q.vtk"))

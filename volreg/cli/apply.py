@@ -215,6 +215,10 @@ def _run_points(args: argparse.Namespace, kind: str) -> int:
         normals *= np.divide(length, new, out=np.zeros_like(length), where=new > 0)[:, None]
     for item in data.dropped:
         _warn("apply", f"{item} of `{args.image}` are not written (they would no longer fit the moved mesh).")
+    if data.unwritable:
+        _warn("apply", f"{', '.join(data.unwritable)} of `{args.image}` left out of `{args.output}`: a "
+              f"{args.output.suffix.lower()} file holds normals, texture coordinates and one colour array only "
+              "(.vtk and .vtp keep every array).")
     write_point_set(data, out, args.output, normals=normals, force=args.force)
     print(f"{PROG} apply: {args.image} ({len(placed)} {what}, {_DIRECTIONS[args.space]}) -> {args.output} "
           f"in {time.perf_counter() - start:.1f} s")

@@ -16,7 +16,10 @@ everywhere in volreg) together with what the file holds besides;
 - ``.vtk``, ``.vtp``, ``.ply``, ``.stl``, ``.obj`` (pyvista): the dataset kept -- cells,
   point and cell data, field data -- with its points replaced; the point normals
   (the active normals, or an array named ``Normals``) are offered for updating, and
-  cell-data normals, which would no longer hold, are removed (see :attr:`PointSetFile.dropped`);
+  cell-data normals, which would no longer hold, are removed (see :attr:`PointSetFile.dropped`).
+  A PLY file holds normals, texture coordinates and one colour array (8-bit RGB or RGBA,
+  over the vertices, the faces or both under one name); those are written back, and any
+  other array is named in :attr:`PointSetFile.unwritable`;
 - GIFTI ``.gii``: every data array and all metadata kept, the ``POINTSET`` array
   replaced (read and written as RAS, like :func:`volreg.io.meshes.read_surface`).
 
@@ -91,6 +94,10 @@ class PointSetFile:
     dropped : list of str
         What :func:`write_point_set` leaves out because it would no longer hold
         (cell-data normals of a mesh), one phrase each.
+    unwritable : list of str
+        What :func:`write_point_set` leaves out because the file's format cannot
+        hold it (arrays of a PLY mesh besides its normals, texture coordinates and
+        one colour array), one phrase each.
     """
 
     path: Path
@@ -98,8 +105,10 @@ class PointSetFile:
     points: np.ndarray
     normals: np.ndarray | None = None
     dropped: list = field(default_factory=list)
+    unwritable: list = field(default_factory=list)
     _content: Any = None
     _normal_names: tuple = ()
+    _colours: str | None = None
 
 
 def _read_pyvista(p: Path) -> PointSetFile:
@@ -122,9 +131,40 @@ def _read_pyvista(p: Path) -> PointSetFile:
         names = []
     dropped = []
     cell_active = mesh.cell_data.active_normals_name if hasattr(mesh.cell_data, "active_normals_name") else None
-    for name in {n for n in (cell_active, "Normals") if n and n in mesh.cell_data}:
+    cell_normals = {n for n in (cell_active, "Normals") if n and n in mesh.cell_data}
+    for name in sorted(cell_normals):
         dropped.append(f"cell normals `{name}`")
-    return PointSetFile(p, "mesh", points, normals, dropped, mesh, tuple(names))
+    colours, unwritable = None, []
+    if p.suffix.lower() == ".ply":
+        colours, unwritable = _ply_contents(mesh, names[:1], cell_normals)
+    return PointSetFile(p, "mesh", points, normals, dropped, unwritable, _content=mesh, _normal_names=tuple(names),
+                        _colours=colours)
+
+
+def _is_colour(values) -> bool:
+    """Whether ``values`` can be a PLY colour array: 8-bit unsigned, 3 (RGB) or 4 (RGBA) components."""
+    a = np.asarray(values)
+    return a.dtype == np.uint8 and a.ndim == 2 and a.shape[1] in (3, 4)
+
+
+def _ply_contents(mesh, normals: list, cell_normals: set) -> tuple[str | None, list]:
+    """The colour array a PLY writer is to write (by name), and the arrays of ``mesh`` it cannot hold.
+
+    VTK's PLY writer holds the active point normals, the active texture coordinates and one
+    colour array, named when writing: written as vertex colours if it is a point array and as
+    face colours if it is a cell array (or both, under one name).  ``RGB`` / ``RGBA``, the
+    names VTK's PLY reader gives colours, come first.
+    """
+    point = [n for n in mesh.point_data.keys() if _is_colour(mesh.point_data[n])]
+    cell = [n for n in mesh.cell_data.keys() if _is_colour(mesh.cell_data[n])]
+    order = sorted(set(point + cell), key=lambda n: (n not in ("RGB", "RGBA"), n not in point, n))
+    colours = order[0] if order else None
+    tcoords = getattr(mesh.point_data, "active_texture_coordinates_name", None)
+    held = {colours, tcoords, *normals}
+    unwritable = [f"point array `{n}`" for n in mesh.point_data.keys() if n not in held]
+    unwritable += [f"cell array `{n}`" for n in mesh.cell_data.keys() if n != colours and n not in cell_normals]
+    unwritable += [f"field array `{n}`" for n in mesh.field_data.keys()]
+    return colours, unwritable
 
 
 def _read_gifti(p: Path) -> PointSetFile:
@@ -140,7 +180,7 @@ def _read_gifti(p: Path) -> PointSetFile:
     data = np.asarray(arrays[0].data, dtype=float)
     if data.ndim != 2 or data.shape[1] != 3 or len(data) == 0:
         raise VolregIOError(f"Mesh `{p}` has a POINTSET of shape {data.shape}; expected (N, 3) vertices.")
-    return PointSetFile(p, "gifti", data * _FLIP, None, [], (img, arrays[0]))
+    return PointSetFile(p, "gifti", data * _FLIP, None, [], _content=(img, arrays[0]))
 
 
 def _csv_rows(text: str) -> list[list[str]]:
@@ -194,7 +234,7 @@ def read_point_set(path: str | os.PathLike[str]) -> PointSetFile:
         points = read_landmarks(p, keep_unplaced=True)
         text = p.read_text(encoding="utf-8")
         content = json.loads(text) if kind == "mrk.json" else text
-        return PointSetFile(p, kind, points, None, [], content)
+        return PointSetFile(p, kind, points, None, [], _content=content)
     out = _read_gifti(p) if kind == "gifti" else _read_pyvista(p)
     if not np.all(np.isfinite(out.points)):
         bad = int((~np.isfinite(out.points)).any(axis=1).sum())
@@ -324,7 +364,8 @@ def write_point_set(data: PointSetFile, points: np.ndarray, path: str | os.PathL
         try:
             with quiet_vtk():
                 if isinstance(mesh, pv.PolyData):  # the normals as given, not recomputed (PLY, STL)
-                    mesh.save(tmp, binary=True, recompute_normals=False)
+                    colours = {"texture": data._colours} if data._colours else {}  # PLY only
+                    mesh.save(tmp, binary=True, recompute_normals=False, **colours)
                 else:
                     mesh.save(tmp, binary=True)
         except Exception as exc:  # VTK writers raise assorted types
