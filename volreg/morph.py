@@ -10,14 +10,18 @@ turning and stretching from the identity to ``L`` (:func:`morph_vertices`).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import pyvista as pv
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from volreg.features.implicit import estimate_normals
 from volreg.warp.linear import LinearMap
 
-__all__ = ["surface_normals", "closest_points", "morph_vertices", "transfer_values", "linear_path"]
+__all__ = ["surface_normals", "checked_normals", "NormalsCheck", "closest_points", "morph_vertices", "transfer_values", "linear_path"]
 
 
 def _polydata(vertices: np.ndarray, triangles: np.ndarray) -> pv.PolyData:
@@ -26,22 +30,152 @@ def _polydata(vertices: np.ndarray, triangles: np.ndarray) -> pv.PolyData:
 
 
 def surface_normals(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray | None = None) -> np.ndarray:
-    """Outward unit normals, (N, 3): the given ones, else from the triangles, else from neighbours.
+    """Outward unit normals, (N, 3): the given ones (checked), else from the triangles, else from neighbours.
 
     Triangle normals are made consistent and outward (VTK's
     ``auto_orient_normals``); a point cloud gets normals by local PCA with
     orientation propagated along a spanning tree (paper Section 4,
-    :func:`volreg.features.implicit.estimate_normals`).
+    :func:`volreg.features.implicit.estimate_normals`).  Given normals are
+    checked as :func:`checked_normals` does.
     """
-    if normals is not None:
-        n = np.asarray(normals, float)
-        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    if len(triangles):
-        mesh = _polydata(vertices, triangles).compute_normals(
-            point_normals=True, cell_normals=False, auto_orient_normals=True, consistent_normals=True, split_vertices=False
-        )
-        return np.array(mesh.point_data["Normals"], float)
-    return estimate_normals(np.asarray(vertices, float))
+    return checked_normals(vertices, triangles, normals)[0]
+
+
+@dataclass(frozen=True)
+class NormalsCheck:
+    """What :func:`checked_normals` did to given vertex normals (counts of vertices).
+
+    Attributes
+    ----------
+    absent : int
+        Normals of zero length or not finite, computed again (from the triangles, or
+        from neighbouring points for a point cloud).
+    compared : int
+        Normals compared with the triangles' orientation on closed pieces of the mesh
+        (pieces where they point at random left out).
+    inward : int
+        Of those, the ones that pointed inward as given (before flipping).
+    flipped : bool
+        All normals were flipped: on the closed pieces they bounded a negative volume.
+    replaced : int
+        Normals on pieces where they point with and against the triangles at random,
+        replaced by the triangles' normals.
+    """
+
+    absent: int = 0
+    compared: int = 0
+    inward: int = 0
+    flipped: bool = False
+    replaced: int = 0
+
+
+#: Fraction of a piece's normals that must point one way relative to its triangles for the normals'
+#: orientation to be taken as consistent (either way); between it and 1 minus it, they point at random.
+_CONSISTENT = 0.9
+
+
+def _triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unit normals from the triangles, consistent and outward on each closed piece (zero off the triangles)."""
+    mesh = _polydata(vertices, triangles).compute_normals(
+        point_normals=True, cell_normals=False, auto_orient_normals=True, consistent_normals=True, split_vertices=False
+    )
+    return np.array(mesh.point_data["Normals"], float)
+
+
+def checked_normals(vertices: np.ndarray, triangles: np.ndarray,
+                    normals: np.ndarray | None = None) -> tuple[np.ndarray, NormalsCheck]:
+    """Outward unit normals (N, 3) from given normals checked against the triangles, and what was done.
+
+    Without ``normals``, the triangles' normals (consistent, outward on each
+    closed piece) or, for a point cloud, local PCA (:func:`estimate_normals`).
+    With them:
+
+    - rows of zero length or not finite are computed again as without normals
+      (oriented as the given normals of their piece);
+    - on each connected piece of triangles, the given normals are compared with
+      the triangles' normals: if at least 90 % point one way (with them or
+      against, e.g. the inner wall of a hollow shell), the given orientation is
+      taken; otherwise they point at random and are replaced by the triangles';
+    - the closed pieces (every edge on two triangles) then bound a volume with
+      the given orientation, Σ ± V_piece; if it is negative, the normals point
+      inward and all are flipped.  A mesh of open pieces only bounds nothing and
+      keeps the given orientation.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float ndarray, mm
+    triangles : (F, 3) int ndarray
+        Empty (F = 0) for a point cloud.
+    normals : (N, 3) float ndarray, optional
+        Normals read with the vertices, any length.
+
+    Returns
+    -------
+    normals : (N, 3) float ndarray
+        Unit length, or zero at vertices on no triangle of non-zero area that had no
+        usable given normal.
+    check : NormalsCheck
+    """
+    vertices = np.asarray(vertices, float)
+    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    if normals is None:
+        if len(triangles):
+            return _triangle_normals(vertices, triangles), NormalsCheck()
+        return estimate_normals(vertices), NormalsCheck()
+    given = np.array(normals, float)
+    length = np.linalg.norm(np.where(np.isfinite(given), given, 0.0), axis=1)
+    usable = np.all(np.isfinite(given), axis=1) & (length > 0)
+    out = np.zeros_like(given)
+    out[usable] = given[usable] / length[usable, None]
+    absent = int(np.count_nonzero(~usable))
+    if not len(triangles):
+        if absent:
+            estimated = estimate_normals(vertices)
+            if usable.any() and np.einsum("nd,nd->n", estimated[usable], out[usable]).sum() < 0:
+                estimated = -estimated  # as the given normals point
+            out[~usable] = estimated[~usable]
+        return out, NormalsCheck(absent=absent)
+
+    own = _triangle_normals(vertices, triangles)  # outward on each closed piece
+    on = np.linalg.norm(own, axis=1) > 0.5
+    n = len(vertices)
+    edges = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, piece = connected_components(graph, directed=False)
+    pieces = piece.max() + 1
+    agree = np.einsum("nd,nd->n", out, own)
+    compare = usable & on
+    with_ = np.bincount(piece[compare & (agree > 0)], minlength=pieces)
+    total = np.bincount(piece[compare], minlength=pieces)
+    fraction = np.divide(with_, total, out=np.ones(pieces), where=total > 0)
+    random = (fraction < _CONSISTENT) & (fraction > 1 - _CONSISTENT)
+    sign = np.where(fraction <= 1 - _CONSISTENT, -1.0, 1.0)  # the given orientation, relative to ``own``
+    sign[random] = 1.0
+    replace = random[piece] & on
+    out[replace] = own[replace]
+    fill = ~usable & on
+    out[fill] = own[fill] * sign[piece[fill], None]
+
+    # closed pieces: every edge (of triangles with three distinct corners) on exactly two triangles
+    proper = (triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2]) & (triangles[:, 2] != triangles[:, 0])
+    keys, counts = np.unique(edges.reshape(-1, 3, 2)[proper].reshape(-1, 2) @ np.array([n, 1]), return_counts=True)
+    closed = np.zeros(pieces, bool)
+    closed[np.unique(piece[triangles[proper, 0]])] = True
+    closed[piece[keys[counts != 2] // n]] = False
+    # each piece's volume with ``own``'s orientation: triangles turned to agree with it, summed v0 . (v1 x v2) / 6
+    a, b, c = (vertices[triangles[proper, k]] for k in range(3))
+    det = np.einsum("nd,nd->n", a, np.cross(b, c))
+    facing = np.einsum("nd,nd->n", np.cross(b - a, c - a), own[triangles[proper]].sum(axis=1))
+    volume = np.bincount(piece[triangles[proper, 0]], weights=np.sign(facing) * det / 6.0, minlength=pieces)
+    flip = float(np.sum((sign * volume)[closed])) < 0
+    if flip:
+        out = -out
+        out[replace] = own[replace]
+    counted = compare & closed[piece] & ~random[piece]
+    against = sign[piece] * agree < 0 if not flip else sign[piece] * agree > 0  # against the final outward side
+    return out, NormalsCheck(absent=absent, compared=int(np.count_nonzero(counted)),
+                             inward=int(np.count_nonzero(counted & against)), flipped=bool(flip),
+                             replaced=int(np.count_nonzero(replace & usable)))
 
 
 def closest_points(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray):

@@ -22,6 +22,9 @@ if TYPE_CHECKING:  # imported where used, so that the parsers load without numpy
 #: The frame of each kind of surface output, as the reports state it.
 FRAMES = {".vtk": "LPS mm", ".gii": "RAS mm", ".csv": "LPS mm"}
 
+#: Fewest vertices a surface is fitted to.
+MIN_VERTICES = 10
+
 
 def _add_data_options(parser, *roles: str) -> None:
     """``--source-data`` / ``--target-data FILE ...``: GIFTI per-vertex data files of SOURCE / TARGET."""
@@ -37,8 +40,9 @@ def _read(path: Path, role: str, data=()) -> SurfaceData:
     from volreg.io.meshes import add_vertex_data, read_surface
 
     surface = read_surface(path)
-    if len(surface.vertices) < 10:
-        raise UsageError(f"{role} `{path}` has {len(surface.vertices)} vertices; expected at least 10 to fit a surface.")
+    if len(surface.vertices) < MIN_VERTICES:
+        raise UsageError(f"{role} `{path}` has {len(surface.vertices)} vertices; expected at least {MIN_VERTICES} to "
+                         "fit a surface.")
     add_vertex_data(surface, data, f"{role} `{path}`")
     return surface
 
@@ -57,18 +61,39 @@ _FLAT = 1e-6
 MAX_SIZE_RATIO = 5.0
 
 
+def _warn_normals(name: object, check, n: int, cloud: bool) -> None:
+    """One warning line for each thing :func:`volreg.morph.checked_normals` mended in the normals of ``name``."""
+    source = "neighbouring points (local PCA)" if cloud else "the triangles"
+    if check.absent == n:
+        warnings.warn(f"{name} has vertex normals of zero length or not finite only; they are ignored and computed "
+                      f"from {source}.", VolregWarning, stacklevel=3)
+    elif check.absent:
+        warnings.warn(f"{name} has {check.absent} of {n} vertex normals of zero length or not finite; those are "
+                      f"computed from {source}.", VolregWarning, stacklevel=3)
+    if check.flipped:
+        warnings.warn(f"{name} has vertex normals that point inward ({check.inward} of {check.compared} against the "
+                      "outward side of the volume its triangles enclose); they are flipped.", VolregWarning, stacklevel=3)
+    if check.replaced:
+        warnings.warn(f"{name} has {check.replaced} vertex normals that point with and against its triangles at random; "
+                      "they are replaced by normals computed from the triangles.", VolregWarning, stacklevel=3)
+
+
 def _fitting_points(data: SurfaceData, name: object) -> tuple[np.ndarray, np.ndarray]:
     """The vertices of ``data`` that can train an implicit surface, with their outward unit normals.
 
-    Vertices on no triangle (or on degenerate ones only) have no normal: they are warped
-    like every vertex but not fitted (with a warning).  Refuses vertices that span no volume
-    a surface could bound: all at one point, on a line, or a point cloud in a plane.
+    Normals read with the surface are checked (:func:`volreg.morph.checked_normals`: zero or
+    non-finite ones computed again, inward ones flipped, ones at random replaced), with a
+    warning for each.  Vertices on no triangle (or on degenerate ones only) without a normal
+    of their own are warped like every vertex but not fitted (with a warning).  Refuses
+    vertices that span no volume a surface could bound: all at one point, on a line, or a
+    point cloud in a plane.
     """
     import numpy as np
 
-    from volreg.morph import surface_normals
+    from volreg.morph import checked_normals
 
-    normals = surface_normals(data.vertices, data.triangles, data.normals)
+    normals, check = checked_normals(data.vertices, data.triangles, data.normals)
+    _warn_normals(name, check, len(data.vertices), not len(data.triangles))
     ok = np.linalg.norm(normals, axis=1) > 0.5
     if len(data.triangles) and not ok.all():
         if not ok.any():

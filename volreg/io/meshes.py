@@ -290,7 +290,8 @@ class SurfaceData:
     triangles : (F, 3) int ndarray
         Empty (F = 0) for a point cloud.
     normals : (N, 3) float ndarray or None
-        Stored vertex normals, if any.
+        Stored vertex normals, if any, as stored: rows may be zero or not finite
+        (:func:`volreg.morph.checked_normals` computes those again).
     arrays : dict of str to (N, ...) ndarray
         Other per-vertex arrays (scalars, colours, labels), by name.
     gifti : GiftiSurfaceMeta or None
@@ -399,8 +400,8 @@ def read_surface(path: str | os.PathLike[str]) -> SurfaceData:
         raise VolregIOError(f"Surface `{p}` has {bad} vertices with NaN/Inf coordinates; expected finite points.")
     if out.triangles.size and (out.triangles.min() < 0 or out.triangles.max() >= len(out.vertices)):
         raise VolregIOError(f"Surface `{p}` has triangles indexing missing vertices; expected indices below {len(out.vertices)}.")
-    if out.normals is not None and (out.normals.shape != out.vertices.shape or not np.all(np.isfinite(out.normals))):
-        out.normals = None  # unusable normals are estimated again
+    if out.normals is not None and out.normals.shape != out.vertices.shape:
+        out.normals = None  # unusable normals are estimated again (rows of zero or NaN: by the surface's users)
     t = out.triangles
     # triangles that repeat a vertex (zero area by their indices) have no edges of their own
     proper = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])] if len(t) else t
