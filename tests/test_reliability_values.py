@@ -237,6 +237,24 @@ def test_vertices_on_no_triangle_are_warped_but_not_fitted(tmp_path, capsys, ext
     assert np.abs(np.asarray(warped.points) - np.vstack([s.points, more])).max() < 1.0
 
 
+@pytest.mark.parametrize("kind", ["one triangle", "one triangle with normals"])
+def test_a_mesh_with_too_few_vertices_on_triangles_is_refused(tmp_path, capsys, kind):
+    """13 vertices, 3 on the one triangle: the 10 others are not fitted, so 3 are left to fit."""
+    pts = np.vstack([[[0, 0, 20], [15, 0, 13], [0, 15, 13]], np.random.default_rng(0).normal(size=(10, 3)) * 20])
+    mesh = pv.PolyData(pts, faces=[3, 0, 1, 2])
+    if kind.endswith("normals"):  # zero normals away from the triangle: those vertices are not fitted either
+        normals = np.zeros_like(pts)
+        normals[:3] = [0.0, 0.0, 1.0]
+        mesh.point_data["Normals"] = normals
+    mesh.save(tmp_path / "src.vtk")
+    rc, cap = _surfaces(tmp_path, tmp_path / "src.vtk", capsys)
+    assert rc == 2, cap.err
+    line = cap.err.strip().splitlines()[-1]
+    assert line.startswith(f"volreg register-surfaces: error: SOURCE `{tmp_path / 'src.vtk'}` has 3 of 13 vertices")
+    assert "expected at least 10" in line and "Traceback" not in cap.err
+    assert not (tmp_path / "out").exists()
+
+
 # ----------------------------------------------------------------------------- vertex normals read from a file
 
 

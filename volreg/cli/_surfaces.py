@@ -84,9 +84,9 @@ def _fitting_points(data: SurfaceData, name: object) -> tuple[np.ndarray, np.nda
     Normals read with the surface are checked (:func:`volreg.morph.checked_normals`: zero or
     non-finite ones computed again, inward ones flipped, ones at random replaced), with a
     warning for each.  Vertices on no triangle (or on degenerate ones only) without a normal
-    of their own are warped like every vertex but not fitted (with a warning).  Refuses
-    vertices that span no volume a surface could bound: all at one point, on a line, or a
-    point cloud in a plane.
+    of their own are warped like every vertex but not fitted (with a warning).  Refuses fewer
+    than :data:`MIN_VERTICES` vertices to fit, and vertices that span no volume a surface
+    could bound: all at one point, on a line, or a point cloud in a plane.
     """
     import numpy as np
 
@@ -100,6 +100,9 @@ def _fitting_points(data: SurfaceData, name: object) -> tuple[np.ndarray, np.nda
             raise UsageError(f"{name} has no triangle of non-zero area; expected a surface mesh.")
         warnings.warn(f"{name} has {int((~ok).sum())} of {len(ok)} vertices on no triangle of non-zero area "
                       "(unreferenced or duplicated); they are warped but not used to fit.", VolregWarning, stacklevel=3)
+    if ok.sum() < MIN_VERTICES:
+        raise UsageError(f"{name} has {int(ok.sum())} of {len(ok)} vertices on triangles of non-zero area (or with "
+                         f"normals of their own); expected at least {MIN_VERTICES} to fit a surface.")
     points, normals = data.vertices[ok], normals[ok]
     sizes = np.linalg.svd(points - points.mean(axis=0), compute_uv=False) if len(points) > 1 else np.zeros(3)
     sizes = np.concatenate([sizes, np.zeros(3 - len(sizes))])
