@@ -473,6 +473,51 @@ def test_vti_geometry_must_be_finite(tmp_path, attribute, value):
         read_labels(tmp_path / "v.vti")
 
 
+# ----------------------------------------------------------------------------- image headers: geometry
+
+
+def _vti_pieces(path, whole: str, pieces: list[str], values=None):
+    """An ASCII ``.vti`` of a 4 x 3 x 4 grid (x fastest) whose data come in ``pieces`` (extents)."""
+    full = np.arange(48, dtype=np.uint8).reshape(4, 3, 4) if values is None else values  # [k, j, i]
+    body = []
+    for extent in pieces:
+        lo = [int(v) for v in extent.split()][0::2]
+        hi = [int(v) for v in extent.split()][1::2]
+        block = full[lo[2]:hi[2] + 1, lo[1]:hi[1] + 1, lo[0]:hi[0] + 1]
+        body.append(f'<Piece Extent="{extent}"><PointData Scalars="l"><DataArray type="UInt8" Name="l" '
+                    f'format="ascii">{" ".join(map(str, block.ravel()))}</DataArray></PointData></Piece>')
+    path.write_text('<?xml version="1.0"?>\n<VTKFile type="ImageData" version="0.1" byte_order="LittleEndian">\n'
+                    f'<ImageData WholeExtent="{whole}" Origin="0 0 0" Spacing="1 1 1">\n' + "\n".join(body)
+                    + '\n</ImageData></VTKFile>\n')
+    return path, full
+
+
+def test_vti_whole_extent_beyond_its_piece_is_refused(tmp_path, capfd):
+    """VTK fills the part of WholeExtent that no piece covers with whatever memory held."""
+    g = pv.ImageData(dimensions=(8, 8, 4))
+    g.point_data["labels"] = np.ones(256, np.uint8)
+    g.save(tmp_path / "v.vti")
+    raw = (tmp_path / "v.vti").read_bytes()
+    assert b'WholeExtent="0 7 0 7 0 3"' in raw
+    (tmp_path / "v.vti").write_bytes(raw.replace(b'WholeExtent="0 7 0 7 0 3"', b'WholeExtent="0 7 0 7 0 7"', 1))
+    with pytest.raises(VolregIOError, match=r'v.vti` has WholeExtent="0 7 0 7 0 7" but its data cover only '
+                                            r'Extent="0 7 0 7 0 3"; expected'):
+        read_labels(tmp_path / "v.vti")
+    assert main(["surface", str(tmp_path / "v.vti"), "-o", str(tmp_path / "out")]) == 2
+    err = capfd.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("volreg surface: error: ") and "WholeExtent" in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_vti_pieces_that_together_cover_the_extent_are_read(tmp_path):
+    path, full = _vti_pieces(tmp_path / "two.vti", "0 3 0 2 0 3", ["0 3 0 2 0 1", "0 3 0 2 2 3"])
+    assert np.array_equal(read_labels(path).array, full.transpose(2, 1, 0))
+    path, _ = _vti_pieces(tmp_path / "gap.vti", "0 3 0 2 0 3", ["0 3 0 2 0 0", "0 3 0 2 2 3"])
+    with pytest.raises(VolregIOError, match=r'gap.vti` has WholeExtent="0 3 0 2 0 3" but its data cover only '
+                                            r'Extent="0 3 0 2 0 0", Extent="0 3 0 2 2 3"'):
+        read_labels(path)
+
+
 # ----------------------------------------------------------------------------- all-or-nothing output folders
 
 

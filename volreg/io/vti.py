@@ -117,6 +117,84 @@ def _check_header_numbers(path: Path, what: str) -> None:
             raise VolregIOError(f"{what} `{path}` has {name}=\"{found.group(1)}\"; expected finite numbers.")
 
 
+# Bytes read at a time while looking for the ``<Piece>`` elements of a file with inline data.
+_SCAN_CHUNK = 1 << 20
+_TAG = re.compile(rb"<(ImageData|Piece)\b[^>]*>")
+
+
+def _image_tags(path: Path) -> tuple[bytes | None, list[bytes]]:
+    """The ``<ImageData>`` element and every ``<Piece>`` element of a ``.vti`` file.
+
+    Reads up to ``</ImageData>`` or ``<AppendedData`` (after which raw bytes follow), so a file
+    with appended data costs one read of its head; inline data are scanned in chunks.
+    """
+    image, pieces = None, []
+    carry = b""
+    with open(path, "rb") as fh:
+        while True:
+            chunk = fh.read(_SCAN_CHUNK)
+            if not chunk:
+                break
+            text = carry + chunk
+            ends = [i for i in (text.find(b"</ImageData>"), text.find(b"<AppendedData")) if i >= 0]
+            stop = min(ends) if ends else len(text)
+            last = 0
+            for match in _TAG.finditer(text, 0, stop):
+                if match.group(1) == b"ImageData":
+                    image = image or match.group(0)
+                else:
+                    pieces.append(match.group(0))
+                last = match.end()
+            if ends:
+                break
+            carry = text[max(last, len(text) - 4096):]  # a tag cut by the chunk's end is found next time
+    return image, pieces
+
+
+def _extent(element: bytes, name: str) -> tuple[str, list[int]] | None:
+    """The text and the six integers of attribute ``name`` of an XML element, or None."""
+    found = re.search(rb"\b" + name.encode() + rb'\s*=\s*"([^"]*)"', element)
+    if found is None:
+        return None
+    text = " ".join(found.group(1).decode("latin-1").split())
+    try:
+        values = [int(v) for v in text.split()]
+    except ValueError:
+        return None
+    return (text, values) if len(values) == 6 else None
+
+
+def _check_pieces(path: Path, what: str) -> None:
+    """Refuse a ``.vti`` whose ``<Piece>`` extents leave part of its ``WholeExtent`` without data.
+
+    VTK allocates the whole extent and fills it from the pieces only: the points no piece covers
+    keep whatever the memory held, which would be read as labels.
+    """
+    image, pieces = _image_tags(path)
+    whole = _extent(image, "WholeExtent") if image is not None else None
+    extents = [_extent(piece, "Extent") for piece in pieces]
+    if whole is None or not extents or any(e is None for e in extents):
+        return  # VTK reports a malformed file
+    lo, hi = np.array(whole[1][0::2]), np.array(whole[1][1::2]) + 1  # point ranges [lo, hi)
+    if np.any(hi <= lo):
+        return  # an empty extent: reported after reading
+    boxes = [(np.maximum(np.array(e[1][0::2]), lo), np.minimum(np.array(e[1][1::2]) + 1, hi)) for e in extents]
+    boxes = [(a, b) for a, b in boxes if np.all(b > a)]
+    # Cover the whole extent with the cells between the pieces' boundaries along each axis.
+    cuts = [np.unique([lo[a], hi[a], *[v for box in boxes for v in (box[0][a], box[1][a])]]) for a in range(3)]
+    if np.prod([len(c) - 1 for c in cuts], dtype=float) > 1e7:
+        return  # too many pieces to check cheaply
+    covered = np.zeros([len(c) - 1 for c in cuts], bool)
+    for a, b in boxes:
+        covered[tuple(slice(np.searchsorted(cuts[x], a[x]), np.searchsorted(cuts[x], b[x])) for x in range(3))] = True
+    if not covered.all():
+        listed = ", ".join(f'Extent="{e[0]}"' for e in extents)
+        raise VolregIOError(
+            f'{what} `{path}` has WholeExtent="{whole[0]}" but its data cover only {listed}; expected pieces that '
+            "cover the whole extent (VTK would fill the rest with whatever its memory held)."
+        )
+
+
 def read_vti(path: Path, what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Read a scalar ``.vti`` image; return ``(array[i, j, k], origin, spacing, direction)``.
 
@@ -145,9 +223,11 @@ def read_vti(path: Path, what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     VolregIOError
         If the file is not VTK image data, fails to parse (e.g. truncated),
         is empty, holds no point array, several arrays none of them active,
-        or a vector array.
+        or a vector array, or if its pieces leave part of its ``WholeExtent``
+        without data.
     """
     _check_header_numbers(path, what)
+    _check_pieces(path, what)
     image = _run_reader(path, what)
     dims = tuple(int(n) for n in image.dimensions)
     if image.n_points == 0 or min(dims) < 1:
