@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 
 import nibabel as nib
 import numpy as np
@@ -476,6 +477,31 @@ def test_vti_geometry_must_be_finite(tmp_path, attribute, value):
 # ----------------------------------------------------------------------------- image headers: geometry
 
 
+def _labels_3d() -> np.ndarray:
+    arr = np.zeros((12, 10, 8), np.uint8)
+    arr[3:9, 2:8, 2:6] = 1
+    arr[5:7, 4:6, 3:5] = 2
+    return arr
+
+
+def _edited_mha(path, old: str, new: str):
+    """A MetaImage written by SimpleITK with one header line replaced (``old`` must be in it)."""
+    sitk.WriteImage(sitk.GetImageFromArray(_labels_3d().transpose(2, 1, 0).copy()), str(path))
+    raw = path.read_bytes()
+    assert old.encode() in raw, raw[:300]
+    path.write_bytes(raw.replace(old.encode(), new.encode(), 1))
+    return path
+
+
+def _nrrd(path, directions="(1,0,0) (0,1,0) (0,0,1)", origin="(0,0,0)"):
+    arr = _labels_3d()
+    header = ("NRRD0004\ntype: uint8\ndimension: 3\nspace: left-posterior-superior\n"
+              f"sizes: {' '.join(map(str, arr.shape))}\nspace directions: {directions}\nkinds: domain domain domain\n"
+              f"encoding: raw\nspace origin: {origin}\n\n")
+    path.write_bytes(header.encode() + arr.tobytes(order="F"))
+    return path
+
+
 def _vti_pieces(path, whole: str, pieces: list[str], values=None):
     """An ASCII ``.vti`` of a 4 x 3 x 4 grid (x fastest) whose data come in ``pieces`` (extents)."""
     full = np.arange(48, dtype=np.uint8).reshape(4, 3, 4) if values is None else values  # [k, j, i]
@@ -516,6 +542,76 @@ def test_vti_pieces_that_together_cover_the_extent_are_read(tmp_path):
     with pytest.raises(VolregIOError, match=r'gap.vti` has WholeExtent="0 3 0 2 0 3" but its data cover only '
                                             r'Extent="0 3 0 2 0 0", Extent="0 3 0 2 2 3"'):
         read_labels(path)
+
+
+MHA_CASES = [
+    # (line SimpleITK writes, line written instead, what the message must say)
+    ("Offset = 0 0 0", "Offset = nan 0 0", "has Offset = nan 0 0; expected 3 finite numbers"),
+    ("Offset = 0 0 0", "Offset = x 0 0", "has Offset = x 0 0; expected 3 finite numbers"),
+    ("Offset = 0 0 0", "Offset = 5 5", "has Offset = 5 5; expected 3 finite numbers"),
+    ("Offset = 0 0 0", "Origin = 0 inf 0", "has Origin = 0 inf 0; expected 3 finite numbers"),
+    ("Offset = 0 0 0", "Position = 1 2", "has Position = 1 2; expected 3 finite numbers"),
+    ("ElementSpacing = 1 1 1", "ElementSpacing = 1 1", "has ElementSpacing = 1 1; expected 3 positive finite numbers"),
+    ("ElementSpacing = 1 1 1", "ElementSpacing = nan 1 1",
+     "has ElementSpacing = nan 1 1; expected 3 positive finite numbers"),
+    ("ElementSpacing = 1 1 1", "ElementSpacing = inf 1 1",
+     "has ElementSpacing = inf 1 1; expected 3 positive finite numbers"),
+    ("ElementSpacing = 1 1 1", "ElementSpacing = a b c", "has ElementSpacing = a b c; expected 3 positive finite numbers"),
+    ("ElementSpacing = 1 1 1", "ElementSpacing = -0 1 1", "has ElementSpacing = -0 1 1; expected positive voxel spacings"),
+    ("ElementSpacing = 1 1 1", "ElementSpacing = 1 0 1", "has ElementSpacing = 1 0 1; expected positive voxel spacings"),
+    ("TransformMatrix = 1 0 0 0 1 0 0 0 1", "TransformMatrix = 1 0 0 0 1 0 0 0",
+     "has TransformMatrix = 1 0 0 0 1 0 0 0; expected 9 finite numbers"),
+    ("TransformMatrix = 1 0 0 0 1 0 0 0 1", "Rotation = 1 0 0 0 nan 0 0 0 1",
+     "has Rotation = 1 0 0 0 nan 0 0 0 1; expected 9 finite numbers"),
+    ("TransformMatrix = 1 0 0 0 1 0 0 0 1", "Orientation = 1 0 0 0 1 0 0 0 x",
+     "has Orientation = 1 0 0 0 1 0 0 0 x; expected 9 finite numbers"),
+    ("DimSize = 12 10 8", "DimSize = 12 10", "has DimSize = 12 10; expected 3 whole numbers of at least 1"),
+    ("DimSize = 12 10 8", "DimSize = 12 nan 8", "has DimSize = 12 nan 8; expected 3 whole numbers of at least 1"),
+]
+
+
+@pytest.mark.parametrize("old,new,message", MHA_CASES, ids=[c[1] for c in MHA_CASES])
+def test_metaimage_geometry_fields_must_be_numbers(tmp_path, capfd, old, new, message):
+    """MetaIO reads NaN, words or missing values as 0 (or fails with lines of its own): refuse in one line."""
+    path = _edited_mha(tmp_path / "m.mha", old, new)
+    with pytest.raises(VolregIOError, match=re.escape(f"m.mha` {message}")):
+        read_labels(path)
+    capfd.readouterr()
+    assert main(["surface", str(path), "-o", str(tmp_path / "out")]) == 2
+    err = capfd.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("volreg surface: error: ") and message in err, err
+
+
+def test_metaimage_fields_metaio_reads_are_read_as_it_does(tmp_path):
+    """Synonyms, and more values than axes (MetaIO takes the first ones), are read as before."""
+    vol = read_labels(_edited_mha(tmp_path / "p.mha", "Offset = 0 0 0", "Position = 1 2 3"))
+    assert vol.origin.tolist() == [1.0, 2.0, 3.0]
+    vol = read_labels(_edited_mha(tmp_path / "s.mha", "ElementSpacing = 1 1 1", "ElementSpacing = 0.5 0.25 2 7"))
+    assert vol.spacing.tolist() == [0.5, 0.25, 2.0]
+
+
+@pytest.mark.parametrize("field,directions,origin", [
+    ("space directions", "(nan,0,0) (0,1,0) (0,0,1)", "(0,0,0)"),
+    ("space directions", "(nan,nan,nan) (0,1,0) (0,0,1)", "(0,0,0)"),
+    ("space directions", "(1,0,0) (0,inf,0) (0,0,1)", "(0,0,0)"),
+    ("space origin", "(1,0,0) (0,1,0) (0,0,1)", "(nan,0,0)"),
+    ("space origin", "(1,0,0) (0,1,0) (0,0,1)", "(0,0)"),
+    ("space origin", "(1,0,0) (0,1,0) (0,0,1)", "(x,0,0)"),
+])
+def test_nrrd_space_fields_must_be_finite(tmp_path, capfd, field, directions, origin):
+    path = _nrrd(tmp_path / "n.nrrd", directions, origin)
+    value = directions if field == "space directions" else origin
+    with pytest.raises(VolregIOError, match=re.escape(f"n.nrrd` has {field}: {value}; expected")):
+        read_labels(path)
+    capfd.readouterr()
+    assert main(["surface", str(path), "-o", str(tmp_path / "out")]) == 2
+    err = capfd.readouterr().err.strip()
+    assert "\n" not in err and f"{field}: {value}" in err, err
+
+
+def test_nrrd_with_valid_space_fields_is_still_read(tmp_path):
+    vol = read_labels(_nrrd(tmp_path / "ok.nrrd", "(0,2,0) (1.5,0,0) (0,0,1)", "(1,2,3)"))
+    assert vol.spacing.tolist() == [2.0, 1.5, 1.0] and vol.origin.tolist() == [1.0, 2.0, 3.0]
 
 
 # ----------------------------------------------------------------------------- all-or-nothing output folders

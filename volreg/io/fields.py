@@ -45,7 +45,7 @@ from volreg.grid import Grid, GridLike, as_grid
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
 from volreg.io._guards import check_image_data_files, check_readable
-from volreg.io.images import _check_input, _check_nifti, _nifti_float_voxels, _sitk_reason
+from volreg.io.images import _check_header_fields, _check_input, _check_nifti, _nifti_float_voxels, _sitk_reason
 from volreg.warp.linear import LinearMap
 
 __all__ = [
@@ -340,6 +340,7 @@ def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
         # SimpleITK zero-fills a truncated file: a warp that silently becomes the identity there.
         nimg = _check_nifti(p, suffix, "Displacement field")
     elif suffix in (".mha", ".mhd", ".nrrd", ".nhdr"):
+        _check_header_fields(p, suffix, "Displacement field")  # NaN or missing geometry values
         check_image_data_files(p, suffix, "Displacement field")  # data elsewhere, missing or short
     try:
         img = sitk.ReadImage(str(p))

@@ -118,34 +118,138 @@ def _check_nifti_dims(path: Path, suffix: str, what: str) -> None:
         )
 
 
-def _check_text_header_spacing(path: Path, suffix: str, what: str) -> None:
-    """Refuse a MetaImage ``ElementSpacing`` or NRRD ``spacings`` with a negative value.
-
-    ITK silently turns a negative spacing into a flipped axis; the header is
-    ambiguous (a flip belongs in the direction matrix), so volreg refuses it.
-    """
-    key = "elementspacing" if suffix in (".mha", ".mhd") else "spacings"
+def _read_header_text(path: Path) -> bytes | None:
     try:
         with open(path, "rb") as fh:
-            head = fh.read(1 << 16)
+            return fh.read(1 << 16)
     except OSError:
-        return  # SimpleITK reports unreadable files
+        return None  # SimpleITK reports unreadable files
+
+
+def _numbers(text: str) -> list[float] | None:
+    try:
+        return [float(v) for v in text.split()]
+    except ValueError:
+        return None
+
+
+def _check_metaimage_header(path: Path, what: str) -> None:
+    """Refuse a MetaImage header whose geometry fields MetaIO would misread.
+
+    MetaIO reads ``nan`` or a word as 0 and a missing value as 0 (``Offset = 5 5`` of a 3-D
+    image is ``[5, 5, 0]``), or fails with lines of its own on stderr; ITK turns a negative
+    spacing into a flipped axis.  Fields are matched as MetaIO matches them (case-sensitive,
+    the last of a repeated field wins, up to ``ElementDataFile``); like MetaIO, values beyond
+    the number of axes are ignored.
+    """
+    head = _read_header_text(path)
+    if head is None:
+        return
+    fields: dict[str, str] = {}
     for raw in head.split(b"\n")[:200]:
-        line = raw.decode("latin-1").strip()
-        name, sep, value = line.partition("=" if suffix in (".mha", ".mhd") else ":")
-        if sep and name.strip().lower() == key:
-            try:
-                values = [float(v) for v in value.split()]
-            except ValueError:
-                return
-            if any(v < 0 for v in values):
-                raise VolregIOError(
-                    f"{what} `{path}` has negative spacing ({name.strip()} = {value.strip()}); expected positive "
-                    "voxel spacings (a flipped axis belongs in the direction matrix)."
-                )
-            return
-        if line.lower().startswith("elementdatafile"):
-            return
+        key, sep, value = raw.decode("latin-1").strip().partition("=")
+        if not sep:
+            continue
+        key = key.strip()
+        if key == "ElementDataFile":
+            break
+        fields[key] = value.strip()
+    if "NDims" not in fields:
+        return  # MetaIO reports a header without one
+    ndims = _numbers(fields["NDims"])
+    if ndims is None or len(ndims) != 1 or ndims[0] != int(ndims[0]) or not 1 <= ndims[0] <= 16:
+        raise VolregIOError(f"{what} `{path}` has NDims = {fields['NDims']}; expected the number of axes (1 to 16).")
+    n = int(ndims[0])
+
+    def values(key: str, count: int, expected: str) -> list[float] | None:
+        if key not in fields:
+            return None
+        found = _numbers(fields[key])
+        if found is None or len(found) < count or not all(np.isfinite(found[:count])):
+            raise VolregIOError(f"{what} `{path}` has {key} = {fields[key]}; expected {count} {expected}.")
+        return found[:count]
+
+    sizes = values("DimSize", n, "whole numbers of at least 1")
+    if sizes is not None and any(v < 1 or v != int(v) for v in sizes):
+        raise VolregIOError(f"{what} `{path}` has DimSize = {fields['DimSize']}; expected {n} whole numbers of at least 1.")
+    key = "ElementSpacing" if "ElementSpacing" in fields else "ElementSize"  # MetaIO's fallback
+    spacing = values(key, n, "positive finite numbers (voxel spacings in mm)")
+    if spacing is not None:
+        if any(v < 0 for v in spacing):
+            raise VolregIOError(
+                f"{what} `{path}` has negative spacing ({key} = {fields[key]}); expected positive voxel spacings (a "
+                "flipped axis belongs in the direction matrix)."
+            )
+        if any(v == 0 for v in spacing):
+            raise VolregIOError(
+                f"{what} `{path}` has {key} = {fields[key]}; expected positive voxel spacings (a zero spacing puts "
+                "an axis's voxels at one point)."
+            )
+    for key in ("Offset", "Origin", "Position"):  # synonyms in MetaIO
+        values(key, n, "finite numbers (the origin in mm)")
+    for key in ("TransformMatrix", "Rotation", "Orientation"):  # synonyms in MetaIO
+        values(key, n * n, "finite numbers (the direction matrix)")
+
+
+_NRRD_VECTOR = re.compile(r"\(([^)]*)\)|none")
+
+
+def _check_nrrd_header(path: Path, what: str) -> None:
+    """Refuse a NRRD header whose space fields or spacings ITK would misread or reject with a cryptic line.
+
+    ``spacings`` may not be negative (ITK makes a flipped axis of it); every vector of ``space
+    directions`` and ``space origin`` must be finite numbers (teem takes a vector of NaNs for
+    "no vector" and ITK then puts the identity there; one NaN among numbers fails with teem's
+    own wording).
+    """
+    head = _read_header_text(path)
+    if head is None or not head.startswith(b"NRRD"):
+        return
+    fields: dict[str, str] = {}
+    for raw in head.split(b"\n")[1:200]:
+        line = raw.decode("latin-1").rstrip("\r")
+        if not line.strip():
+            break  # end of header
+        if line.startswith("#") or ":=" in line:
+            continue
+        key, sep, value = line.partition(":")
+        if sep:
+            fields[key.strip().lower()] = value.strip()
+    if "spacings" in fields:
+        spacings = _numbers(fields["spacings"])
+        if spacings is not None and any(v < 0 for v in spacings):
+            raise VolregIOError(
+                f"{what} `{path}` has negative spacing (spacings = {fields['spacings']}); expected positive "
+                "voxel spacings (a flipped axis belongs in the direction matrix)."
+            )
+    dimension = None
+    if "space directions" in fields:
+        text = fields["space directions"]
+        vectors = [m.group(1) for m in _NRRD_VECTOR.finditer(text)]
+        spatial = [(i, [_numbers(c) for c in v.split(",")]) for i, v in enumerate(vectors) if v is not None]
+        parsed = [(i, [c[0] if c and len(c) == 1 else float("nan") for c in v]) for i, v in spatial]
+        dimension = len(parsed[0][1]) if parsed else None
+        if not parsed or any(len(v) != dimension or not all(np.isfinite(v)) for _, v in parsed):
+            raise VolregIOError(
+                f"{what} `{path}` has space directions: {text}; expected a vector of finite numbers per spatial "
+                "axis, all of one length (or none for a non-spatial axis)."
+            )
+    if "space origin" in fields:
+        text = fields["space origin"]
+        found = re.fullmatch(r"\(([^)]*)\)", text)
+        parts = [_numbers(c) for c in found.group(1).split(",")] if found else []
+        origin = [c[0] if c and len(c) == 1 else float("nan") for c in parts]
+        if not origin or not all(np.isfinite(origin)) or (dimension is not None and len(origin) != dimension):
+            count = f"{dimension} " if dimension is not None else ""
+            raise VolregIOError(f"{what} `{path}` has space origin: {text}; expected a vector of {count}finite numbers.")
+
+
+def _check_header_fields(path: Path, suffix: str, what: str) -> None:
+    """Read a MetaImage or NRRD header as text and refuse geometry fields ITK would misread."""
+    if suffix in (".mha", ".mhd"):
+        _check_metaimage_header(path, what)
+    elif suffix in (".nrrd", ".nhdr"):
+        _check_nrrd_header(path, what)
 
 
 def _suffix(path: Path) -> str:
@@ -468,7 +572,7 @@ def _read_sitk(
         return (array if voxels else array.shape), origin, spacing, direction
     nimg = _check_nifti(p, suffix, what, voxels=voxels) if suffix in (".nii", ".nii.gz") else None
     if suffix in (".mha", ".mhd", ".nrrd", ".nhdr"):
-        _check_text_header_spacing(p, suffix, what)
+        _check_header_fields(p, suffix, what)
         check_image_data_files(p, suffix, what)
 
     reader = sitk.ImageFileReader()
