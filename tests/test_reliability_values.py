@@ -502,6 +502,20 @@ def _nrrd(path, directions="(1,0,0) (0,1,0) (0,0,1)", origin="(0,0,0)"):
     return path
 
 
+def _nifti_header(path, *, pixdim=1.0, sform=None):
+    """A NIfTI file with an sform alone (qform code 0) and the given pixdim, fields as stored."""
+    arr = _labels_3d()
+    header = nib.Nifti1Header()
+    header.set_data_dtype(arr.dtype)
+    header.set_data_shape(arr.shape)
+    header["pixdim"][1:4] = pixdim
+    header["qform_code"], header["sform_code"] = 0, 1
+    rows = np.diag([pixdim, pixdim, pixdim, 1.0]) if sform is None else np.asarray(sform, float)
+    header["srow_x"], header["srow_y"], header["srow_z"] = rows[0], rows[1], rows[2]
+    nib.save(nib.Nifti1Image(arr, None, header=header), str(path))
+    return path
+
+
 def _vti_pieces(path, whole: str, pieces: list[str], values=None):
     """An ASCII ``.vti`` of a 4 x 3 x 4 grid (x fastest) whose data come in ``pieces`` (extents)."""
     full = np.arange(48, dtype=np.uint8).reshape(4, 3, 4) if values is None else values  # [k, j, i]
@@ -612,6 +626,14 @@ def test_nrrd_space_fields_must_be_finite(tmp_path, capfd, field, directions, or
 def test_nrrd_with_valid_space_fields_is_still_read(tmp_path):
     vol = read_labels(_nrrd(tmp_path / "ok.nrrd", "(0,2,0) (1.5,0,0) (0,0,1)", "(1,2,3)"))
     assert vol.spacing.tolist() == [2.0, 1.5, 1.0] and vol.origin.tolist() == [1.0, 2.0, 3.0]
+
+
+def test_nifti_sform_scaled_beyond_pixdim_gives_one_line(tmp_path, capfd):
+    """ITK prints 'unexpected scales in sform' warnings of its own before volreg's line: not any more."""
+    path = _nifti_header(tmp_path / "scaled.nii.gz", sform=np.diag([2.0, 2.0, 2.0, 1.0]))
+    assert main(["surface", str(path), "-o", str(tmp_path / "out")]) == 2
+    err = capfd.readouterr().err.strip()
+    assert "\n" not in err and "WARNING" not in err and "pixdim disagrees with the sform" in err, err
 
 
 # ----------------------------------------------------------------------------- all-or-nothing output folders

@@ -45,7 +45,8 @@ from volreg.grid import Grid, GridLike, as_grid
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
 from volreg.io._guards import check_image_data_files, check_readable
-from volreg.io.images import _check_header_fields, _check_input, _check_nifti, _nifti_float_voxels, _sitk_reason
+from volreg.io.images import (_check_header_fields, _check_input, _check_nifti, _itk_quiet, _nifti_float_voxels,
+                              _sitk_reason)
 from volreg.warp.linear import LinearMap
 
 __all__ = [
@@ -343,7 +344,8 @@ def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
         _check_header_fields(p, suffix, "Displacement field")  # NaN or missing geometry values
         check_image_data_files(p, suffix, "Displacement field")  # data elsewhere, missing or short
     try:
-        img = sitk.ReadImage(str(p))
+        with _itk_quiet():
+            img = sitk.ReadImage(str(p))
     except RuntimeError as exc:
         raise VolregIOError(f"Displacement field `{p}` could not be read: {_sitk_reason(exc)}.") from exc
     dim = img.GetDimension()

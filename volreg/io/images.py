@@ -343,6 +343,18 @@ def _check_nifti_length(path: Path, suffix: str, what: str, offset: int, shape: 
 
 
 @contextlib.contextmanager
+def _itk_quiet():
+    """ITK prints warnings of its own to stderr (e.g. "unexpected scales in sform", once per header
+    read); the checks here report what matters in one line, so they are silenced while reading."""
+    previous = sitk.ProcessObject.GetGlobalWarningDisplay()
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    try:
+        yield
+    finally:
+        sitk.ProcessObject.SetGlobalWarningDisplay(previous)
+
+
+@contextlib.contextmanager
 def _nibabel_quiet():
     """nibabel's header checks log what they fix to stderr (through logging's last-resort handler
     when nothing is configured); the checks here report in one line of their own."""
@@ -578,10 +590,11 @@ def _read_sitk(
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(p))
     try:
-        reader.ReadImageInformation()
-        pixel = _pixel_dtype(reader)
-        _check_size(p, reader.GetSize(), pixel.itemsize * reader.GetNumberOfComponents(), what)
-        img = reader.Execute() if voxels else None
+        with _itk_quiet():
+            reader.ReadImageInformation()
+            pixel = _pixel_dtype(reader)
+            _check_size(p, reader.GetSize(), pixel.itemsize * reader.GetNumberOfComponents(), what)
+            img = reader.Execute() if voxels else None
     except RuntimeError as exc:
         raise VolregIOError(f"{what} `{p}` could not be read as an image: {_sitk_reason(exc)}.") from exc
 
