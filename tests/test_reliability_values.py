@@ -636,6 +636,14 @@ def test_nifti_sform_scaled_beyond_pixdim_gives_one_line(tmp_path, capfd):
     assert "\n" not in err and "WARNING" not in err and "pixdim disagrees with the sform" in err, err
 
 
+def test_nifti_singular_sform_is_called_singular(tmp_path):
+    sform = np.eye(4)
+    sform[2] = 0.0
+    with pytest.raises(VolregIOError, match=r"singular.nii.gz` has an sform \(code 1\) whose direction matrix is "
+                                            r"singular \(determinant 0\); expected independent axis directions"):
+        read_labels(_nifti_header(tmp_path / "singular.nii.gz", sform=sform))
+
+
 # ----------------------------------------------------------------------------- all-or-nothing output folders
 
 

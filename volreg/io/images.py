@@ -406,6 +406,9 @@ def _check_nifti(path: Path, suffix: str, what: str, *, voxels: bool = True) -> 
             # SimpleITK would print pages of linear-algebra diagnostics before failing on it.
             raise VolregIOError(f"{what} `{path}` has a {name} (code {int(code)}) with NaN or Inf entries; expected "
                                 "a finite geometry (fix the header or clear that form).")
+        if form is not None:
+            article = "a" if name == "qform" else "an"
+            _check_nifti_form(np.asarray(form, dtype=float), f"{article} {name} (code {int(code)})", path, what)
     if qform is None and sform is None:
         warnings.warn(
             f"{what} `{path}` has no orientation in its header (qform_code = sform_code = 0): read as ITK does "
@@ -422,6 +425,19 @@ def _check_nifti(path: Path, suffix: str, what: str, *, voxels: bool = True) -> 
                 f"by up to {diff:.4g} mm; expected one geometry (fix the header or clear one of them)."
             )
     return img
+
+
+def _check_nifti_form(form: np.ndarray, name: str, path: Path, what: str) -> None:
+    """Refuse a coded NIfTI affine (RAS, mm; ``name`` e.g. "an sform (code 1)") that is singular
+    (ITK calls it "not orthogonal")."""
+    block = form[:3, :3]
+    lengths = np.linalg.norm(block, axis=0)
+    det = float(np.linalg.det(block))
+    if np.any(lengths == 0) or abs(det) <= 1e-9 * float(np.prod(lengths)):
+        raise VolregIOError(
+            f"{what} `{path}` has {name} whose direction matrix is singular (determinant {det:.3g}); expected "
+            "independent axis directions (fix the header or clear that form)."
+        )
 
 
 def _nifti_float_voxels(nimg: nib.Nifti1Image, array: np.ndarray, path: Path, what: str) -> np.ndarray:
