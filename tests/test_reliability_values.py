@@ -644,6 +644,49 @@ def test_nifti_singular_sform_is_called_singular(tmp_path):
         read_labels(_nifti_header(tmp_path / "singular.nii.gz", sform=sform))
 
 
+def test_nifti_sform_offset_a_million_kilometres_away_is_named(tmp_path):
+    """ITK checks the sform in single precision, offset included: at 1e8 mm it calls the axes sheared."""
+    sform = np.eye(4)
+    sform[0, 3] = 1e9
+    with pytest.raises(VolregIOError, match=r"far.nii.gz` has an sform \(code 1\) offset of \[1e\+09, 0, 0\] mm; "
+                                            r"expected an origin within 1e\+06 mm"):
+        read_labels(_nifti_header(tmp_path / "far.nii.gz", sform=sform))
+
+
+@pytest.mark.parametrize("kind,value", [("nifti", 1e-20), ("nifti", 1e-7), ("nifti", 1e7), ("mha", 1e-30),
+                                        ("mha", 1e9), ("nrrd", 1e-9), ("vti", 1e-8)])
+def test_implausible_voxel_spacing_is_refused_when_read(tmp_path, capfd, kind, value):
+    """A spacing of 1e-20 mm ends in a traceback deep in `register`; refuse it with the axis and value."""
+    if kind == "nifti":
+        path = _nifti_header(tmp_path / "s.nii.gz", pixdim=value)
+        field = "pixdim"
+    elif kind == "mha":
+        path = _edited_mha(tmp_path / "s.mha", "ElementSpacing = 1 1 1", f"ElementSpacing = {value:g} 1 1")
+        field = "ElementSpacing"
+    elif kind == "nrrd":
+        path = _nrrd(tmp_path / "s.nrrd", f"({value:g},0,0) (0,1,0) (0,0,1)")
+        field = "space directions"
+    else:
+        g = pv.ImageData(dimensions=(5, 5, 5), spacing=(value, 1.0, 1.0))
+        g.point_data["labels"] = np.ones(125, np.uint8)
+        g.save(tmp_path / "s.vti")
+        path, field = tmp_path / "s.vti", "voxel spacing"
+    pattern = (rf"{re.escape(path.name)}` has .*{field}.*{re.escape(f'{value:g}')} mm along axis 0; expected voxel "
+               r"spacings from 1e-06 to 1e\+06 mm")
+    with pytest.raises(VolregIOError, match=pattern):
+        read_labels(path)
+    assert main(["surface", str(path), "-o", str(tmp_path / "out")]) == 2
+    err = capfd.readouterr().err.strip()
+    assert "\n" not in err and re.search(pattern, err), err
+
+
+@pytest.mark.parametrize("spacing", [1e-3, 1e-5, 5e4])
+def test_spacings_of_microscopy_and_large_scale_images_are_read(tmp_path, spacing):
+    for name in ("m.nii.gz", "m.mha", "m.nrrd"):
+        write_labels(LabelVolume(_labels_3d(), (0.0, 0.0, 0.0), (spacing, 1.0, 1.0), np.eye(3)), tmp_path / name)
+        np.testing.assert_allclose(read_labels(tmp_path / name).spacing, [spacing, 1.0, 1.0], rtol=1e-6)
+
+
 # ----------------------------------------------------------------------------- all-or-nothing output folders
 
 

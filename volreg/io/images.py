@@ -49,6 +49,13 @@ _QS_TOL_MM = 1e-3
 # Tolerance for the direction block of a squeezed 4-D image (unitless).
 _DIR_TOL = 1e-6
 
+#: Voxel spacings a reader accepts, mm: a nanometre to a kilometre.  Beyond them a header is in
+#: other units or corrupt, and the grid's arithmetic (distance maps, sampling) breaks down.
+SPACING_RANGE_MM = (1e-6, 1e6)
+#: Farthest an image's origin may lie from 0 along an axis, mm (a kilometre; ITK's NIfTI reader
+#: already fails on an sform offset of 1e8 mm, calling its axes not orthogonal).
+ORIGIN_LIMIT_MM = 1e6
+
 
 def _check_size(path: Path, shape: tuple[int, ...], itemsize: int, what: str) -> None:
     """Refuse, before anything is allocated, an image larger than :func:`max_image_bytes`."""
@@ -115,6 +122,33 @@ def _check_nifti_dims(path: Path, suffix: str, what: str) -> None:
         raise VolregIOError(
             f"{what} `{path}` has dim[0] = {n} in its NIfTI header but dim[{i}] = {v}; expected dim[0] to count "
             f"every axis of the data (readers would drop axis {i} and read another shape)."
+        )
+
+
+def _implausible_spacing(path: Path, what: str, field: str, spacing, sizes=None) -> None:
+    """Refuse a voxel spacing outside :data:`SPACING_RANGE_MM` (of an axis longer than 1 where
+    ``sizes`` are given); ``field`` names the header field it came from ("" for none)."""
+    lo, hi = SPACING_RANGE_MM
+    for axis, value in enumerate(float(v) for v in spacing):
+        if sizes is not None and axis < len(sizes) and int(sizes[axis]) <= 1:
+            continue
+        if not lo <= value <= hi:
+            head = f"{field}: {value:g} mm" if field else f"a voxel spacing of {value:g} mm"
+            raise VolregIOError(
+                f"{what} `{path}` has {head} along axis {axis}; expected voxel spacings from {lo:g} to {hi:g} mm "
+                "(check the header's units)."
+            )
+
+
+def _implausible_origin(path: Path, what: str, field: str, origin) -> None:
+    """Refuse an origin farther than :data:`ORIGIN_LIMIT_MM` from 0 along any axis; ``field`` says
+    where it came from (e.g. ``"an origin of"``)."""
+    values = [float(v) for v in origin]
+    if any(not abs(v) <= ORIGIN_LIMIT_MM for v in values):
+        listed = ", ".join(f"{v:g}" for v in values)
+        raise VolregIOError(
+            f"{what} `{path}` has {field} [{listed}] mm; expected an origin within {ORIGIN_LIMIT_MM:g} mm (1 km) "
+            "of 0 (check the header's units)."
         )
 
 
@@ -185,8 +219,11 @@ def _check_metaimage_header(path: Path, what: str) -> None:
                 f"{what} `{path}` has {key} = {fields[key]}; expected positive voxel spacings (a zero spacing puts "
                 "an axis's voxels at one point)."
             )
+        _implausible_spacing(path, what, f"{key} = {fields[key]}", spacing, sizes)
     for key in ("Offset", "Origin", "Position"):  # synonyms in MetaIO
-        values(key, n, "finite numbers (the origin in mm)")
+        origin = values(key, n, "finite numbers (the origin in mm)")
+        if origin is not None:
+            _implausible_origin(path, what, f"{key} = {fields[key]}, an origin of", origin)
     for key in ("TransformMatrix", "Rotation", "Orientation"):  # synonyms in MetaIO
         values(key, n * n, "finite numbers (the direction matrix)")
 
@@ -200,7 +237,7 @@ def _check_nrrd_header(path: Path, what: str) -> None:
     ``spacings`` may not be negative (ITK makes a flipped axis of it); every vector of ``space
     directions`` and ``space origin`` must be finite numbers (teem takes a vector of NaNs for
     "no vector" and ITK then puts the identity there; one NaN among numbers fails with teem's
-    own wording).
+    own wording), and a direction's length, the axis's spacing, must be plausible.
     """
     head = _read_header_text(path)
     if head is None or not head.startswith(b"NRRD"):
@@ -222,6 +259,7 @@ def _check_nrrd_header(path: Path, what: str) -> None:
                 f"{what} `{path}` has negative spacing (spacings = {fields['spacings']}); expected positive "
                 "voxel spacings (a flipped axis belongs in the direction matrix)."
             )
+    sizes = _numbers(fields.get("sizes", "")) or []
     dimension = None
     if "space directions" in fields:
         text = fields["space directions"]
@@ -234,6 +272,9 @@ def _check_nrrd_header(path: Path, what: str) -> None:
                 f"{what} `{path}` has space directions: {text}; expected a vector of finite numbers per spatial "
                 "axis, all of one length (or none for a non-spatial axis)."
             )
+        lengths = [float(np.linalg.norm(v)) for _, v in parsed]
+        axis_sizes = [sizes[i] if i < len(sizes) else 2 for i, _ in parsed]
+        _implausible_spacing(path, what, f"space directions: {text}", lengths, axis_sizes)
     if "space origin" in fields:
         text = fields["space origin"]
         found = re.fullmatch(r"\(([^)]*)\)", text)
@@ -242,6 +283,7 @@ def _check_nrrd_header(path: Path, what: str) -> None:
         if not origin or not all(np.isfinite(origin)) or (dimension is not None and len(origin) != dimension):
             count = f"{dimension} " if dimension is not None else ""
             raise VolregIOError(f"{what} `{path}` has space origin: {text}; expected a vector of {count}finite numbers.")
+        _implausible_origin(path, what, f"space origin: {text}, an origin of", origin)
 
 
 def _check_header_fields(path: Path, suffix: str, what: str) -> None:
@@ -398,6 +440,8 @@ def _check_nifti(path: Path, suffix: str, what: str, *, voxels: bool = True) -> 
         raise VolregIOError(
             f"{what} `{path}` has voxel sizes (pixdim) {pixdim.tolist()}; expected positive, finite spacings."
         )
+    listed = ", ".join(f"{float(v):g}" for v in pixdim)
+    _implausible_spacing(path, what, f"voxel sizes (pixdim) [{listed}]", pixdim, shape[: len(pixdim)])
     if voxels:
         _check_nifti_length(path, suffix, what, offset, shape, itemsize)
 
@@ -428,8 +472,12 @@ def _check_nifti(path: Path, suffix: str, what: str, *, voxels: bool = True) -> 
 
 
 def _check_nifti_form(form: np.ndarray, name: str, path: Path, what: str) -> None:
-    """Refuse a coded NIfTI affine (RAS, mm; ``name`` e.g. "an sform (code 1)") that is singular
-    (ITK calls it "not orthogonal")."""
+    """Refuse a coded NIfTI affine (RAS, mm; ``name`` e.g. "an sform (code 1)") that is singular or
+    lies implausibly far away.
+
+    ITK calls both "not orthogonal": it checks that the sform is a rotation times scales in single
+    precision, offset included, which a zero row fails and so does an offset of 1e8 mm or more.
+    """
     block = form[:3, :3]
     lengths = np.linalg.norm(block, axis=0)
     det = float(np.linalg.det(block))
@@ -438,6 +486,7 @@ def _check_nifti_form(form: np.ndarray, name: str, path: Path, what: str) -> Non
             f"{what} `{path}` has {name} whose direction matrix is singular (determinant {det:.3g}); expected "
             "independent axis directions (fix the header or clear that form)."
         )
+    _implausible_origin(path, what, f"{name} offset of", form[:3, 3])
 
 
 def _nifti_float_voxels(nimg: nib.Nifti1Image, array: np.ndarray, path: Path, what: str) -> np.ndarray:
@@ -597,6 +646,8 @@ def _read_sitk(
 
         check_vti_size(p, what)
         array, origin, spacing, direction = read_vti(p, what)
+        _implausible_spacing(p, what, "", spacing, array.shape)
+        _implausible_origin(p, what, "an origin of", origin)
         return (array if voxels else array.shape), origin, spacing, direction
     nimg = _check_nifti(p, suffix, what, voxels=voxels) if suffix in (".nii", ".nii.gz") else None
     if suffix in (".mha", ".mhd", ".nrrd", ".nhdr"):
@@ -610,6 +661,9 @@ def _read_sitk(
             reader.ReadImageInformation()
             pixel = _pixel_dtype(reader)
             _check_size(p, reader.GetSize(), pixel.itemsize * reader.GetNumberOfComponents(), what)
+            # Before the voxels are read; the spatial axes only (a 4-D image's fourth is time).
+            _implausible_spacing(p, what, "", reader.GetSpacing()[:3], reader.GetSize()[:3])
+            _implausible_origin(p, what, "an origin of", reader.GetOrigin()[:3])
             img = reader.Execute() if voxels else None
     except RuntimeError as exc:
         raise VolregIOError(f"{what} `{p}` could not be read as an image: {_sitk_reason(exc)}.") from exc
