@@ -140,6 +140,14 @@ def test_kernel_warp_left_out_rule():
     assert "0.969" in findings[0].message and "0.885" in findings[0].message and "5 mm" in findings[0].message
 
 
+def test_kernel_warp_left_out_with_cut_labels_names_them():
+    left_out = {"dice_linear": 0.965, "dice_warp": 0.935, "margin": 0.02, "kept": "linear"}
+    findings = _review(*_case(), kernel_warp=left_out, cut_labels=iter([2, 1]))
+    _one_line(findings)
+    assert "labels [1, 2] are cut by an image edge" in findings[0].message
+    assert "cut by" not in _review(*_case(), kernel_warp=left_out)[0].message
+
+
 def test_whole_registration_findings_come_first():
     before, after, voxels = _case()
     after[2]["mean_surface_distance_mm"] = 5.0
@@ -317,3 +325,25 @@ def test_nothing_judged_is_a_finding():
     assert "not checked" in findings[0].message and "\n" not in findings[0].message
     only_background = {0: after[0]}
     assert _review({0: before[0]}, only_background, voxels) == []
+
+
+def test_labels_in_one_volume_get_one_warning_line(capsys):
+    from volreg.cli._common import _warn_review
+
+    _warn_review("register", {"review": {"findings": []}, "labels_in_one_volume": {"fixed": [3], "moving": [7, 9]}})
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("volreg register: warning: ")
+    assert "labels [3] only in the fixed volume and labels [7, 9] only in the moving volume" in err
+    _warn_review("register", {"review": {"findings": []}, "labels_in_one_volume": {"fixed": [], "moving": []}})
+    assert capsys.readouterr().err == ""
+
+
+def test_the_dice_drop_is_measured_from_the_lower_reading_before():
+    """Labels 1-10 before 0.80 by nearest neighbour, after 0.72: a drop of 0.08 on each.  Read
+    before as after is read (per-label interpolation), label 3 had 0.73: no drop there."""
+    before, after, voxels = _case(before=0.8, after=0.72)
+    findings = _review(before, after, voxels)
+    assert [f.figure for f in findings] == ["dice_drop"] and "10 labels" in findings[0].message
+    findings = _review(before, after, voxels, dice_before_interpolated={3: 0.73, 4: 0.95})
+    assert [f.figure for f in findings] == ["dice_drop"] and "9 labels" in findings[0].message
+    assert not _review(before, after, voxels, dice_before_interpolated={v: 0.74 for v in range(1, 11)})

@@ -414,7 +414,10 @@ def register_labels(
     valid = None
     if cut["fixed"] or cut["moving"]:
         margin = protocol.surface.min_width_voxels * unit + protocol.surface.clip_mm(unit)
-        boxes = _world_boxes(fixed, cut["fixed"]) + _world_boxes(moving, cut["moving"], back)
+        # A cut label's box in the image that cuts it ends at the cut; the other image's box of
+        # the same label (through L) reaches where the first image has nothing.
+        either = sorted(set(cut["fixed"]) | set(cut["moving"]))
+        boxes = _world_boxes(fixed, either) + _world_boxes(moving, either, back)
         valid = _field_of_view_test(fixed, moving, linear, margin, boxes)
     checked = labels if landmarks is None else []  # landmarks may ask for what the labels do not show
     boxes = (boxes_f or fixed.label_boxes()) if checked else {}  # for both overlap checks
@@ -556,13 +559,15 @@ def _inside_field_of_view(volume, points: np.ndarray, margin: float) -> np.ndarr
 
 
 def _world_boxes(volume, labels: list[int], to_fixed=None) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The world (mm) bounding boxes ``(lo, hi)`` of ``labels``' voxels in ``volume``, their
-    corners taken through ``to_fixed`` (a point map) when given."""
+    """The world (mm) bounding boxes ``(lo, hi)`` of ``labels``' voxels in ``volume`` (those it
+    holds), their corners taken through ``to_fixed`` (a point map) when given."""
     if not labels:
         return []
     all_boxes = volume.label_boxes()
     out = []
     for label in labels:
+        if label not in all_boxes:
+            continue
         box = all_boxes[label]
         corners = np.array([[s.start - 0.5 if c == 0 else s.stop - 0.5 for s, c in zip(box, bits)]
                             for bits in np.ndindex(*([2] * len(box)))], float)
@@ -1036,6 +1041,36 @@ def _scores_before(fixed, moving) -> dict:
     return label_scores(fixed.array, before, labels, fixed.spacing)
 
 
+def _interpolated_dice_before(fixed, moving, labels) -> dict[int, float]:
+    """Dice of each of ``labels`` between the fixed labels and the moving ones read at the fixed
+    voxel centres as they lie (no registration) by per-label interpolation, as the warped labels
+    are read (:func:`_scores_before` reads by nearest neighbour); over the label's boxes in both
+    grids, beyond which neither reading holds it."""
+    from volreg.warp.resample import resample_labels
+
+    out = {}
+    if not labels:
+        return out
+    boxes_f, boxes_m = fixed.label_boxes(), moving.label_boxes()
+    shape = np.array(fixed.shape)
+    for v in labels:
+        if v not in boxes_f or v not in boxes_m:
+            continue
+        corners = np.array([[s.start - 3.5 if c == 0 else s.stop + 2.5 for s, c in zip(boxes_m[v], bits)]
+                            for bits in np.ndindex(*([2] * moving.ndim))], float)
+        index = fixed.world_to_index(moving.index_to_world(corners))
+        lo = np.minimum(np.floor(index.min(axis=0)).astype(int), [s.start - 1 for s in boxes_f[v]])
+        hi = np.maximum(np.ceil(index.max(axis=0)).astype(int) + 1, [s.stop + 1 for s in boxes_f[v]])
+        region = tuple(slice(int(a), int(b)) for a, b in zip(np.maximum(lo, 0), np.minimum(hi, shape)))
+        grid = np.stack(np.meshgrid(*[np.arange(r.start, r.stop) for r in region], indexing="ij"), axis=-1)
+        read = resample_labels(moving, fixed.index_to_world(grid.reshape(-1, fixed.ndim).astype(float)), method="label")
+        a, b = fixed.array[region].reshape(-1) == v, read == v
+        total = int(np.count_nonzero(a)) + int(np.count_nonzero(b))
+        if total:
+            out[int(v)] = 2.0 * np.count_nonzero(a & b) / total
+    return out
+
+
 def _registration_report(fixed, moving, result: LabelRegistration, fields: _FixedGridFields, inverse,
                          protocol: Protocol, inputs, truth, scores_before: dict) -> dict:
     """The report of a registration: Dice per label before and after, Jacobian and displacement
@@ -1043,7 +1078,13 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
     endpoint error; without stages and timings.  ``scores_before``: :func:`_scores_before`, computed
     in the background while the registration runs."""
     from volreg.evaluation.metrics import folded_fraction, label_scores
-    from volreg.evaluation.review import findings_summary, judged_labels, label_voxel_counts, review_registration
+    from volreg.evaluation.review import (
+        ReviewLimits,
+        findings_summary,
+        judged_labels,
+        label_voxel_counts,
+        review_registration,
+    )
     from volreg.io.summary import package_versions
 
     u, jac, warped_array = fields
@@ -1059,10 +1100,15 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
     shared = sorted(in_fixed & in_moving) or labels
     cut = sorted(set(result.cut_labels.get("fixed", [])) | set(result.cut_labels.get("moving", []))
                  | (in_fixed - in_moving))
+    # Where a label's Dice fell by more than the review allows, "before" is read again as "after"
+    # is (per-label interpolation): between grids of other resolutions the two readings of the
+    # same labels differ by more than that on small labels.
+    drop = ReviewLimits().max_dice_drop
+    fell = [v for v in shared if scores_before[v]["dice"] - scores_after[v]["dice"] > drop]
     findings = review_registration(
         scores_before, scores_after, voxel_mm=feature_unit(fixed, moving), label_voxels=voxels,
         label_interior=interior, linear=linear, cut_labels=cut, folded_fraction=folded_fraction(jac, inside),
-        kernel_warp=result.kernel_warp)
+        kernel_warp=result.kernel_warp, dice_before_interpolated=_interpolated_dice_before(fixed, moving, fell))
     judged = judged_labels(scores_after, label_voxels=voxels, label_interior=interior, cut_labels=cut)
     report = {
         "volreg_version": __version__,
@@ -1073,6 +1119,8 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
         "distance_map_labels": result.distance_labels,
         "implicit_surface_labels": result.labels,
         "skipped_labels": result.skipped,
+        # A structure one subject lacks, a field of view that misses it, or another numbering.
+        "labels_in_one_volume": {"fixed": sorted(in_fixed - in_moving), "moving": sorted(in_moving - in_fixed)},
         "labels": {
             str(v): {"before": scores_before[v], "after": scores_after[v]} for v in labels
         },
