@@ -327,12 +327,12 @@ def test_nothing_judged_is_a_finding():
     assert _review({0: before[0]}, only_background, voxels) == []
 
 
-def test_labels_in_one_volume_get_one_warning_line(capsys):
+def test_labels_in_one_volume_get_one_note_line(capsys):
     from volreg.cli._common import _warn_review
 
     _warn_review("register", {"review": {"findings": []}, "labels_in_one_volume": {"fixed": [3], "moving": [7, 9]}})
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith("volreg register: warning: ")
+    assert err.count("\n") == 1 and err.startswith("volreg register: note: ")
     assert "labels [3] only in the fixed volume and labels [7, 9] only in the moving volume" in err
     _warn_review("register", {"review": {"findings": []}, "labels_in_one_volume": {"fixed": [], "moving": []}})
     assert capsys.readouterr().err == ""

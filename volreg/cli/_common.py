@@ -78,16 +78,16 @@ def _warn(command: str, message: str) -> None:
 
 
 def _warn_review(command: str, report: dict) -> None:
-    """One warning line on stderr per finding of the report's plausibility review, and one naming
-    the labels that only one volume holds (they have nothing to align to and are not judged)."""
+    """One warning line on stderr per finding of the report's plausibility review, and a note
+    naming the labels that only one volume holds (they have nothing to align to and are not judged)."""
     for finding in report.get("review", {}).get("findings", []):
         _warn(command, finding["message"])
     alone = report.get("labels_in_one_volume", {})
     parts = [f"labels {alone[side][:20]}{' ...' * (len(alone[side]) > 20)} only in the {side} volume"
              for side in ("fixed", "moving") if alone.get(side)]
-    if parts:
-        _warn(command, f"{' and '.join(parts)}: nothing to align them to, so they neither drive the warp nor are "
-                       "judged; check that both volumes number their structures alike.")
+    if parts:  # a note, not a finding: one subject may lack a structure, or a field of view miss it
+        print(f"{PROG} {command}: note: {' and '.join(parts)}: nothing to align them to, so they neither drive the "
+              "warp nor are judged; check that both volumes number their structures alike.", file=sys.stderr)
 
 
 def _strict_status(command: str, protocol, reviews: list[dict]) -> int:
