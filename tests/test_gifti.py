@@ -180,6 +180,27 @@ def test_transfer_warns_on_a_mirrored_source(pair, tmp_path, capsys):
     assert np.corrcoef(nib.load(str(out)).agg_data(), scalar(t))[0, 1] < 0.9  # the values are indeed wrong
 
 
+def test_register_surfaces_warns_on_a_mirrored_source_the_centroids_carry_onto_the_target(pair, tmp_path, capsys):
+    """The RAS coordinates of the GIFTI source in a VTK file (read as LPS): the centroids'
+    translation (98 % of its diameter) puts the mirrored surface on the target, where no distance
+    shows it (a median 0.03 mm) while its points are 26 mm from their partners.  The translation
+    is the sign: register-surfaces and a transfer through its result warn, naming the frames."""
+    d, v, t, faces = pair
+    mirrored = pv.PolyData((v * RAS).astype(np.float32), faces=np.column_stack([np.full(len(faces), 3), faces]).ravel())
+    mirrored.save(tmp_path / "src_ras.vtk")
+    assert run(["register-surfaces", tmp_path / "src_ras.vtk", d / "tgt.surf.gii", "-o", tmp_path / "out",
+                "--protocol", d / "p.toml", "--quiet"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("volreg register-surfaces: warning: ") and "RAS against LPS" in err[0]
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert [f["figure"] for f in report["review"]["findings"]] == ["translation_fraction"]
+    assert report["review"]["findings"][0]["value"] > 0.9
+    assert run(["transfer", tmp_path / "src_ras.vtk", d / "tgt.surf.gii", "--result", tmp_path / "out",
+                "--target-data", d / "tgt.thick.shape.gii", "-o", tmp_path / "bad.shape.gii"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("volreg transfer: warning: ") and "RAS against LPS" in err[0]
+
+
 def test_transfer_warns_on_metres(pair, tmp_path, capsys):
     d, v, t, faces = pair
     write_surface(tmp_path / "src_m.surf.gii", v / 1000.0, faces)

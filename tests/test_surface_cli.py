@@ -198,3 +198,66 @@ def test_non_manifold_mesh_is_reported(pair, tmp_path, capsys):
                 "-o", tmp_path / "t.vtk"]) == 2  # too few vertices to be a surface: refused after the warning
     err = capsys.readouterr().err.strip().splitlines()
     assert err[0].startswith("volreg transfer: warning: ") and "non-manifold" in err[0]
+
+
+def test_a_partial_target_is_named_though_the_median_distance_is_small(pair, tmp_path, capsys):
+    """The target is the cap z >= -4 mm of the warped sphere (about 60 % of it): the source's other
+    part has no counterpart and is squeezed towards the cut, far from the target (16 % of its
+    vertices beyond 5 % of the diameter), while the median distance over all vertices stays
+    small (0.14 mm).  The 90th percentile names it."""
+    d, v, _ = pair
+    cap = pv.read(d / "tgt.vtk").clip(normal="z", origin=(0.0, 0.0, -4.0), invert=False)
+    cap.save(tmp_path / "cap.vtk")
+    assert run(["register-surfaces", d / "src.vtk", tmp_path / "cap.vtk", "-o", tmp_path / "out", "--protocol",
+                d / "p.toml", "--quiet"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no counterpart in TARGET (a partial surface)" in err[0], err
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert [f["figure"] for f in report["review"]["findings"]] == ["p90_distance_fraction"]
+    assert report["distance_to_target_mm"]["median"] < 0.05 * report["target_diameter_mm"]
+
+
+def test_the_centroids_weigh_points_by_the_surface_they_stand_for():
+    """A sphere meshed four times as densely on one half: its vertices' mean lies 4 mm off the
+    centre (radius 20 mm), the area-weighted centroid within 0.3 mm; 50 points of debris 300 mm
+    away move the plain mean 4 mm, the weighted one under 1 mm."""
+    from volreg.register import _area_centroid
+
+    sphere = pv.Sphere(radius=20.0, theta_resolution=60, phi_resolution=60)
+    points = np.array(sphere.points, float)
+    dense = np.array(pv.Sphere(radius=20.0, theta_resolution=120, phi_resolution=120).points, float)
+    mixed = np.concatenate([points[points[:, 0] < 0], dense[dense[:, 0] >= 0]])
+    assert np.linalg.norm(mixed.mean(axis=0)) > 3.0
+    assert np.linalg.norm(_area_centroid(mixed)) < 0.3, _area_centroid(mixed)
+    debris = np.array([300.0, 0.0, 0.0]) + np.random.default_rng(0).normal(scale=0.5, size=(50, 3))
+    with_debris = np.concatenate([points, debris])
+    assert np.linalg.norm(with_debris.mean(axis=0)) > 4.0
+    assert np.linalg.norm(_area_centroid(with_debris)) < 1.0, _area_centroid(with_debris)
+
+
+def test_morph_that_registers_runs_the_checks_of_register_surfaces(pair, tmp_path, capsys):
+    """The target moved 50 mm, 72 % of the source's diameter (its bounding-box diagonal), as a
+    surface mirrored between RAS and LPS moves: register-surfaces warns of the translation, and so
+    does morph registering the pair itself (it used to check only a result given with
+    --from-result)."""
+    d, _, _ = pair
+    far = pv.read(d / "tgt.vtk")
+    far.points = np.array(far.points) + [50.0, 0.0, 0.0]
+    far.save(tmp_path / "far.vtk")
+    assert run(["morph", d / "src.vtk", tmp_path / "far.vtk", "-o", tmp_path / "m", "--frames", "2", "--protocol",
+                d / "p.toml", "--quiet"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("volreg morph: warning: ") and "centroids' translation" in err[0], err
+
+
+def test_landmarks_in_another_order_are_named(pair, tmp_path, capsys):
+    d, v, _ = pair
+    idx = [0, 100, 400, 800, 1200]
+    np.savetxt(tmp_path / "s.csv", v[idx], delimiter=",", header="x,y,z", comments="")
+    np.savetxt(tmp_path / "t.csv", TRUTH(v[idx[::-1]]), delimiter=",", header="x,y,z", comments="")
+    assert run(["register-surfaces", d / "src.vtk", d / "tgt.vtk", "-o", tmp_path / "out", "--protocol",
+                d / "p.toml", "--landmarks", tmp_path / "s.csv", tmp_path / "t.csv", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "landmark files probably list their points in another order" in err, err
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert "landmark_fraction" in [f["figure"] for f in report["review"]["findings"]]

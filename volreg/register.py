@@ -163,19 +163,39 @@ def register_surfaces(
 
 def centroid_shift(source: np.ndarray, target: np.ndarray) -> np.ndarray | None:
     """The translation (D,) mm between the centroids of ``source`` and ``target`` (points (N, D),
-    (M, D) mm), where it brings the source nearer: the median distance of the moved source points
-    to their nearest target points below that of the points as they lie; ``None`` where it does
-    not (one surface is part of the other, pre-aligned) or is under 1 % of the source's diameter.
+    (M, D) mm; each point weighted by the surface it stands for, :func:`_area_centroid`), where it
+    brings the source nearer: the median distance of the moved source points to their nearest
+    target points below that of the points as they lie; ``None`` where it does not (one surface
+    is part of the other, pre-aligned) or is under 1 % of the source's diameter.
     """
     from scipy.spatial import cKDTree
 
-    shift = target.mean(axis=0) - source.mean(axis=0)
+    shift = _area_centroid(target) - _area_centroid(source)
     if np.linalg.norm(shift) <= 0.01 * _diameter(source):
         return None
     tree = cKDTree(target)
     before = np.median(tree.query(source)[0])
     after = np.median(tree.query(source + shift)[0])
     return shift if after < before else None
+
+
+def _area_centroid(points: np.ndarray, k: int = 6) -> np.ndarray:
+    """The centroid (D,) mm of surface points (N, D) mm, each weighted by the surface it stands
+    for: its distance to its ``k``-th nearest neighbour to the power D - 1.
+
+    A mean over the vertices follows the meshing: a target meshed four times as densely on one
+    half put a plain mean 10 mm off on a body 115 mm across, and 50 vertices of debris 400 mm
+    away 6 mm.  Where all points coincide, the plain mean.
+    """
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, float)
+    if len(points) <= k:
+        return points.mean(axis=0)
+    spacing = cKDTree(points).query(points, k=k + 1)[0][:, -1]
+    weight = spacing ** (points.shape[1] - 1)
+    total = float(weight.sum())
+    return points.mean(axis=0) if not total > 0 else weight @ points / total
 
 
 def mesh_min_width(points: np.ndarray, finest: float) -> float:

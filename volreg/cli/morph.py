@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     from volreg.io._atomic import output_folder
     from volreg.io.gifti import write_gifti_data
     from volreg.io.protocol import load_protocol
-    from volreg.evaluation.surface_review import diameter, review_surface_distance
+    from volreg.evaluation.surface_review import diameter, review_surface_distance, review_surface_translation
     from volreg.morph import closest_points, morph_vertices, transfer_values
     from volreg.progress import ProgressBars
 
@@ -117,11 +117,19 @@ def run(args: argparse.Namespace) -> int:
     with output_folder(outdir, args.force) as folder:
         folder.check_writable([p.name for p in paths], force=args.force)
         final, outdir = outdir, folder.path  # written into the run's staging folder, swapped in at the end
-        if warp is None:
+        registered = warp is None
+        if registered:
             with ProgressBars(quiet=args.quiet) as progress:
                 warp = _register(source, target, protocol, None, progress,
                                  names=(f"SOURCE `{args.source}`", f"TARGET `{args.target}`"))
         warped = warp(source.vertices)
+        if registered:  # the checks of register-surfaces, on the registration made here
+            _, distance, _ = closest_points(warped, target.vertices, target.triangles)
+            _warn_findings("morph", review_surface_distance(
+                distance, diameter(target.vertices),
+                hint="Check that SOURCE and TARGET are in the same frame and unit, and turned alike (surfaces are "
+                     "aligned by their centroids only).")
+                + review_surface_translation(warp.linear.translation, diameter(source.vertices)))
         if args.from_result is not None:
             # a saved warp of other surfaces would morph this SOURCE somewhere else, silently
             _, distance, _ = closest_points(warped, target.vertices, target.triangles)

@@ -49,7 +49,13 @@ def run(args: argparse.Namespace) -> int:
     """``volreg register-surfaces SOURCE TARGET -o OUTDIR``."""
     import numpy as np
 
-    from volreg.evaluation.surface_review import SurfaceReviewLimits, diameter, review_surface_distance
+    from volreg.evaluation.surface_review import (
+        SurfaceReviewLimits,
+        diameter,
+        review_landmarks,
+        review_surface_distance,
+        review_surface_translation,
+    )
     from volreg.io import write_json, write_text
     from volreg.io._atomic import output_folder
     from volreg.io.protocol import load_protocol
@@ -77,6 +83,13 @@ def run(args: argparse.Namespace) -> int:
         late = review_surface_distance(distance, target_diameter, limits,
                                        hint="Check that SOURCE and TARGET are in the same frame and unit, and turned alike "
                                             "(surfaces are aligned by their centroids only).")
+        late += review_surface_translation(warp.linear.translation, diameter(source.vertices), limits)
+        landmark_error = None
+        if landmarks is not None:
+            landmark_error = np.linalg.norm(warp(landmarks[0]) - landmarks[1], axis=1)
+            off = np.maximum(closest_points(landmarks[0], source.vertices, source.triangles)[1],
+                             closest_points(landmarks[1], target.vertices, target.triangles)[1])
+            late += review_landmarks(landmark_error, target_diameter, limits, off_surface=off)
         _warn_findings("register-surfaces", late)
         findings += late
         report = {
@@ -101,8 +114,8 @@ def run(args: argparse.Namespace) -> int:
             "protocol": protocol.to_dict(),
             "versions": package_versions(),
         }
-        if landmarks is not None:
-            err = np.linalg.norm(warp(landmarks[0]) - landmarks[1], axis=1)
+        if landmark_error is not None:
+            err = landmark_error
             report["landmark_error"] = {"mean_mm": float(err.mean()), "max_mm": float(err.max()),
                                         "mean_percent_of_diameter": float(100 * err.mean() / target_diameter)}
         warp.save(paths["model.npz"], force=args.force)

@@ -54,7 +54,12 @@ def run(args: argparse.Namespace) -> int:
     """``volreg transfer SOURCE TARGET --result OUTDIR [--array NAME] -o OUT``."""
     import numpy as np
 
-    from volreg.evaluation.surface_review import diameter, review_surface_distance, review_surface_extents
+    from volreg.evaluation.surface_review import (
+        diameter,
+        review_surface_distance,
+        review_surface_extents,
+        review_surface_translation,
+    )
     from volreg.io import check_writable, write_mesh
     from volreg.io.gifti import is_gifti, write_gifti_data
     from volreg.morph import closest_points, transfer_values
@@ -88,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
     findings += review_surface_distance(
         distance, diameter(target.vertices),
         hint="Check that SOURCE and TARGET are the surfaces registered in --result, read in the same frame.")
+    findings += review_surface_translation(warp.linear.translation, diameter(source.vertices))
     _warn_findings("transfer", findings)
     label = _is_label(target, name)
     method = "nearest" if label else args.method

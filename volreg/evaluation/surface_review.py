@@ -16,7 +16,8 @@ import numpy as np
 
 from volreg.evaluation.review import Finding
 
-__all__ = ["SurfaceReviewLimits", "diameter", "review_surface_distance", "review_surface_extents"]
+__all__ = ["SurfaceReviewLimits", "diameter", "review_surface_distance", "review_surface_extents",
+           "review_surface_translation", "review_landmarks"]
 
 
 @dataclass(frozen=True)
@@ -34,16 +35,40 @@ class SurfaceReviewLimits:
         taken as LPS) 49 mm (73 %).  A structure off the midline, such as a
         hemisphere, moves by twice its distance from the midline when mirrored
         in x and y.  5 % leaves room for a poor but honest registration.
+        The same fraction holds for the 90th percentile of the distances: a
+        tenth of the source farther off is a part of it with no counterpart in
+        the target, squeezed towards the cut while the median over all vertices
+        stays small (a sphere against the 60 % of it above a cut: 16 % of its
+        vertices beyond 5 % of the target's diameter, the median 0.2 %; half an
+        ellipsoid against the whole: its unmatched half a median 9 % off).
     max_extent_ratio : float, default 10.0
         The ratio of the larger diameter to the smaller one of the two
         surfaces.  The same structure in two subjects differs by tens of per
         cent; metres against millimetres gives 1000, centimetres 10.
+    max_translation_fraction : float, default 0.5
+        The centroids' translation the warp starts from (``register_surfaces``
+        ``align_centroids``), as a fraction of the source's diameter.  The
+        GIFTI test pair read mirrored needs 98 % (the structure 32 mm off the
+        midline moves 64 mm), after which the mirrored surface lies on the
+        target and no distance shows it; a subject's surface shifted by a
+        quarter of its size within one frame is an honest pair.
+    max_landmark_fraction : float, default 0.05
+        The mean distance between the warped source landmarks and the target
+        ones, as a fraction of the target's diameter.  Exact landmarks are met
+        to 0.04 mm; landmarks in another order or frame (RAS values in an LPS
+        file) were left 23-26 % off, with the warp 6-7 mm from the truth.
     """
 
     max_median_distance_fraction: float = 0.05
     max_extent_ratio: float = 10.0
+    max_translation_fraction: float = 0.5
+    max_landmark_fraction: float = 0.05
 
     def __post_init__(self) -> None:
+        for name in ("max_translation_fraction", "max_landmark_fraction"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"Expected `{name}` > 0, got {value!r}.")
         if not (math.isfinite(self.max_median_distance_fraction) and self.max_median_distance_fraction > 0):
             raise ValueError(f"Expected `max_median_distance_fraction` > 0, got {self.max_median_distance_fraction!r}.")
         if not (math.isfinite(self.max_extent_ratio) and self.max_extent_ratio > 1):
@@ -100,16 +125,98 @@ def review_surface_distance(distance: np.ndarray, target_diameter: float,
     -------
     list of Finding
         Empty, or one finding with figure ``"median_distance_fraction"`` (median distance
-        over the target's diameter).
+        over the target's diameter) or, where the median is within the limit,
+        ``"p90_distance_fraction"`` (the 90th percentile's, a partial surface).
     """
     d = np.asarray(distance, float)
     median = float(np.median(d))
     fraction = median / target_diameter if target_diameter > 0 else math.inf
     if fraction <= limits.max_median_distance_fraction:
-        return []
+        p90 = float(np.percentile(d, 90))
+        tenth = p90 / target_diameter if target_diameter > 0 else math.inf
+        if tenth <= limits.max_median_distance_fraction:
+            return []
+        message = (f"a tenth of the warped SOURCE vertices lie more than {p90:.3g} mm from TARGET, "
+                   f"{100 * tenth:.1f} % of its diameter (limit {100 * limits.max_median_distance_fraction:g} %), "
+                   f"while the median is {median:.3g} mm: part of SOURCE has no counterpart in TARGET (a partial "
+                   "surface), and the warp squeezes it towards what TARGET holds; register surfaces that cover the "
+                   "same part of the structure.")
+        return [Finding(None, "p90_distance_fraction", tenth, limits.max_median_distance_fraction, message)]
     message = (f"the warped SOURCE vertices lie a median {median:.3g} mm from TARGET, {100 * fraction:.1f} % of its "
                f"diameter (limit {100 * limits.max_median_distance_fraction:g} %): the surfaces are probably in "
                "different frames (RAS against LPS: a GIFTI converted to another format keeps RAS) or units.")
     if hint:
         message += " " + hint
     return [Finding(None, "median_distance_fraction", fraction, limits.max_median_distance_fraction, message)]
+
+
+def review_surface_translation(translation: np.ndarray, source_diameter: float,
+                               limits: SurfaceReviewLimits = SurfaceReviewLimits()) -> list[Finding]:
+    """A finding when the centroids' translation the warp starts from exceeds
+    ``limits.max_translation_fraction`` of the source's diameter.
+
+    Parameters
+    ----------
+    translation : (D,) float ndarray, mm
+        The warp's linear part's translation (``register_surfaces`` ``align_centroids``).
+    source_diameter : float, mm
+    limits : SurfaceReviewLimits
+
+    Returns
+    -------
+    list of Finding
+        Empty, or one with figure ``"translation_fraction"``.
+    """
+    length = float(np.linalg.norm(np.asarray(translation, float)))
+    fraction = length / source_diameter if source_diameter > 0 else math.inf
+    if not length or fraction <= limits.max_translation_fraction:
+        return []
+    message = (f"SOURCE was moved {length:.3g} mm by the centroids' translation to meet TARGET, "
+               f"{100 * fraction:.0f} % of its diameter (limit {100 * limits.max_translation_fraction:g} %): "
+               "surfaces from one frame are probably in different ones (RAS against LPS: a GIFTI converted to "
+               "another format keeps RAS, mirrored in x and y as LPS), and the warp then pairs mirrored points; "
+               "check both files' frames.")
+    return [Finding(None, "translation_fraction", fraction, limits.max_translation_fraction, message)]
+
+
+def review_landmarks(error: np.ndarray, target_diameter: float,
+                     limits: SurfaceReviewLimits = SurfaceReviewLimits(), *,
+                     off_surface: np.ndarray | None = None) -> list[Finding]:
+    """Findings when the warped source landmarks end a mean of more than
+    ``limits.max_landmark_fraction`` of the target's diameter from the target landmarks, or
+    when the landmarks lie that far from their surfaces on average.
+
+    Parameters
+    ----------
+    error : (L,) float ndarray, mm
+        ``|tau(p_i) - q_i|`` per landmark pair.
+    target_diameter : float, mm
+    limits : SurfaceReviewLimits
+    off_surface : (L,) float ndarray, mm, optional
+        Per pair, the larger of the source landmark's distance to the source surface and
+        the target landmark's to the target surface.
+
+    Returns
+    -------
+    list of Finding
+        Empty, or with figures ``"landmark_fraction"`` and ``"landmark_off_surface_fraction"``.
+    """
+    findings = []
+    limit = limits.max_landmark_fraction
+    mean = float(np.mean(np.asarray(error, float))) if len(error) else 0.0
+    fraction = mean / target_diameter if target_diameter > 0 else math.inf
+    if fraction > limit:
+        findings.append(Finding(None, "landmark_fraction", fraction, limit, (
+            f"the warped SOURCE landmarks end a mean {mean:.3g} mm from the TARGET ones, {100 * fraction:.1f} % of "
+            f"its diameter (limit {100 * limit:g} %): the two landmark files probably list their points in another "
+            "order, or in another frame than the surfaces; check that row i of each names the same point, in LPS "
+            "mm.")))
+    if off_surface is not None and len(off_surface):
+        off = float(np.mean(np.asarray(off_surface, float)))
+        fraction = off / target_diameter if target_diameter > 0 else math.inf
+        if fraction > limit:
+            findings.append(Finding(None, "landmark_off_surface_fraction", fraction, limit, (
+                f"the landmarks lie a mean {off:.3g} mm from their surfaces, {100 * fraction:.1f} % of TARGET's "
+                f"diameter (limit {100 * limit:g} %), and the warp bends to carry them: landmarks belong on the "
+                "surfaces they mark; check their frame (LPS mm) and that each file goes with its surface.")))
+    return findings
