@@ -251,7 +251,8 @@ def test_a_pair_redone_another_way_keeps_no_earlier_result(cohort, tmp_path):
     assert not (pair / "backward").exists()
 
 
-@pytest.mark.parametrize("address", ["scheduler-host", "tcp://scheduler-host", "tcp://:8786", "tcp://host:99999"])
+@pytest.mark.parametrize("address", ["scheduler-host", "tcp://scheduler-host", "tcp://:8786", "tcp://host:99999",
+                                     "http://host:8786"])
 def test_a_scheduler_address_without_host_or_port_is_refused_before_any_folder(tmp_path, capsys, address):
     (tmp_path / "m.csv").write_text("id,path\na,a.nii.gz\nb,b.nii.gz\n")
     for name in ("a", "b"):

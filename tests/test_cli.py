@@ -512,7 +512,7 @@ def test_vtk_suffixes_cover_every_format_read_through_pyvista():
     assert through_pyvista <= set(VTK_SUFFIXES)
 
 
-@pytest.mark.parametrize("closed", [(2,), (1, 2)])
+@pytest.mark.parametrize("closed", [(2,), (1, 2), (0, 1, 2)])
 def test_register_with_its_output_streams_closed_writes_every_output(disc2d, tmp_path, closed):
     """`volreg register A B -o OUT 2>&-` (and `>&- 2>&-`): Python starts with no stream there, and
     the first progress line ended the command with exit status 1 and no output."""

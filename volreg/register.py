@@ -185,14 +185,19 @@ def _area_centroid(points: np.ndarray, k: int = 6) -> np.ndarray:
 
     A mean over the vertices follows the meshing: a target meshed four times as densely on one
     half put a plain mean 10 mm off on a body 115 mm across, and 50 vertices of debris 400 mm
-    away 6 mm.  Where all points coincide, the plain mean.
+    away 6 mm.  Repeated points count once, and no point's spacing counts above twice the
+    median (else a few stray points, far from their neighbours, would weigh as much as a
+    surface).  Where all points coincide, the plain mean.
     """
     from scipy.spatial import cKDTree
 
-    points = np.asarray(points, float)
+    points = np.unique(np.asarray(points, float), axis=0)  # a repeated point stands for no more surface
     if len(points) <= k:
         return points.mean(axis=0)
     spacing = cKDTree(points).query(points, k=k + 1)[0][:, -1]
+    # A few stray points (a one-voxel speck's octahedron) are far from their sixth neighbour: capped
+    # at two typical spacings, they weigh little more than the surface they stand for.
+    spacing = np.minimum(spacing, 2.0 * float(np.median(spacing)))
     weight = spacing ** (points.shape[1] - 1)
     total = float(weight.sum())
     return points.mean(axis=0) if not total > 0 else weight @ points / total
@@ -1083,7 +1088,12 @@ def _interpolated_dice_before(fixed, moving, labels) -> dict[int, float]:
         hi = np.maximum(np.ceil(index.max(axis=0)).astype(int) + 1, [s.stop + 1 for s in boxes_f[v]])
         region = tuple(slice(int(a), int(b)) for a, b in zip(np.maximum(lo, 0), np.minimum(hi, shape)))
         grid = np.stack(np.meshgrid(*[np.arange(r.start, r.stop) for r in region], indexing="ij"), axis=-1)
-        read = resample_labels(moving, fixed.index_to_world(grid.reshape(-1, fixed.ndim).astype(float)), method="label")
+        # The moving labels near the label only (the reading passes over the whole image it is given).
+        start = [max(b.start - 4, 0) for b in boxes_m[v]]
+        crop = tuple(slice(a, min(b.stop + 4, n)) for a, b, n in zip(start, boxes_m[v], moving.shape))
+        near = LabelVolume(moving.array[crop], moving.index_to_world(np.array([start], float))[0], moving.spacing,
+                           moving.direction)
+        read = resample_labels(near, fixed.index_to_world(grid.reshape(-1, fixed.ndim).astype(float)), method="label")
         a, b = fixed.array[region].reshape(-1) == v, read == v
         total = int(np.count_nonzero(a)) + int(np.count_nonzero(b))
         if total:
@@ -1124,12 +1134,12 @@ def _registration_report(fixed, moving, result: LabelRegistration, fields: _Fixe
     # is (per-label interpolation): between grids of other resolutions the two readings of the
     # same labels differ by more than that on small labels.
     drop = ReviewLimits().max_dice_drop
-    fell = [v for v in shared if scores_before[v]["dice"] - scores_after[v]["dice"] > drop]
+    judged = judged_labels(scores_after, label_voxels=voxels, label_interior=interior, cut_labels=cut)
+    fell = [v for v in judged if v in scores_before and scores_before[v]["dice"] - scores_after[v]["dice"] > drop]
     findings = review_registration(
         scores_before, scores_after, voxel_mm=feature_unit(fixed, moving), label_voxels=voxels,
         label_interior=interior, linear=linear, cut_labels=cut, folded_fraction=folded_fraction(jac, inside),
         kernel_warp=result.kernel_warp, dice_before_interpolated=_interpolated_dice_before(fixed, moving, fell))
-    judged = judged_labels(scores_after, label_voxels=voxels, label_interior=interior, cut_labels=cut)
     report = {
         "volreg_version": __version__,
         "command": "register",

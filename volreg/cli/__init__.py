@@ -175,13 +175,23 @@ def _unraisable_hook(previous):
 
 
 def _open_closed_streams() -> None:
-    """Standard output or error closed when the command started (``2>&-``): Python then has no
-    stream there, and the first progress line or warning would end the command.  Such a stream
-    writes to the null device instead (which takes the closed descriptor, so that libraries
-    writing to it directly lose their messages as well)."""
-    for name in ("stdout", "stderr"):
+    """Standard streams closed when the command started (``2>&-``): Python then has no stream
+    there, and the first progress line or warning would end the command.  Each closed one of
+    descriptors 0-2 is opened on the null device, in place (so that the next file opened, an
+    output, does not take it and receive what libraries write to 2 directly), and Python's
+    stream there writes to it."""
+    for fd, name, mode in ((0, "stdin", "r"), (1, "stdout", "w"), (2, "stderr", "w")):
+        try:
+            os.fstat(fd)
+            continue
+        except OSError:
+            pass
+        null = os.open(os.devnull, os.O_RDONLY if mode == "r" else os.O_WRONLY)
+        if null != fd:
+            os.dup2(null, fd)
+            os.close(null)
         if getattr(sys, name) is None:
-            setattr(sys, name, open(os.devnull, "w", encoding="utf-8"))  # noqa: SIM115 (lives with the process)
+            setattr(sys, name, open(fd, mode, encoding="utf-8", closefd=False))  # noqa: SIM115 (lives with the process)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

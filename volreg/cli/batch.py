@@ -361,9 +361,12 @@ def _check_scheduler_address(address: str) -> None:
         Naming the address and the form expected.
     """
     from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import backends
 
     try:
         scheme, location = parse_address(address, strict=False)
+        if scheme not in backends:
+            raise ValueError(f"unknown scheme {scheme!r} (Dask knows {', '.join(sorted(backends))})")
         if scheme in ("tcp", "tls"):
             host, port = parse_host_port(location)
             if not host or not 0 < int(port) < 65536:
@@ -409,7 +412,7 @@ def run(args: argparse.Namespace) -> int:
         if args.scheduler:
             try:
                 client = Client(args.scheduler, timeout=SCHEDULER_TIMEOUT_S)
-            except OSError as exc:  # refused, unreachable or timed out
+            except (OSError, ValueError) as exc:  # refused, unreachable, timed out, or no such address
                 for folder in reversed(created):  # nothing was written: the folders made for it go
                     with contextlib.suppress(OSError):
                         folder.rmdir()

@@ -462,8 +462,8 @@ def review_registration(
             f"the kernel warp lowered the labels' pooled Dice from {by_linear:.3f} (the linear part alone) to "
             f"{by_warp:.3f}, so the result is the linear part alone; labels only a few voxels across at the "
             f"largest voxel spacing of the two grids ({float(voxel_mm):.3g} mm, which sets the features' scale) cannot "
-            "drive a warp" + (f", and labels {cut_labels[:10]} are cut by an image edge, "
-                              "where the other image shows them and this one does not" if cut_labels else "")
+            "drive a warp" + (f", and labels {cut_labels[:10]} are cut by an image edge or absent from one "
+                              "volume" if cut_labels else "")
             + ": check the labels' size against that spacing and what each image covers, or use the result as a "
             "linear one."))
 

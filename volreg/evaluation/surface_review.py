@@ -141,6 +141,8 @@ def review_surface_distance(distance: np.ndarray, target_diameter: float,
                    f"while the median is {median:.3g} mm: part of SOURCE has no counterpart in TARGET (a partial "
                    "surface), and the warp squeezes it towards what TARGET holds; register surfaces that cover the "
                    "same part of the structure.")
+        if hint:
+            message += " " + hint
         return [Finding(None, "p90_distance_fraction", tenth, limits.max_median_distance_fraction, message)]
     message = (f"the warped SOURCE vertices lie a median {median:.3g} mm from TARGET, {100 * fraction:.1f} % of its "
                f"diameter (limit {100 * limits.max_median_distance_fraction:g} %): the surfaces are probably in "

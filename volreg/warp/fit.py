@@ -428,7 +428,8 @@ class _SampleSet:
                 "mm across; expected a smaller `sample_spacing` (mm) or `sample_scale`.")
         # Fold-check points: the samples and their octree children, a lattice of at most half
         # min_width; samples that dense (sample_scale <= 0.5) are checked as they are.
-        check = samples if step <= 0.5 * s.min_width * (1 + 1e-9) else _with_children(samples)
+        finest = min(s.min_width, inputs.diameter / 2)  # as _level_schedule clamps it
+        check = samples if step <= 0.5 * finest * (1 + 1e-9) else _with_children(samples)
         if warp.levels or not warp.linear.is_identity:
             jacobian, base = warp.jacobian(check), warp(samples)
         else:
