@@ -330,3 +330,44 @@ def test_waiting_for_helpers_ends_with_them_or_at_the_timeout():
     assert slow.poll() is None and time.perf_counter() - t0 < 5.0
     _precompile.stop([slow])
     assert slow.returncode is not None
+
+
+def test_an_interrupt_while_a_loop_compiles_is_raised_once_it_is_ready():
+    """SIGTERM (or Ctrl-C) while numba compiles a loop or loads it from the cache is held until
+    the loop is ready, then raised: raised inside numba's compiler or LLVM's callbacks, it left
+    LLVM's objects half-built, and the command crashed by a segmentation fault after its report."""
+    from volreg._jit import _compiled_with_signals_held, njit
+
+    class Stop(Exception):
+        pass
+
+    def raise_stop(signum, frame):
+        raise Stop(signum)
+
+    steps = []
+
+    class Dispatcher:
+        def compile(self, sig):
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(50):  # Python checks for signals between these steps
+                time.sleep(0.002)
+                steps.append(sig)
+            return "compiled"
+
+    loop = _compiled_with_signals_held(Dispatcher())
+    previous = signal.signal(signal.SIGTERM, raise_stop)
+    try:
+        with pytest.raises(Stop):
+            loop.compile("float64")
+        assert steps == ["float64"] * 50  # the compilation ran to its end, then the handler
+        assert signal.getsignal(signal.SIGTERM) is raise_stop
+        assert loop.compile.__wrapped__.__func__ is Dispatcher.compile  # unheld, as the helper calls it
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+    @njit(cache=False)
+    def add_one(x):
+        return x + 1
+
+    assert add_one(1) == 2 and add_one(1.5) == 2.5  # every volreg loop compiles through the held method
+    assert hasattr(add_one.compile, "__wrapped__") and len(add_one.signatures) == 2

@@ -95,4 +95,34 @@ def njit(*args, cache: bool = True, **kwargs):
     # quantities (widths, spacings, determinants above a floor); the loops compile about 10 %
     # faster (the first run's cost) and give the same results up to the last bit of float32 outputs.
     kwargs.setdefault("error_model", "numpy")
-    return numba.njit(*args, cache=use_cache, **kwargs)
+    decorate = numba.njit(*args, cache=use_cache, **kwargs)
+
+    def decorator(function):
+        return _compiled_with_signals_held(decorate(function))
+
+    return decorator
+
+
+def _compiled_with_signals_held(dispatcher):
+    """``dispatcher`` (a numba dispatcher), its ``compile`` run with SIGINT and SIGTERM held.
+
+    numba compiles a loop, or loads it from its cache, on the loop's first call with new
+    argument types (``Dispatcher.compile``).  An interrupt raised inside that work (numba's
+    Python code, or LLVM's callbacks into Python) left LLVM's objects half-built, and the
+    process crashed by a segmentation fault in the next loop it loaded or at exit, after the
+    command had reported the interrupt.  Held (:class:`volreg._signals.SignalsHeld`), it is
+    raised once the loop is ready, at most a compilation later (a few seconds on a first run,
+    milliseconds from the cache).  The unwrapped method stays reachable as
+    ``dispatcher.compile.__wrapped__`` (the compile-ahead helper, which SIGTERM ends at once).
+    """
+    from volreg._signals import SignalsHeld
+
+    compile_now = dispatcher.compile
+
+    def compile_held(sig):
+        with SignalsHeld():
+            return compile_now(sig)
+
+    compile_held.__wrapped__ = compile_now
+    dispatcher.compile = compile_held
+    return dispatcher

@@ -385,7 +385,8 @@ def _main(argv: list[str]) -> int:
             if _stopping or os.getppid() != parent:  # stopped, or the command was killed outright
                 break
             i = int(word)
-            _dispatcher(i).compile(argument_types(LOOPS[i][2]))
+            compile_now = _dispatcher(i).compile  # unheld (see volreg._jit): SIGTERM ends the helper at once
+            getattr(compile_now, "__wrapped__", compile_now)(argument_types(LOOPS[i][2]))
     except Exception:
         if not _stopping:  # a bug
             raise

@@ -15,12 +15,12 @@ import hashlib
 import os
 import secrets
 import shutil
-import signal
-import threading
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
+
+from volreg._signals import SignalsHeld
 from volreg.errors import UsageError, VolregIOError
 
 __all__ = [
@@ -398,35 +398,8 @@ def _link_tree(source: Path, target: Path) -> None:
     shutil.copytree(source, target, symlinks=True, copy_function=link, dirs_exist_ok=True)
 
 
-class _SignalsHeld:
-    """Hold SIGINT and SIGTERM back (main thread) for the few renames of a swap.
-
-    Their handlers are replaced by one that notes the signal, and the handler of a noted one
-    runs once the block has ended.  (Blocking them in the main thread's signal mask is not
-    enough: the kernel then hands a signal sent to the process to another of its threads, a
-    compiled loop's helper, and Python runs the handler in the main thread all the same; an
-    interrupt between two renames left the staging folder behind.)
-    """
-
-    _SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __enter__(self):
-        self.previous: dict = {}
-        self.noted: list[int] = []
-        if threading.current_thread() is threading.main_thread():
-            for signum in self._SIGNALS:
-                self.previous[signum] = signal.signal(signum, lambda signum, frame: self.noted.append(signum))
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for signum, handler in self.previous.items():
-            signal.signal(signum, handler)
-        for signum in self.noted[:1]:  # now, as it would have been handled in the block
-            handler = self.previous[signum]
-            if callable(handler):
-                handler(signum, None)
-            elif handler == signal.SIG_DFL:
-                signal.raise_signal(signum)
+#: Kept under its former name, for the swap below.
+_SignalsHeld = SignalsHeld
 
 
 def _swap_in(staging: Path, final: Path) -> None:
