@@ -265,3 +265,53 @@ def test_landmarks_in_another_order_are_named(pair, tmp_path, capsys):
     assert "landmark files probably list their points in another order" in err, err
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert "landmark_fraction" in [f["figure"] for f in report["review"]["findings"]]
+
+
+def _fibonacci_sphere(n: int, radius: float) -> np.ndarray:
+    """``n`` points spread evenly over a sphere of ``radius`` mm about the origin, (n, 3)."""
+    i = np.arange(n) + 0.5
+    polar, azimuth = np.arccos(1 - 2 * i / n), np.pi * (1 + 5 ** 0.5) * i
+    return radius * np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], 1)
+
+
+def test_gaps_to_a_point_cloud_are_measured_towards_a_surface():
+    """40 points on a sphere of radius 20 mm lie 4-5 mm from a vertex of a mesh of the same sphere
+    seen from the other side (half their spacing); their distances to the mesh's triangles are
+    under 0.1 mm, and points on a sphere 5 mm larger are 5 mm off.  Between two clouds, the
+    sparser one's distances less half the denser one's spacing."""
+    from volreg.morph import closest_points, surface_gaps
+
+    sphere = pv.Sphere(radius=20.0, theta_resolution=40, phi_resolution=40)
+    vertices, triangles = np.array(sphere.points, float), np.asarray(sphere.faces).reshape(-1, 4)[:, 1:]
+    cloud, none = _fibonacci_sphere(40, 20.0), np.zeros((0, 3), int)
+    assert np.median(closest_points(vertices, cloud, none)[1]) > 3.0  # what the nearest point gave
+    gaps, measured = surface_gaps(vertices, triangles, cloud, none)
+    assert measured == "target_to_source" and gaps.shape == (40,) and gaps.max() < 0.1, gaps.max()
+    gaps, _ = surface_gaps(vertices, triangles, _fibonacci_sphere(40, 25.0), none)
+    assert np.allclose(gaps, 5.0, atol=0.1), (gaps.min(), gaps.max())
+    gaps, measured = surface_gaps(vertices, triangles, vertices, triangles)
+    assert measured == "source_to_target" and gaps.shape == (len(vertices),) and gaps.max() < 1e-6
+    gaps, measured = surface_gaps(vertices, none, cloud, none)
+    assert measured == "sparser_to_denser" and gaps.shape == (40,) and np.median(gaps) < 0.5, np.median(gaps)
+    gaps, _ = surface_gaps(_fibonacci_sphere(40, 25.0), none, vertices, none)
+    assert 3.5 < np.median(gaps) < 5.0, np.median(gaps)
+
+
+def test_a_sparse_point_cloud_target_is_not_taken_for_another_frame(pair, tmp_path, capsys):
+    """40 points of the warped sphere as TARGET: the warped source lies on their surface, but a
+    median 4 mm (10 % of the diameter) from the nearest of them, which was warned about as
+    surfaces in different frames.  Measured from the points to the warped source it is under
+    1 mm, and the target moved 50 mm (as a surface read in another frame) is still named."""
+    d, _, _ = pair
+    pv.PolyData(TRUTH(_fibonacci_sphere(40, DIAMETER / 2))).save(tmp_path / "cloud.vtk")
+    assert run(["register-surfaces", d / "src.vtk", tmp_path / "cloud.vtk", "-o", tmp_path / "out", "--protocol",
+                d / "p.toml", "--quiet"]) == 0
+    assert capsys.readouterr().err == ""
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["review"]["plausible"] and report["distance_to_target_mm"]["median"] < 1.0, report
+    assert report["distance_to_target_mm"]["measured"] == "from each TARGET point to the warped SOURCE surface"
+    pv.PolyData(TRUTH(_fibonacci_sphere(40, DIAMETER / 2)) + [0.0, 50.0, 0.0]).save(tmp_path / "moved.vtk")
+    assert run(["morph", d / "src.vtk", tmp_path / "moved.vtk", "-o", tmp_path / "m", "--frames", "2", "--protocol",
+                d / "p.toml", "--quiet"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "centroids' translation" in err[0], err

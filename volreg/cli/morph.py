@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     from volreg.io.gifti import write_gifti_data
     from volreg.io.protocol import load_protocol
     from volreg.evaluation.surface_review import diameter, review_surface_distance, review_surface_translation
-    from volreg.morph import closest_points, morph_vertices, transfer_values
+    from volreg.morph import morph_vertices, surface_gaps, transfer_values
     from volreg.progress import ProgressBars
 
     start = time.perf_counter()
@@ -124,17 +124,17 @@ def run(args: argparse.Namespace) -> int:
                                  names=(f"SOURCE `{args.source}`", f"TARGET `{args.target}`"))
         warped = warp(source.vertices)
         if registered:  # the checks of register-surfaces, on the registration made here
-            _, distance, _ = closest_points(warped, target.vertices, target.triangles)
+            gaps, measured = surface_gaps(warped, source.triangles, target.vertices, target.triangles)
             _warn_findings("morph", review_surface_distance(
-                distance, diameter(target.vertices),
+                gaps, diameter(target.vertices), measured=measured,
                 hint="Check that SOURCE and TARGET are in the same frame and unit, and turned alike (surfaces are "
                      "aligned by their centroids only).")
                 + review_surface_translation(warp.linear.translation, diameter(source.vertices)))
         if args.from_result is not None:
             # a saved warp of other surfaces would morph this SOURCE somewhere else, silently
-            _, distance, _ = closest_points(warped, target.vertices, target.triangles)
+            gaps, measured = surface_gaps(warped, source.triangles, target.vertices, target.triangles)
             _warn_findings("morph", review_surface_distance(
-                distance, diameter(target.vertices),
+                gaps, diameter(target.vertices), measured=measured,
                 hint="Check that SOURCE and TARGET are the surfaces registered in --from-result, read in the same frame."))
         frames = morph_vertices(source.vertices, warped, args.frames, linear=warp.linear)
         ts = np.linspace(0.0, 1.0, args.frames)
