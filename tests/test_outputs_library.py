@@ -271,6 +271,49 @@ def test_signals_held_for_a_swap_while_other_threads_run():
         signal.signal(signal.SIGTERM, previous)
 
 
+@pytest.mark.parametrize("between", ["the swaps", "the restores"])
+def test_a_signal_between_two_handler_swaps_leaves_no_handler_replaced(monkeypatch, between):
+    """``signal.signal`` runs the handlers of signals that came meanwhile before it swaps, and
+    makes no swap when one of them raises: a signal between the hold's two swaps (or its two
+    restores) left the other signal's handler replaced by the hold's for the rest of the run,
+    and a later Ctrl-C or SIGTERM was swallowed.  Every handler is back, and the signal raised."""
+    import os
+    import signal
+
+    from volreg._signals import SignalsHeld
+
+    class Stop(Exception):
+        pass
+
+    def raise_stop(signum, frame):
+        raise Stop(signum)
+
+    swap = signal.signal
+    calls = []
+
+    def swap_then_signal(signum, handler):
+        old = swap(signum, handler)
+        calls.append(signum)
+        # right after the entry's first swap (SIGINT's), SIGTERM, whose handler is not swapped yet;
+        # right after the exit's first restore (SIGINT's), SIGINT, whose handler is back
+        if len(calls) == (1 if between == "the swaps" else 3):
+            os.kill(os.getpid(), signal.SIGTERM if between == "the swaps" else signal.SIGINT)
+        return old
+
+    previous = {s: swap(s, raise_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        monkeypatch.setattr(signal, "signal", swap_then_signal)
+        with pytest.raises(Stop):
+            with SignalsHeld():
+                pass
+        monkeypatch.undo()
+        assert signal.getsignal(signal.SIGINT) is raise_stop and signal.getsignal(signal.SIGTERM) is raise_stop
+    finally:
+        monkeypatch.undo()
+        for s, handler in previous.items():
+            swap(s, handler)
+
+
 @pytest.mark.parametrize("made_by_another", ["folder", "file"])
 def test_a_parent_folder_made_meanwhile_by_another_process(tmp_path, monkeypatch, made_by_another):
     """Batch workers create the same parent folder: where another process makes it between the

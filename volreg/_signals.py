@@ -34,13 +34,36 @@ class SignalsHeld:
         self.previous: dict = {}
         self.noted: list[int] = []
         if threading.current_thread() is threading.main_thread():
-            for signum in self._SIGNALS:
-                self.previous[signum] = signal.signal(signum, lambda signum, frame: self.noted.append(signum))
+            try:
+                for signum in self._SIGNALS:
+                    # recorded before the swap: a handler may run (and raise) right after it
+                    self.previous[signum] = signal.getsignal(signum)
+                    signal.signal(signum, lambda signum, frame: self.noted.append(signum))
+            except BaseException:  # a pending handler raised around a swap: undo the swaps made
+                self._restore()
+                raise
         return self
 
-    def __exit__(self, *exc) -> None:
+    def _restore(self) -> BaseException | None:
+        """Put every replaced handler back; return what a pending handler raised meanwhile, if anything.
+
+        ``signal.signal`` first runs the handlers of signals that came meanwhile, and when one of
+        those raises, the swap is not made; a handler may also run right after a swap.  Each swap
+        is made until it holds, so that no handler stays replaced."""
+        raised = None
         for signum, handler in self.previous.items():
-            signal.signal(signum, handler)
+            while handler is not None:  # None: a handler not set from Python, which cannot be set again
+                try:
+                    signal.signal(signum, handler)
+                    break
+                except BaseException as exc:  # noqa: BLE001 - raised again once every handler is back
+                    raised = raised or exc
+        return raised
+
+    def __exit__(self, *exc) -> None:
+        raised = self._restore()
+        if raised is not None:
+            raise raised
         for signum in self.noted[:1]:  # now, as it would have been handled in the block
             handler = self.previous[signum]
             if callable(handler):

@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
                                  names=(f"SOURCE `{args.source}`", f"TARGET `{args.target}`"))
         warped = warp(source.vertices)
         if registered:  # the checks of register-surfaces, on the registration made here
-            gaps, measured = surface_gaps(warped, source.triangles, target.vertices, target.triangles)
+            gaps, measured = surface_gaps(warped, target.vertices, target.triangles)
             _warn_findings("morph", review_surface_distance(
                 gaps, diameter(target.vertices), measured=measured,
                 hint="Check that SOURCE and TARGET are in the same frame and unit, and turned alike (surfaces are "
@@ -132,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
                 + review_surface_translation(warp.linear.translation, diameter(source.vertices)))
         if args.from_result is not None:
             # a saved warp of other surfaces would morph this SOURCE somewhere else, silently
-            gaps, measured = surface_gaps(warped, source.triangles, target.vertices, target.triangles)
+            gaps, measured = surface_gaps(warped, target.vertices, target.triangles)
             _warn_findings("morph", review_surface_distance(
                 gaps, diameter(target.vertices), measured=measured,
                 hint="Check that SOURCE and TARGET are the surfaces registered in --from-result, read in the same frame."))

@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     from volreg.io._atomic import output_folder
     from volreg.io.protocol import load_protocol
     from volreg.io.summary import json_safe, package_versions
-    from volreg.morph import GAPS_MEASURED, closest_points, surface_gaps
+    from volreg.morph import closest_points, surface_gaps
     from volreg.progress import ProgressBars
 
     start = time.perf_counter()
@@ -79,9 +79,9 @@ def run(args: argparse.Namespace) -> int:
                              names=(f"SOURCE `{args.source}`", f"TARGET `{args.target}`"))
         warped, jac = warp.evaluate(source.vertices, order=1)
         closest, distance, _ = closest_points(warped, target.vertices, target.triangles)  # per vertex, for the table
-        # towards a surface: a point cloud TARGET is measured from its points (see surface_gaps)
+        # a point cloud TARGET is a sample of its surface: the review allows for the samples' spacing
         gaps, measured = (distance, "source_to_target") if len(target.triangles) else \
-            surface_gaps(warped, source.triangles, target.vertices, target.triangles)
+            surface_gaps(warped, target.vertices, target.triangles)
         target_diameter = diameter(target.vertices)
         late = review_surface_distance(gaps, target_diameter, limits, measured=measured,
                                        hint="Check that SOURCE and TARGET are in the same frame and unit, and turned alike "
@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
             "frames": {name: FRAMES[Path(name).suffix] for name in names if Path(name).suffix in FRAMES},
             "distance_to_target_mm": {"mean": float(gaps.mean()), "median": float(np.median(gaps)),
                                       "p95": float(np.percentile(gaps, 95)), "max": float(gaps.max()),
-                                      "measured": GAPS_MEASURED[measured]},
+                                      "measured": measured},
             "target_diameter_mm": target_diameter,
             # the centroids' translation the warp starts from (register_surfaces' align_centroids), or zeros
             "translation_mm": [float(v) for v in warp.linear.translation],
@@ -143,9 +143,8 @@ def run(args: argparse.Namespace) -> int:
         write_json(json_safe(report), paths["report.json"], force=args.force)
         folder.record(paths["report.json"])
     d = report["distance_to_target_mm"]
-    between = {"source_to_target": "warped source to target", "target_to_source": "target points to warped source",
-               "sparser_to_denser": "between the point clouds"}[measured]
-    line = f"{PROG} register-surfaces: {between} mean {d['mean']:.3f} mm, p95 {d['p95']:.3f} mm"
+    to = "target" if measured == "source_to_target" else "target points (beyond half their spacing)"
+    line = f"{PROG} register-surfaces: warped source to {to} mean {d['mean']:.3f} mm, p95 {d['p95']:.3f} mm"
     if landmarks is not None:
         line += f", landmark error {report['landmark_error']['mean_mm']:.3f} mm"
     print(line + f"; {len(folder.written)} files in {outdir} ({report['seconds']:.0f} s)")

@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from volreg.io import check_writable, write_mesh
     from volreg.io.gifti import is_gifti, write_gifti_data
-    from volreg.morph import GAP_PHRASE, surface_gaps, transfer_values
+    from volreg.morph import GAPS_MEASURED, surface_gaps, transfer_values
 
     start = time.perf_counter()
     source = _read(args.source, "SOURCE", args.source_data)
@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     warp = _load_model(args.result)
     findings = review_surface_extents(source.vertices, target.vertices)
     warped = warp(source.vertices)
-    gaps, measured = surface_gaps(warped, source.triangles, target.vertices, target.triangles)
+    gaps, measured = surface_gaps(warped, target.vertices, target.triangles)
     findings += review_surface_distance(
         gaps, diameter(target.vertices), measured=measured,
         hint="Check that SOURCE and TARGET are the surfaces registered in --result, read in the same frame.")
@@ -107,6 +107,6 @@ def run(args: argparse.Namespace) -> int:
         write_mesh(source.vertices, source.triangles, args.output, point_data=arrays, force=args.force,
                    allow_points=True)
     print(f"{PROG} transfer: `{name}` ({method}) from {args.target} onto {len(values)} vertices of "
-          f"{args.source}, median {np.median(gaps):.3g} mm {GAP_PHRASE[measured]} -> {args.output} "
+          f"{args.source}, median {np.median(gaps):.3g} mm {GAPS_MEASURED[measured]} -> {args.output} "
           f"({time.perf_counter() - start:.1f} s)")
     return 0

@@ -107,16 +107,6 @@ def review_surface_extents(source: np.ndarray, target: np.ndarray,
     return [Finding(None, "extent_ratio", ratio, limits.max_extent_ratio, message)]
 
 
-#: How :func:`review_surface_distance` names the distances and the part that has no counterpart,
-#: per way they were measured (the keys of :data:`volreg.morph.GAPS_MEASURED`).
-_GAP_WORDS = {
-    "source_to_target": ("the warped SOURCE vertices lie", "from TARGET", "of SOURCE", "in TARGET"),
-    "target_to_source": ("the TARGET points lie", "from the warped SOURCE surface", "of TARGET", "in SOURCE"),
-    "sparser_to_denser": ("the points of the sparser point cloud lie", "from the denser one's (beyond half its "
-                          "spacing)", "of one cloud", "in the other"),
-}
-
-
 def review_surface_distance(distance: np.ndarray, target_diameter: float,
                             limits: SurfaceReviewLimits = SurfaceReviewLimits(), *, hint: str = "",
                             measured: str = "source_to_target") -> list[Finding]:
@@ -133,7 +123,8 @@ def review_surface_distance(distance: np.ndarray, target_diameter: float,
     hint : str, optional
         A sentence to append (what to check, in the words of the command).
     measured : str, default "source_to_target"
-        How ``distance`` was measured: a key of :data:`volreg.morph.GAPS_MEASURED`.
+        How ``distance`` was measured: a key of :data:`volreg.morph.GAPS_MEASURED`
+        (``"source_to_target_points"``: to a point cloud's points, beyond half their spacing).
 
     Returns
     -------
@@ -142,7 +133,8 @@ def review_surface_distance(distance: np.ndarray, target_diameter: float,
         over the target's diameter) or, where the median is within the limit,
         ``"p90_distance_fraction"`` (the 90th percentile's, a partial surface).
     """
-    lie, from_what, part, counterpart = _GAP_WORDS[measured]
+    from_what = {"source_to_target": "from TARGET",
+                 "source_to_target_points": "from TARGET's points (beyond half their spacing)"}[measured]
     d = np.asarray(distance, float)
     median = float(np.median(d))
     fraction = median / target_diameter if target_diameter > 0 else math.inf
@@ -151,16 +143,16 @@ def review_surface_distance(distance: np.ndarray, target_diameter: float,
         tenth = p90 / target_diameter if target_diameter > 0 else math.inf
         if tenth <= limits.max_median_distance_fraction:
             return []
-        message = (f"a tenth of {lie} more than {p90:.3g} mm {from_what}, "
+        message = (f"a tenth of the warped SOURCE vertices lie more than {p90:.3g} mm {from_what}, "
                    f"{100 * tenth:.1f} % of TARGET's diameter (limit {100 * limits.max_median_distance_fraction:g} %), "
-                   f"while the median is {median:.3g} mm: part {part} has no counterpart {counterpart} (a partial "
-                   "surface), and the warp squeezes what it can reach towards the other; register surfaces that "
-                   "cover the same part of the structure.")
+                   f"while the median is {median:.3g} mm: part of SOURCE has no counterpart in TARGET (a partial "
+                   "surface), and the warp squeezes it towards what TARGET holds; register surfaces that cover the "
+                   "same part of the structure.")
         if hint:
             message += " " + hint
         return [Finding(None, "p90_distance_fraction", tenth, limits.max_median_distance_fraction, message)]
-    message = (f"{lie} a median {median:.3g} mm {from_what}, {100 * fraction:.1f} % of TARGET's "
-               f"diameter (limit {100 * limits.max_median_distance_fraction:g} %): the surfaces are probably in "
+    message = (f"the warped SOURCE vertices lie a median {median:.3g} mm {from_what}, {100 * fraction:.1f} % of "
+               f"TARGET's diameter (limit {100 * limits.max_median_distance_fraction:g} %): the surfaces are probably in "
                "different frames (RAS against LPS: a GIFTI converted to another format keeps RAS) or units.")
     if hint:
         message += " " + hint
