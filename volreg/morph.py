@@ -217,9 +217,9 @@ def surface_gaps(warped: np.ndarray, target_vertices: np.ndarray, target_triangl
     spacing (clipped at 0).  A point cloud is a sample of its surface: a vertex that lies on the
     surface is still up to about half the samples' spacing from the nearest one (40 points over
     a sphere 40 mm across: the vertices of a correct result lie a median 4.5 mm from the nearest,
-    6.7 % of the points' bounding-box diagonal), which read as surfaces in different frames.  Less that allowance, a
-    correct result lies a median 0 mm off, and a source with no counterpart in part of the
-    cloud stays far from it.
+    6.7 % of the points' bounding-box diagonal), which read as surfaces in different frames.
+    Less that allowance, a correct result lies a median 0 mm off, and a source with no
+    counterpart in part of the cloud stays far from it.
 
     Parameters
     ----------
