@@ -352,6 +352,49 @@ def test_float_non_integral(tmp_path):
         read_labels(path)
 
 
+def test_float_labels_a_hair_from_whole_show_the_value_that_is_not(tmp_path):
+    data = np.ones((5, 4, 3), dtype=np.float32)
+    data[1, 2, 0] = np.float32(1.0000001)  # "1" in a six-digit message
+    path = _nifti(tmp_path / "hair.nii.gz", data)
+    with _raises(path, r"non-integral values \(e\.g\. 1\.00000011920928\d*\)"):
+        read_labels(path)
+
+
+@pytest.mark.parametrize("unit, per_mm", [("micron", 1000.0), ("meter", 1e-3)])
+def test_a_nifti_in_micrometres_or_metres_reads_in_millimetres(tmp_path, unit, per_mm):
+    """A header whose spatial unit is micrometres or metres, its sform and pixdim in that unit:
+    ITK converts to millimetres, nibabel's affine keeps the unit, and the cross-check of the two
+    refused a consistent file as "pixdim disagrees with the sform/qform".  It reads as the same
+    file in millimetres does."""
+    data = np.zeros((6, 5, 4), np.uint8)
+    data[2:4, 1:4, 1:3] = 3
+    affine = np.array([[0.0, -1.5, 0.0, 10.0], [2.0, 0.0, 0.0, -20.0], [0.0, 0.0, 2.5, 5.0], [0, 0, 0, 1]])
+    mm = nib.Nifti1Image(data, affine)
+    mm.header.set_xyzt_units(xyz="mm")
+    nib.save(mm, tmp_path / "mm.nii.gz")
+    scaled = np.diag([per_mm, per_mm, per_mm, 1.0]) @ affine
+    other = nib.Nifti1Image(data, scaled)
+    other.set_sform(scaled, code=1)
+    other.set_qform(scaled, code=1)
+    other.header.set_xyzt_units(xyz=unit)
+    nib.save(other, tmp_path / f"{unit}.nii.gz")
+    a, b = read_labels(tmp_path / "mm.nii.gz"), read_labels(tmp_path / f"{unit}.nii.gz")
+    assert np.array_equal(a.array, b.array)
+    assert np.allclose(a.spacing, b.spacing) and np.allclose(a.origin, b.origin) and np.allclose(a.direction, b.direction)
+    assert np.allclose(b.spacing, [2.0, 1.5, 2.5])
+
+
+def test_a_single_file_nifti_with_its_voxels_inside_the_header_is_refused(tmp_path):
+    """vox_offset 0 in a .nii: nibabel reads the header's bytes as voxels and ITK starts right after
+    the header; neither is the file's reading (a pair read so was registered 4 mm off)."""
+    path = _nifti(tmp_path / "ok.nii", np.ones((5, 4, 3), dtype=np.uint8))
+    raw = bytearray(path.read_bytes())
+    raw[108:112] = np.float32(0.0).tobytes()  # vox_offset
+    (tmp_path / "vo0.nii").write_bytes(bytes(raw))
+    with _raises(tmp_path / "vo0.nii", "vox_offset 0, inside its 348-byte header"):
+        read_labels(tmp_path / "vo0.nii")
+
+
 def test_qform_sform_disagree(tmp_path):
     img = nib.Nifti1Image(np.zeros((5, 4, 3), dtype=np.uint8), None)
     qform = np.diag([2.0, 2.0, 2.0, 1.0])

@@ -408,6 +408,19 @@ def _nibabel_quiet():
         logger.disabled = disabled
 
 
+#: Millimetres per unit of a NIfTI header's spatial unit (``xyzt_units``): ITK converts spacings
+#: and origins to millimetres, nibabel's affine keeps the file's unit.  Unknown (0) is read as mm.
+_NIFTI_UNIT_MM = {"meter": 1000.0, "mm": 1.0, "micron": 1e-3, "unknown": 1.0}
+
+
+def _nifti_unit_mm(header) -> float:
+    """Millimetres per unit of the header's spatial unit (see :data:`_NIFTI_UNIT_MM`)."""
+    try:
+        return _NIFTI_UNIT_MM.get(header.get_xyzt_units()[0], 1.0)
+    except Exception:  # an unrecognised code: ITK reads it as mm too
+        return 1.0
+
+
 def _check_nifti(path: Path, suffix: str, what: str, *, voxels: bool = True) -> nib.Nifti1Image:
     """Checks SimpleITK does not do for NIfTI: truncated data and qform/sform conflicts.
 
@@ -429,12 +442,24 @@ def _check_nifti(path: Path, suffix: str, what: str, *, voxels: bool = True) -> 
             itemsize = np.dtype(header.get_data_dtype()).itemsize
             qform, qcode = img.get_qform(coded=True)
             sform, scode = img.get_sform(coded=True)
+            unit = _nifti_unit_mm(header)  # forms in micrometres or metres: checked in mm, as ITK reads them
+            qform = None if qform is None else np.diag([unit, unit, unit, 1.0]) @ qform
+            sform = None if sform is None else np.diag([unit, unit, unit, 1.0]) @ sform
     except Exception as exc:  # nibabel raises many types for garbage input
         raise VolregIOError(f"{what} `{path}` is not a readable NIfTI file: {_first_line(exc)}.") from exc
 
     _check_size(path, shape, itemsize, what)  # before decompressing: a header may claim terabytes
+    if suffix in (".nii", ".nii.gz") and offset < int(header.sizeof_hdr):
+        # nibabel then reads the header's own bytes as voxels, and ITK starts after the header
+        # instead: two readings, neither the file's (a pair read so was registered 4 mm off)
+        raise VolregIOError(
+            f"{what} `{path}` has vox_offset {offset}, inside its {int(header.sizeof_hdr)}-byte header; expected the "
+            f"voxels after the header (vox_offset {int(header.sizeof_hdr) + 4} or more in a single-file NIfTI): the "
+            "header is malformed, and readers disagree on where the voxels start (rewrite it with the tool that "
+            "made it, or set vox_offset)."
+        )
     # Spatial axes only (a displacement field's 4th and 5th axes are time and vector components).
-    pixdim = _raw_pixdim(path, suffix)[1 : min(len(shape), 3) + 1]  # nibabel's loader silently makes them positive
+    pixdim = _raw_pixdim(path, suffix)[1 : min(len(shape), 3) + 1] * unit  # nibabel's loader makes them positive
     spatial = np.asarray(shape[: len(pixdim)]) > 1  # a singleton axis may carry pixdim 0
     if np.any(~np.isfinite(pixdim)) or np.any((pixdim <= 0) & spatial):
         raise VolregIOError(
@@ -527,7 +552,8 @@ def _check_nifti_geometry(
         warnings.simplefilter("ignore")
         header = nimg.header
         coded = int(header["sform_code"]) > 0 or int(header["qform_code"]) > 0
-        header_affine = np.asarray(nimg.affine, dtype=float)
+        unit = _nifti_unit_mm(header)  # ITK's geometry is in mm, nibabel's affine in the file's unit
+        header_affine = np.diag([unit, unit, unit, 1.0]) @ np.asarray(nimg.affine, dtype=float)
     if coded:
         d = len(origin)
         flip = np.array([-1.0, -1.0, 1.0])[:d]
@@ -730,7 +756,7 @@ def _as_integer_labels(array: np.ndarray, path: Path, what: str) -> np.ndarray:
         example = float(array[nonint].flat[0])
         raise VolregIOError(
             f"{what} `{path}` has {array.dtype} voxels with {int(nonint.sum())} non-integral values "
-            f"(e.g. {example:g}); expected integer labels."
+            f"(e.g. {example!r}); expected integer labels."
         )
     lo, hi = int(array.min()), int(array.max())
     dtype = np.promote_types(np.min_scalar_type(lo), np.min_scalar_type(hi))
