@@ -247,3 +247,30 @@ def test_ants_jacobian_matches_jacobian_nii(result):
     difference = np.abs(by_ants - ours)[inner]
     assert difference.max() <= 0.015 and difference.mean() <= 0.002
     assert ours.min() < 0.9 and ours.max() > 1.1  # the warp does change volumes: the comparison means something
+
+
+def test_a_single_sagittal_slice_gives_fields_that_apply_and_consistency_read(tmp_path):
+    """A pair of single sagittal slices (40 x 40 x 1, the slice axis along world x), the moving
+    one's disc 3 mm off: warp.nii.gz applied by `volreg apply` gives warped.nii.gz again, ITK
+    reads it as a 3-D field, and `consistency` takes the two saved results (before, ITK read
+    both fields as 2-D with a singular direction, and both commands refused them)."""
+    direction = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # i -> y, j -> z, k -> x
+    ii, jj = np.meshgrid(np.arange(40), np.arange(40), indexing="ij")
+    for name, cy in (("a", 20.0), ("b", 23.0)):
+        disc = (((ii - cy) / 9.0) ** 2 + ((jj - 20.0) / 7.0) ** 2 < 1).astype(np.uint8)
+        volreg.write_labels(volreg.LabelVolume(disc[:, :, None], (0.0, -20.0, -20.0), (1.0, 1.0, 1.0), direction),
+                            tmp_path / f"{name}.nii.gz")
+    (tmp_path / "p.toml").write_text(SMALL_PROTOCOL)
+    a, b = str(tmp_path / "a.nii.gz"), str(tmp_path / "b.nii.gz")
+    for fixed, moving, out in ((a, b, "ab"), (b, a, "ba")):
+        assert main(["register", fixed, moving, "-o", str(tmp_path / out), "--protocol", str(tmp_path / "p.toml"),
+                     "--quiet"]) == 0
+    field = sitk.ReadImage(str(tmp_path / "ab" / "warp.nii.gz"), sitk.sitkVectorFloat64)
+    assert field.GetDimension() == 3
+    sitk.DisplacementFieldTransform(field)
+    assert main(["apply", str(tmp_path / "ab" / "warp.nii.gz"), b, "--reference", a, "-o",
+                 str(tmp_path / "applied.nii.gz"), "--quiet"]) == 0
+    applied = volreg.read_labels(tmp_path / "applied.nii.gz").array
+    assert np.array_equal(applied, volreg.read_labels(tmp_path / "ab" / "warped.nii.gz").array)
+    assert main(["consistency", a, b, "--forward", str(tmp_path / "ab"), "--backward", str(tmp_path / "ba"), "-o",
+                 str(tmp_path / "c"), "--quiet"]) == 0

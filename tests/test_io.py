@@ -1032,3 +1032,32 @@ def test_landmark_pairs_with_an_unplaced_point_are_left_out(tmp_path, capsys):
         _load_landmarks(argparse.Namespace(landmarks=[none, m], command="register"))
     with pytest.raises(UsageError, match="no pair has both points placed"):
         _load_landmarks(argparse.Namespace(landmarks=[only, other], command="register"))
+
+
+@pytest.mark.parametrize("tilt", [0.0, 10.0], ids=["sagittal", "oblique"])
+def test_a_single_sagittal_or_oblique_slice_field_reads_in_itk_as_3d(tmp_path, tilt):
+    """A field on a grid of one slice that is not axial, (40, 30, 1): written as (40, 30, 1, 1, 3),
+    ITK read it as a 2-D field, whose direction was singular (sagittal) or whose 3 components did
+    not fit 2 axes (oblique), so no tool, volreg included, could apply it.  Stored slice first, it
+    reads as 3-D and maps every voxel centre as the field says; `slice_stored_last` gives back
+    the grid it was computed on."""
+    from scipy.spatial.transform import Rotation
+
+    from volreg.io.fields import slice_stored_last
+
+    # index axes: i -> world y, j -> world z, k (one slice) -> world x; tilted about y
+    turn = Rotation.from_euler("y", tilt, degrees=True).as_matrix()
+    direction = turn @ np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    grid = Grid((40, 30, 1), np.array([5.0, -20.0, 10.0]), np.array([0.8, 1.2, 3.0]), direction)
+    u = np.random.default_rng(0).normal(size=(40, 30, 1, 3))
+    write_displacement(u, grid, tmp_path / "warp.nii.gz")
+    assert nib.load(tmp_path / "warp.nii.gz").shape == (1, 40, 30, 1, 3)
+    image = sitk.ReadImage(str(tmp_path / "warp.nii.gz"), sitk.sitkVectorFloat64)
+    assert image.GetDimension() == 3 and image.GetSize() == (1, 40, 30)
+    field = sitk.DisplacementFieldTransform(image)
+    centres = grid.grid_points().reshape(-1, 3)
+    mapped = np.array([field.TransformPoint(tuple(p)) for p in centres])
+    assert np.allclose(mapped, centres + u.reshape(-1, 3), atol=1e-5)
+    back, stored = read_displacement(tmp_path / "warp.nii.gz")
+    assert slice_stored_last(stored).same_geometry(grid, atol=1e-6)
+    assert np.allclose(np.moveaxis(back, 0, 2), u, atol=1e-6)

@@ -113,11 +113,18 @@ def write_displacement(
     p = Path(path)
     _nifti_suffix(p, "Displacement field")
     u = _checked_displacement(displacement, like)
+    affine = _ras_affine(like)
     if like.ndim == 2:
         data = u.astype(np.float32)[:, :, None, None, :]
+    elif like.shape[2] == 1 and like.shape[0] > 1:
+        # A single slice stored last (a sagittal or oblique one; an axial one is read as 2-D):
+        # ITK reads a vector NIfTI of shape (n, m, 1, 1, 3) as a 2-D field, whose 2 x 2 direction
+        # is then singular or whose 3 components do not fit 2 axes, and no tool could apply it.
+        # The same field with the slice axis stored first, (1, n, m, 1, 3), reads as 3-D.
+        data = np.moveaxis(u.astype(np.float32), 2, 0)[:, :, :, None, :]
+        affine = affine[:, [2, 0, 1, 3]]
     else:
         data = u.astype(np.float32)[:, :, :, None, :]
-    affine = _ras_affine(like)
     img = nib.Nifti1Image(data, affine)
     img.header.set_intent("vector")
     img.header.set_qform(affine, code=1)
@@ -317,6 +324,29 @@ def _field_of_image(img: sitk.Image) -> tuple[np.ndarray, Grid]:
     grid = Grid(u.shape[:-1], np.array(img.GetOrigin()), np.array(img.GetSpacing()),
                 np.array(img.GetDirection()).reshape(dim, dim))
     return u, grid
+
+
+def slice_stored_last(grid: Grid) -> Grid:
+    """The grid of a single-slice field as its reference grid has it: slice axis last.
+
+    :func:`write_displacement` stores a single slice that is its grid's last axis first
+    (``(1, n, m)``), so that ITK reads the field as 3-D; the same voxels, in the order of the
+    grid it was computed on.  Other grids are returned unchanged.
+
+    Parameters
+    ----------
+    grid : Grid
+        A field's grid, as :func:`read_displacement` returns it.
+
+    Returns
+    -------
+    Grid
+    """
+    if grid.ndim != 3 or grid.shape[0] != 1 or grid.shape[2] == 1:
+        return grid
+    order = [1, 2, 0]
+    return Grid(tuple(grid.shape[i] for i in order), grid.origin, np.asarray(grid.spacing)[order],
+                np.asarray(grid.direction)[:, order])
 
 
 def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
