@@ -360,7 +360,8 @@ def test_float_labels_a_hair_from_whole_show_the_value_that_is_not(tmp_path):
         read_labels(path)
 
 
-@pytest.mark.parametrize("unit, per_mm", [("micron", 1000.0), ("meter", 1e-3)])
+@pytest.mark.parametrize("unit, per_mm", [("micron", 1000.0), ("meter", 1e-3), (3 | 64, 1000.0), (1 | 56, 1e-3)],
+                         ids=["micron", "meter", "micron with unknown time bits", "meter with unknown time bits"])
 def test_a_nifti_in_micrometres_or_metres_reads_in_millimetres(tmp_path, unit, per_mm):
     """A header whose spatial unit is micrometres or metres, its sform and pixdim in that unit:
     ITK converts to millimetres, nibabel's affine keeps the unit, and the cross-check of the two
@@ -376,9 +377,12 @@ def test_a_nifti_in_micrometres_or_metres_reads_in_millimetres(tmp_path, unit, p
     other = nib.Nifti1Image(data, scaled)
     other.set_sform(scaled, code=1)
     other.set_qform(scaled, code=1)
-    other.header.set_xyzt_units(xyz=unit)
-    nib.save(other, tmp_path / f"{unit}.nii.gz")
-    a, b = read_labels(tmp_path / "mm.nii.gz"), read_labels(tmp_path / f"{unit}.nii.gz")
+    if isinstance(unit, str):
+        other.header.set_xyzt_units(xyz=unit)
+    else:  # time bits nibabel cannot decode; ITK reads the space bits alone
+        other.header["xyzt_units"] = unit
+    nib.save(other, tmp_path / "other.nii.gz")
+    a, b = read_labels(tmp_path / "mm.nii.gz"), read_labels(tmp_path / "other.nii.gz")
     assert np.array_equal(a.array, b.array)
     assert np.allclose(a.spacing, b.spacing) and np.allclose(a.origin, b.origin) and np.allclose(a.direction, b.direction)
     assert np.allclose(b.spacing, [2.0, 1.5, 2.5])
@@ -1034,30 +1038,36 @@ def test_landmark_pairs_with_an_unplaced_point_are_left_out(tmp_path, capsys):
         _load_landmarks(argparse.Namespace(landmarks=[only, other], command="register"))
 
 
-@pytest.mark.parametrize("tilt", [0.0, 10.0], ids=["sagittal", "oblique"])
-def test_a_single_sagittal_or_oblique_slice_field_reads_in_itk_as_3d(tmp_path, tilt):
-    """A field on a grid of one slice that is not axial, (40, 30, 1): written as (40, 30, 1, 1, 3),
-    ITK read it as a 2-D field, whose direction was singular (sagittal) or whose 3 components did
-    not fit 2 axes (oblique), so no tool, volreg included, could apply it.  Stored slice first, it
-    reads as 3-D and maps every voxel centre as the field says; `slice_stored_last` gives back
-    the grid it was computed on."""
+@pytest.mark.parametrize("shape, tilt", [((40, 30, 1), 0.0), ((40, 30, 1), 10.0), ((40, 1, 1), 10.0),
+                                         ((1, 40, 1), 10.0), ((40, 1), 10.0)],
+                         ids=["sagittal slice", "oblique slice", "line", "line along j", "2-D line"])
+def test_a_field_whose_last_axis_has_one_voxel_reads_in_itk_with_all_its_axes(tmp_path, shape, tilt):
+    """A field on a grid whose last axis has one voxel (a single sagittal or oblique slice, a line):
+    written in that order, ITK dropped the axis and read a field of D components on D - 1 axes, or a
+    singular direction, so no tool, volreg included, could apply it.  Stored single-voxel axes
+    first, it reads with all D axes and maps every voxel centre as the field says;
+    `axis_order_of` gives back the order of the grid it was computed on."""
     from scipy.spatial.transform import Rotation
 
-    from volreg.io.fields import slice_stored_last
+    from volreg.io.fields import axis_order_of
 
-    # index axes: i -> world y, j -> world z, k (one slice) -> world x; tilted about y
-    turn = Rotation.from_euler("y", tilt, degrees=True).as_matrix()
-    direction = turn @ np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    grid = Grid((40, 30, 1), np.array([5.0, -20.0, 10.0]), np.array([0.8, 1.2, 3.0]), direction)
-    u = np.random.default_rng(0).normal(size=(40, 30, 1, 3))
+    d = len(shape)
+    if d == 3:  # index axes: i -> world y, j -> world z, k -> world x; tilted about y
+        turn = Rotation.from_euler("y", tilt, degrees=True).as_matrix()
+        direction = turn @ np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    else:
+        c, s_ = np.cos(np.radians(tilt)), np.sin(np.radians(tilt))
+        direction = np.array([[c, -s_], [s_, c]])
+    grid = Grid(shape, np.array([5.0, -20.0, 10.0][:d]), np.array([0.8, 1.2, 3.0][:d]), direction)
+    u = np.random.default_rng(0).normal(size=shape + (d,))
     write_displacement(u, grid, tmp_path / "warp.nii.gz")
-    assert nib.load(tmp_path / "warp.nii.gz").shape == (1, 40, 30, 1, 3)
     image = sitk.ReadImage(str(tmp_path / "warp.nii.gz"), sitk.sitkVectorFloat64)
-    assert image.GetDimension() == 3 and image.GetSize() == (1, 40, 30)
+    assert image.GetDimension() == d and sorted(image.GetSize()) == sorted(shape)
     field = sitk.DisplacementFieldTransform(image)
-    centres = grid.grid_points().reshape(-1, 3)
+    centres = grid.grid_points().reshape(-1, d)
     mapped = np.array([field.TransformPoint(tuple(p)) for p in centres])
-    assert np.allclose(mapped, centres + u.reshape(-1, 3), atol=1e-5)
+    assert np.allclose(mapped, centres + u.reshape(-1, d), atol=1e-5)
     back, stored = read_displacement(tmp_path / "warp.nii.gz")
-    assert slice_stored_last(stored).same_geometry(grid, atol=1e-6)
-    assert np.allclose(np.moveaxis(back, 0, 2), u, atol=1e-6)
+    order = axis_order_of(stored, grid)
+    assert order is not None and np.allclose(np.transpose(back, order + (d,)), u, atol=1e-6)
+    assert axis_order_of(grid, grid) == tuple(range(d))

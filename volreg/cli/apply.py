@@ -231,7 +231,7 @@ def _run_image(args: argparse.Namespace) -> int:
 
     from volreg.grid import Grid
     from volreg.io import read_grid, read_image, read_labels, write_labels, write_scalar
-    from volreg.io.fields import read_displacement, read_itk_composite, read_itk_linear, slice_stored_last
+    from volreg.io.fields import axis_order_of, read_displacement, read_itk_composite, read_itk_linear
     from volreg.progress import ProgressBars
     from volreg.warp.field import displacement_on_grid, linear_displacement_on_grid
     from volreg.warp.model import KernelWarp
@@ -271,10 +271,9 @@ def _run_image(args: argparse.Namespace) -> int:
                              else read_displacement(args.warp))
             if grid.ndim != reference.ndim:
                 raise UsageError(f"Warp `{args.warp}` is {grid.ndim}-D but --reference `{args.reference}` is {reference.ndim}-D.")
-            if grid.same_geometry(reference):
-                u = u_field
-            elif slice_stored_last(grid).same_geometry(reference):  # a single sagittal or oblique slice
-                u = np.moveaxis(u_field, 0, 2)
+            order = axis_order_of(grid, reference)  # a single-voxel axis is stored first (write_displacement)
+            if order is not None:
+                u = np.transpose(u_field, order + (grid.ndim,))
             else:
                 _check_overlap(grid, reference, args.warp, args.reference)  # as ITK: the field is interpolated linearly at the reference voxels, zero outside it
                 _warn_partial_cover(grid, at, args.warp, args.reference)

@@ -53,7 +53,7 @@ def _load_result(result: Path, grid: LabelVolume, option: str, grid_path: Path, 
     """The warp of a saved ``volreg register`` OUTDIR whose fixed grid must be ``grid``."""
     import numpy as np
 
-    from volreg.io.fields import read_displacement, slice_stored_last
+    from volreg.io.fields import axis_order_of, read_displacement
     from volreg.warp.model import KernelWarp
 
     model = result / "model.npz"
@@ -62,9 +62,7 @@ def _load_result(result: Path, grid: LabelVolume, option: str, grid_path: Path, 
         if not p.is_file():
             raise UsageError(f"{option} `{result}` has no `{p.name}`; expected an OUTDIR written by `volreg register`.")
     _, field_grid = read_displacement(field)
-    if not field_grid.same_geometry(grid, atol=1e-3):
-        field_grid = slice_stored_last(field_grid)  # a single sagittal or oblique slice (write_displacement)
-    if not field_grid.same_geometry(grid, atol=1e-3):
+    if axis_order_of(field_grid, grid, atol=1e-3) is None:  # a single-voxel axis is stored first (write_displacement)
         raise UsageError(
             f"{option} `{result}` was registered on a grid of shape {field_grid.shape} (origin "
             f"{np.round(field_grid.origin, 3).tolist()} mm), not on the grid of {role} `{grid_path}` (shape "

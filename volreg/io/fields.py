@@ -41,7 +41,7 @@ import nibabel as nib
 import numpy as np
 import SimpleITK as sitk
 
-from volreg.grid import Grid, GridLike, as_grid
+from volreg.grid import Grid, GridLike, LabelVolume, as_grid
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
 from volreg.io._guards import check_image_data_files, check_readable
@@ -113,18 +113,14 @@ def write_displacement(
     p = Path(path)
     _nifti_suffix(p, "Displacement field")
     u = _checked_displacement(displacement, like)
-    affine = _ras_affine(like)
-    if like.ndim == 2:
-        data = u.astype(np.float32)[:, :, None, None, :]
-    elif like.shape[2] == 1 and like.shape[0] > 1:
-        # A single slice stored last (a sagittal or oblique one; an axial one is read as 2-D):
-        # ITK reads a vector NIfTI of shape (n, m, 1, 1, 3) as a 2-D field, whose 2 x 2 direction
-        # is then singular or whose 3 components do not fit 2 axes, and no tool could apply it.
-        # The same field with the slice axis stored first, (1, n, m, 1, 3), reads as 3-D.
-        data = np.moveaxis(u.astype(np.float32), 2, 0)[:, :, :, None, :]
-        affine = affine[:, [2, 0, 1, 3]]
-    else:
-        data = u.astype(np.float32)[:, :, :, None, :]
+    # A grid whose last axis has one voxel (a sagittal or oblique slice, a line): ITK drops that
+    # axis when it reads a vector NIfTI, and the field's direction is then singular or its D
+    # components do not fit D - 1 axes, so no tool could apply it.  The same voxels with the
+    # single-voxel axes stored first read with all D axes (axis_order_of finds the grid's order).
+    order = stored_axis_order(like.shape)
+    data = np.transpose(u.astype(np.float32), order + (like.ndim,))
+    data = data[:, :, None, None, :] if like.ndim == 2 else data[:, :, :, None, :]
+    affine = _ras_affine(like)[:, list(order) + list(range(like.ndim, 4))]  # 4 x 4, also for a 2-D grid
     img = nib.Nifti1Image(data, affine)
     img.header.set_intent("vector")
     img.header.set_qform(affine, code=1)
@@ -326,27 +322,57 @@ def _field_of_image(img: sitk.Image) -> tuple[np.ndarray, Grid]:
     return u, grid
 
 
-def slice_stored_last(grid: Grid) -> Grid:
-    """The grid of a single-slice field as its reference grid has it: slice axis last.
+def stored_axis_order(shape: tuple[int, ...]) -> tuple[int, ...]:
+    """The order in which :func:`write_displacement` stores a grid's axes: as they are, unless the
+    last has one voxel (and some other more): then the single-voxel axes first, the others after,
+    each group in its order, so that ITK reads the field with all of its axes.
 
-    :func:`write_displacement` stores a single slice that is its grid's last axis first
-    (``(1, n, m)``), so that ITK reads the field as 3-D; the same voxels, in the order of the
-    grid it was computed on.  Other grids are returned unchanged.
+    Parameters
+    ----------
+    shape : tuple of D ints
+
+    Returns
+    -------
+    tuple of D ints
+        Stored axis ``t`` is the grid's axis ``order[t]``.
+    """
+    d = len(shape)
+    if shape[-1] != 1 or max(shape) == 1:
+        return tuple(range(d))
+    return tuple([a for a in range(d) if shape[a] == 1] + [a for a in range(d) if shape[a] > 1])
+
+
+def axis_order_of(grid: Grid, reference: Grid | LabelVolume, atol: float = 1e-6) -> tuple[int, ...] | None:
+    """The order of ``grid``'s axes that gives ``reference``'s grid, if one does.
+
+    A field read from a file is on the grid it was stored on; :func:`write_displacement` stores a
+    grid whose last axis has one voxel with its axes reordered (:func:`stored_axis_order`): the
+    same voxels.  ``np.transpose(u, order + (D,))`` gives the field in ``reference``'s order.
 
     Parameters
     ----------
     grid : Grid
         A field's grid, as :func:`read_displacement` returns it.
+    reference : Grid or LabelVolume
+    atol : float
+        Tolerance of :meth:`Grid.same_geometry`, mm.
 
     Returns
     -------
-    Grid
+    tuple of D ints, or None
+        The identity where the grids are the same as they are; None where no order matches.
     """
-    if grid.ndim != 3 or grid.shape[0] != 1 or grid.shape[2] == 1:
-        return grid
-    order = [1, 2, 0]
-    return Grid(tuple(grid.shape[i] for i in order), grid.origin, np.asarray(grid.spacing)[order],
-                np.asarray(grid.direction)[:, order])
+    from itertools import permutations
+
+    if grid.ndim != reference.ndim:
+        return None
+    for order in permutations(range(grid.ndim)):
+        axes = list(order)
+        candidate = Grid(tuple(grid.shape[a] for a in axes), grid.origin, np.asarray(grid.spacing)[axes],
+                         np.asarray(grid.direction)[:, axes])
+        if candidate.same_geometry(reference, atol=atol):
+            return tuple(order)
+    return None
 
 
 def read_displacement(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:

@@ -408,16 +408,18 @@ def _nibabel_quiet():
         logger.disabled = disabled
 
 
-#: Millimetres per unit of a NIfTI header's spatial unit (``xyzt_units``): ITK converts spacings
-#: and origins to millimetres, nibabel's affine keeps the file's unit.  Unknown (0) is read as mm.
-_NIFTI_UNIT_MM = {"meter": 1000.0, "mm": 1.0, "micron": 1e-3, "unknown": 1.0}
+#: Millimetres per unit of a NIfTI header's spatial unit (the low three bits of ``xyzt_units``:
+#: 1 metre, 2 mm, 3 micrometre): ITK converts spacings and origins to millimetres, nibabel's affine
+#: keeps the file's unit.  Other codes (0, unknown; 4-7) ITK reads as mm.
+_NIFTI_UNIT_MM = {1: 1000.0, 2: 1.0, 3: 1e-3}
 
 
 def _nifti_unit_mm(header) -> float:
-    """Millimetres per unit of the header's spatial unit (see :data:`_NIFTI_UNIT_MM`)."""
+    """Millimetres per unit of the header's spatial unit (see :data:`_NIFTI_UNIT_MM`).  Decoded from
+    the space bits alone, as ITK does: nibabel's decoding fails on time bits it does not know."""
     try:
-        return _NIFTI_UNIT_MM.get(header.get_xyzt_units()[0], 1.0)
-    except Exception:  # an unrecognised code: ITK reads it as mm too
+        return _NIFTI_UNIT_MM.get(int(header["xyzt_units"]) & 7, 1.0)
+    except (KeyError, TypeError, ValueError):  # no such field: read as mm, as ITK does
         return 1.0
 
 
