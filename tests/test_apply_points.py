@@ -201,6 +201,51 @@ def test_mrk_json_keeps_frames_and_unplaced_points(saved, tmp_path):
     assert [cp["label"] for m in out["markups"] for cp in m["controlPoints"]] == ["a", "b", "c", "d"]
 
 
+@pytest.mark.parametrize("unit, per_mm", [("cm", 0.1), ("um", 1000.0), ("m", 1e-3)])
+def test_mrk_json_in_other_units_is_written_back_in_its_unit(saved, tmp_path, unit, per_mm):
+    """A markup in cm (um, m) is read in mm; its moved points were written as mm under the
+    file's "cm", ten times too far out, with exit 0.  They are written in the file's unit."""
+    d, warp = saved
+    x = fixed_points(2)
+    data = {"markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "coordinateUnits": unit,
+                         "controlPoints": [{"id": str(i), "position": list(p * per_mm)} for i, p in enumerate(x)]}]}
+    (tmp_path / "in.mrk.json").write_text(json.dumps(data))
+    assert apply(d / "model.npz", tmp_path / "in.mrk.json", "--from", "fixed", "-o", tmp_path / "out.mrk.json") == 0
+    out = json.loads((tmp_path / "out.mrk.json").read_text())["markups"][0]
+    assert out["coordinateUnits"] == unit
+    moved = np.array([cp["position"] for cp in out["controlPoints"]]) / per_mm
+    assert np.abs(moved - warp(x)).max() <= 1e-6
+    assert np.allclose(read_landmarks(tmp_path / "out.mrk.json"), warp(x), atol=1e-6)
+
+
+def test_landmark_files_with_a_byte_order_mark_are_moved(saved, tmp_path):
+    """A CSV or .mrk.json starting with a byte-order mark (as spreadsheet programs and some
+    editors write) was read for its points but written back from the raw text: a traceback."""
+    d, warp = saved
+    x = fixed_points(2)
+    write_csv(tmp_path / "in.csv", x)
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + (tmp_path / "in.csv").read_bytes())
+    marks = {"markups": [{"coordinateSystem": "LPS", "controlPoints": [{"position": list(p)} for p in x]}]}
+    (tmp_path / "bom.mrk.json").write_bytes(b"\xef\xbb\xbf" + json.dumps(marks).encode())
+    for name in ("bom.csv", "bom.mrk.json"):
+        assert apply(d / "model.npz", tmp_path / name, "--from", "fixed", "-o", tmp_path / f"out-{name}") == 0
+        assert np.allclose(read_landmarks(tmp_path / f"out-{name}"), warp(x), atol=1e-6), name
+
+
+def test_slicer_files_read_as_users_write_them(tmp_path):
+    """`# CoordinateSystem: RAS` (a colon) in a .fcsv gave "list index out of range"; a .mrk.json
+    point marked placed at NaN was read as never placed, and written back as NaN."""
+    (tmp_path / "colon.fcsv").write_text("# Markups fiducial file version = 4.11\n# CoordinateSystem: RAS\n"
+                                         "# columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID\n"
+                                         "1,10,20,30,0,0,0,1,1,1,0,F-1,,\n")
+    assert np.allclose(read_landmarks(tmp_path / "colon.fcsv"), [[-10.0, -20.0, 30.0]])
+    nan = {"markups": [{"controlPoints": [{"position": [1.0, 2.0, 3.0]},
+                                          {"position": [float("nan")] * 3, "positionStatus": "defined"}]}]}
+    (tmp_path / "nan.mrk.json").write_text(json.dumps(nan))
+    with pytest.raises(Exception, match="control point 2 is placed"):
+        read_landmarks(tmp_path / "nan.mrk.json")
+
+
 def test_points_outside_the_field_grid_are_counted(saved, tmp_path, capsys):
     d, _ = saved
     x = np.concatenate([fixed_points(5), [[200.0, 0, 0], [-50.0, 10, 10]]])

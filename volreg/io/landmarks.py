@@ -42,7 +42,9 @@ def _read_fcsv(path: Path, text: str) -> np.ndarray:
     for number, line in enumerate(text.splitlines(), start=1):
         if line.startswith("#"):
             if "CoordinateSystem" in line:
-                ras = _frame(line.split("=", 1)[1], path)
+                # "# CoordinateSystem = RAS" as Slicer writes it; a colon read alike
+                value = line.split("=", 1)[1] if "=" in line else line.split("CoordinateSystem", 1)[1].lstrip(" :")
+                ras = _frame(value, path)
             continue
         if line.strip():
             r = next(csv.reader([line]))
@@ -99,6 +101,10 @@ def _read_mrk_json(path: Path, text: str) -> np.ndarray:
             if p.shape != (3,):
                 raise VolregIOError(f"Landmark file `{path}` control point {len(points) + 1} has position "
                                     f"{cp['position']!r}; expected three coordinates.")
+            if not np.all(np.isfinite(p)):  # a row of NaN would read as never placed
+                raise VolregIOError(f"Landmark file `{path}` control point {len(points) + 1} is placed (positionStatus "
+                                    f"{cp.get('positionStatus', 'defined')!r}) but has position {cp['position']!r}; "
+                                    "expected finite coordinates, or positionStatus \"undefined\" for a point not placed.")
             points.append(p * _FLIP if ras else p)
     return np.array(points).reshape(-1, 3)
 

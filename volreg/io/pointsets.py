@@ -42,7 +42,7 @@ import numpy as np
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
 from volreg.io.gifti import load_gifti
-from volreg.io.landmarks import read_landmarks
+from volreg.io.landmarks import _UNITS_MM, read_landmarks
 from volreg.io.meshes import quiet_vtk, read_pyvista
 
 __all__ = ["POINT_SUFFIXES", "MESH_FORMATS", "PointSetFile", "check_same_format", "point_set_kind", "read_point_set",
@@ -232,7 +232,7 @@ def read_point_set(path: str | os.PathLike[str]) -> PointSetFile:
         raise VolregIOError(f"`{p}` does not exist or is not a file.")
     if kind in ("csv", "fcsv", "mrk.json"):
         points = read_landmarks(p, keep_unplaced=True)
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")  # a byte-order mark, as read_landmarks allows
         content = json.loads(text) if kind == "mrk.json" else text
         return PointSetFile(p, kind, points, None, [], _content=content)
     out = _read_gifti(p) if kind == "gifti" else _read_pyvista(p)
@@ -270,8 +270,9 @@ def _fcsv_text(text: str, points: np.ndarray) -> str:
     out, k = [], 0
     for line in text.splitlines():
         if line.startswith("#"):
-            if "CoordinateSystem" in line:
-                ras = line.split("=", 1)[1].strip().upper() in ("RAS", "0")
+            if "CoordinateSystem" in line:  # "= RAS" as Slicer writes it; a colon read alike (read_landmarks)
+                value = line.split("=", 1)[1] if "=" in line else line.split("CoordinateSystem", 1)[1].lstrip(" :")
+                ras = value.strip().upper() in ("RAS", "0")
             out.append(line + "\n")
             continue
         if not line.strip():
@@ -289,12 +290,14 @@ def _mrk_json_text(data: dict, points: np.ndarray) -> str:
     k = 0
     for markup in data.get("markups", []):
         ras = str(markup.get("coordinateSystem", "LPS")).strip().upper() in ("RAS", "0")
+        # back in the markup's own unit (read_landmarks converted it to mm)
+        per_unit = _UNITS_MM.get(str(markup.get("coordinateUnits", "mm")).strip().lower(), 1.0)
         for cp in markup.get("controlPoints", []):
             q = points[k]
             k += 1
             if np.all(np.isnan(q)):  # never placed: left as it was
                 continue
-            cp["position"] = [float(v) for v in (q * _FLIP if ras else q)]
+            cp["position"] = [float(v) / per_unit for v in (q * _FLIP if ras else q)]
     return json.dumps(data, indent=4) + "\n"
 
 
