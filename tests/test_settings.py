@@ -92,12 +92,14 @@ def test_every_preset_says_how_it_differs_from_the_default(name):
     + [Protocol(name="mine", description='quotes " and \\ backslashes',
                 surface=SurfaceSettings(smoothing=0.0, implicit_weight=0.5, distance_weight=0.0),
                 warp=WarpSettings(pad=7.5, min_width=3.0, band=2.5, sample_spacing=1.25, max_iter=7,
-                                  tolerance=1e-9, lambda_fold=0.0, robust=0.0))],
-    ids=PRESETS + ["every-optional-set"],
+                                  tolerance=1e-9, lambda_fold=0.0, robust=0.0)),
+       # control characters (a description over several lines, a bell in the name) made a file TOML refuses
+       Protocol(name="bell\x07-tuned", description="first line\nsecond\tline\r\x7f")],
+    ids=PRESETS + ["every-optional-set", "control-characters"],
 )
 def test_protocol_round_trips_through_toml(tmp_path, protocol):
     path = tmp_path / "round_trip.toml"
-    path.write_text(protocol_to_toml(protocol, comment="written by a test\nsecond line"), encoding="utf-8")
+    path.write_text(protocol_to_toml(protocol, comment="written by a test\nsecond line with a \x07"), encoding="utf-8")
     assert load_protocol(path) == protocol
     assert load_protocol(path).to_dict() == protocol.to_dict()
 
@@ -151,3 +153,16 @@ def test_library_defaults_agree_with_the_settings():
     assert default(label_surface, "smoothing") == SurfaceSettings().smoothing
     assert default(label_surfaces, "smoothing") == SurfaceSettings().smoothing
     assert default(implicit_surfaces, "min_width_voxels") == SurfaceSettings().min_width_voxels
+
+
+@pytest.mark.parametrize("section, name", [("warp", "lambda_loc"), ("warp", "lambda_fold"), ("warp", "robust"),
+                                           ("surface", "distance_clip"), ("surface", "min_distance_clip")])
+def test_settings_beyond_double_precision_are_refused(section, name):
+    """1e200 as a weight (1e160 as `robust`, 1e308 as a clip) ended in a traceback from inside the
+    fit ("Expected finite values in points", an OverflowError, an empty mask); refused as settings."""
+    from volreg.settings import MAX_SETTING
+
+    kind = WarpSettings if section == "warp" else SurfaceSettings
+    kind(**{name: MAX_SETTING})
+    with pytest.raises(ValueError, match=f"`{name}`.*at most 1e\\+12"):
+        kind(**{name: 1e200})

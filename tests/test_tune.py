@@ -71,6 +71,20 @@ def test_protocol_round_trips_through_toml(tmp_path):
         replace_settings(p, {"lambda_loc": -1.0})
 
 
+def test_a_pair_without_a_surface_to_score_on_is_refused(tmp_path):
+    """Labels of 6 voxels (under min_voxels) have no surface: the hold-out distance, and every
+    setting's score, was NaN, and tune picked one at random with exit 0."""
+    from volreg.errors import RegistrationInputError
+    from volreg.evaluation.tune import tune_settings
+    from volreg.grid import LabelVolume
+
+    arr = np.zeros((12, 12, 12), np.uint8)
+    arr[3:9, 5, 5] = 1
+    thin = LabelVolume(arr, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(3))
+    with pytest.warns(Warning), pytest.raises(RegistrationInputError, match="No label has a surface in both"):
+        tune_settings(thin, thin, load_protocol("fast"), {"alpha": [0.0, 1.0]})
+
+
 @pytest.mark.parametrize("grid, words", [("bogus=1,2", "Unknown setting `warp.bogus`"),
                                          ("lambda_loc=-5", "lambda_loc"), ("max_iter=2.5", "max_iter"),
                                          ("lambda_loc=10,10.0", "given twice")])

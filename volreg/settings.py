@@ -19,6 +19,12 @@ from volreg.errors import ProtocolError
 __all__ = ["LINEAR_KINDS", "LinearSettings", "OutputSettings", "Protocol", "ReviewSettings", "SurfaceSettings", "WarpSettings", "replace_settings", "settings_from_mapping"]
 
 
+#: The largest weight or length (mm, voxels) a setting may take: far beyond any useful value
+#: (the defaults are 100 and 1e5 for the weights, a few mm for the lengths), and far enough
+#: below double precision's range that the cost's sums and squares stay finite.
+MAX_SETTING = 1e12
+
+
 @dataclass(frozen=True)
 class WarpSettings:
     """Settings of the warp fit (the protocol's warp section).
@@ -127,6 +133,9 @@ class WarpSettings:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"Expected `{name}` >= 0, got {value}.")
+            if value > MAX_SETTING:
+                raise ValueError(f"Expected `{name}` of at most {MAX_SETTING:g}, got {value:g}: beyond, the cost's "
+                                 "terms leave double precision (weights of 1e200 gave infinite samples).")
         for name in ("fold_margin", "min_det"):
             if getattr(self, name) >= 1:
                 raise ValueError(f"Expected `{name}` in [0, 1) (a Jacobian determinant below which the fold guards "
@@ -232,10 +241,12 @@ class SurfaceSettings:
         if self.implicit_weight == 0 and self.distance_weight == 0:
             raise ValueError("Expected `implicit_weight` or `distance_weight` > 0, got both 0: no feature would "
                              "drive the warp.")
-        if not (math.isfinite(self.distance_clip) and self.distance_clip > 0):
-            raise ValueError(f"Expected a positive `distance_clip` (voxels), got {self.distance_clip}.")
-        if not (math.isfinite(self.min_distance_clip) and self.min_distance_clip >= 0):
-            raise ValueError(f"Expected `min_distance_clip` >= 0 (mm), got {self.min_distance_clip}.")
+        if not (math.isfinite(self.distance_clip) and 0 < self.distance_clip <= MAX_SETTING):
+            raise ValueError(f"Expected a positive `distance_clip` (voxels) of at most {MAX_SETTING:g}, got "
+                             f"{self.distance_clip:g}.")
+        if not (math.isfinite(self.min_distance_clip) and 0 <= self.min_distance_clip <= MAX_SETTING):
+            raise ValueError(f"Expected `min_distance_clip` >= 0 (mm) and at most {MAX_SETTING:g}, got "
+                             f"{self.min_distance_clip:g}.")
         if not (math.isfinite(self.distance_scale) and 0 <= self.distance_scale <= 10):
             raise ValueError(f"Expected `distance_scale` in [0, 10] voxels, got {self.distance_scale}.")
         if not (math.isfinite(self.distance_smoothing) and 0 <= self.distance_smoothing <= 10):

@@ -29,6 +29,7 @@ from volreg.evaluation.consistency import error_on_grid, padded_region, warp_pad
 from volreg.register import register_both_ways
 from volreg.settings import Protocol, replace_settings
 from volreg.features.label_surfaces import Surface, label_surfaces
+from volreg.errors import RegistrationDiverged, RegistrationInputError
 from volreg.grid import LabelVolume
 
 __all__ = ["grid_settings", "holdout_surface_distance", "score_setting", "tune_settings"]
@@ -125,11 +126,24 @@ def tune_settings(
     rows : list of dict
         One :func:`score_setting` row per combination, in :func:`grid_settings` order.
     best : int
-        The index of the row with the lowest ``score_mm`` (the first of equals).
+        The index of the row with the lowest finite ``score_mm`` (the first of equals).
+
+    Raises
+    ------
+    RegistrationInputError
+        No label has a surface in both volumes: nothing to score the hold-out on.
+    RegistrationDiverged
+        No setting gave a finite score.
     """
     combos = grid_settings(grid)
     a_surfaces = label_surfaces(a, on_small="warn", smoothing=protocol.surface.smoothing)
     b_surfaces = label_surfaces(b, on_small="warn", smoothing=protocol.surface.smoothing)
+    if not set(a_surfaces) & set(b_surfaces):
+        # the hold-out distance, and so every score, would be NaN, and the pick arbitrary
+        raise RegistrationInputError(
+            f"No label has a surface in both volumes (A: {sorted(a_surfaces) or 'none'}, B: {sorted(b_surfaces) or 'none'}; "
+            "labels under min_voxels are skipped), so no setting can be scored on the hold-out surface distance; "
+            "expected at least one label large enough in both.")
     rows = []
     for i, values in enumerate(combos):
         row = score_setting(a, b, protocol, values, a_surfaces=a_surfaces, b_surfaces=b_surfaces,
@@ -137,5 +151,9 @@ def tune_settings(
         rows.append(row)
         if on_score is not None:
             on_score(i, len(combos), values, row)
-    best = min(range(len(rows)), key=lambda i: rows[i]["score_mm"])
+    scored = [i for i, row in enumerate(rows) if np.isfinite(row["score_mm"])]
+    if not scored:
+        raise RegistrationDiverged(f"None of the {len(rows)} settings gave a finite score; expected at least one "
+                                   "(narrow the grid to settings that register this pair).")
+    best = min(scored, key=lambda i: rows[i]["score_mm"])
     return rows, best

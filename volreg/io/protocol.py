@@ -123,7 +123,12 @@ def _toml_value(value: Any) -> str:
         return "true" if value else "false"
     if isinstance(value, (int, float)):
         return repr(value)
-    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return '"' + "".join(_TOML_ESCAPES.get(c, c if c >= " " and c != "\x7f" else f"\\u{ord(c):04x}")
+                         for c in str(value)) + '"'
+
+
+#: Characters a TOML basic string must escape (other control characters as ``\\uXXXX``).
+_TOML_ESCAPES = {"\\": "\\\\", '"': '\\"', "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
 
 
 def protocol_to_toml(protocol: Protocol, *, comment: str = "") -> str:
@@ -131,7 +136,9 @@ def protocol_to_toml(protocol: Protocol, *, comment: str = "") -> str:
 
     Settings that are ``None`` (derived from the data) are written as comments.
     """
-    lines = [f"# {line}" for line in comment.splitlines()] if comment else []
+    # a comment line ends at the line's end; control characters (other than tab) may not stand in it
+    lines = [f"# {''.join(c if c >= ' ' or c == chr(9) else '?' for c in line)}" for line in comment.splitlines()] \
+        if comment else []
     lines += ["[protocol]", f"name = {_toml_value(protocol.name)}", f"description = {_toml_value(protocol.description)}"]
     for section in _SECTIONS:
         lines += ["", f"[{section}]"]
