@@ -387,6 +387,28 @@ def test_byte_order_mark_in_csv_headers(tmp_path):
     np.testing.assert_array_equal(read_landmarks(tmp_path / "l.mrk.json"), [[-1, -2, 3]])
 
 
+def test_manifest_rows_as_users_write_them(tmp_path):
+    """Line numbers count the blank lines a manifest holds; a quoted field may hold a line break
+    (an id with one is refused: it names a folder, as one with a NUL byte), and a value holding
+    U+2028 is one value (str.splitlines split the row there); `..` is named as a special folder
+    and a header with spaces shows what was read."""
+    from volreg.cli.batch import read_manifest
+    from volreg.errors import UsageError
+
+    def refused(text: str, words: str) -> None:
+        (tmp_path / "m.csv").write_text(text, encoding="utf-8")
+        with pytest.raises(UsageError, match=words):
+            read_manifest(tmp_path / "m.csv")
+
+    refused("id,path\ns1,a.nii.gz\n\n\n,\n", "line 5: expected an id and a path")
+    refused('id,path\n"s\n1",a.nii.gz\ns2,b.nii.gz\n', r"line 3: id 's\\n1' must not contain .*control characters")
+    refused("id,path\ns\x001,a.nii.gz\ns2,b.nii.gz\n", "control characters")
+    refused("id,path\n..,a.nii.gz\ns2,b.nii.gz\n", "names a special folder")
+    refused("id, path\ns1,a.nii.gz\n", r"\(read: id, path\).*without spaces")
+    (tmp_path / "m.csv").write_text('id,path\ns\u20281,"a, b.nii.gz"\ns2,b.nii.gz\n', encoding="utf-8")
+    assert read_manifest(tmp_path / "m.csv") == [("s\u20281", tmp_path / "a, b.nii.gz"), ("s2", tmp_path / "b.nii.gz")]
+
+
 def test_nifti_dims_both_readers_agree_on_valid_files(tmp_path):
     """The dim checks pass 2-D, 3-D, 4-D with a size-1 axis, and big-endian files."""
     cube = _cube().array

@@ -68,8 +68,15 @@ def read_manifest(path: Path) -> list[tuple[str, Path]]:
     if not path.is_file():
         raise UsageError(f"MANIFEST `{path}` does not exist or is not a file.")
     try:
-        # utf-8-sig: a byte-order mark (as spreadsheet programs write) is not part of the first column's name
-        rows = list(csv.DictReader(path.read_text(encoding="utf-8-sig").splitlines()))
+        # utf-8-sig: a byte-order mark (as spreadsheet programs write) is not part of the first column's name;
+        # the csv module splits the lines itself (a quoted field may hold a line break, and str.splitlines
+        # would also split at U+2028 and other separators inside a value)
+        with path.open(encoding="utf-8-sig", newline="") as fh:
+            reader = csv.DictReader(fh)
+            rows, lines = [], []
+            for row in reader:
+                rows.append(row)
+                lines.append(reader.line_num)  # the file line the row ends on (blank lines are skipped)
     except PermissionError:
         raise UsageError(f"MANIFEST `{path}` is not readable (permission denied); expected a file you can read.") from None
     except OSError as exc:
@@ -77,9 +84,11 @@ def read_manifest(path: Path) -> list[tuple[str, Path]]:
     except (UnicodeDecodeError, csv.Error) as exc:
         raise UsageError(f"MANIFEST `{path}` is not a CSV file: {exc}.") from None
     if not rows or not {"id", "path"} <= set(rows[0]):
-        raise UsageError(f"MANIFEST `{path}` needs a header with the columns id,path and at least one row.")
+        read = f" (read: {','.join(str(c) for c in rows[0] if c is not None)})" if rows else ""
+        raise UsageError(f"MANIFEST `{path}` needs a header with the columns id,path{read} and at least one row; "
+                         "expected exactly those names, without spaces around them.")
     subjects, seen = [], set()
-    for i, row in enumerate(rows, start=2):
+    for i, row in zip(lines, rows):
         sid, p = (row.get("id") or "").strip(), (row.get("path") or "").strip()
         if not sid or not p:
             raise UsageError(f"MANIFEST `{path}` line {i}: expected an id and a path, got {row}.")
@@ -88,8 +97,14 @@ def read_manifest(path: Path) -> list[tuple[str, Path]]:
                              f"names {len(row) - 1}; expected one value per column (quote a path holding a comma).")
         if sid in seen:
             raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` is listed twice; expected unique ids.")
-        if any(c in sid for c in "/\\") or sid in (".", ".."):
-            raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` must not contain path separators.")
+        if any(c in sid for c in "/\\") or any(c < " " or c == "\x7f" for c in sid):
+            raise UsageError(f"MANIFEST `{path}` line {i}: id {sid!r} must not contain path separators or control "
+                             "characters; expected a name for its results' folder.")
+        if sid in (".", ".."):
+            raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` names a special folder; expected a name for its "
+                             "results' folder.")
+        if "\x00" in p:
+            raise UsageError(f"MANIFEST `{path}` line {i}: path {p!r} holds a NUL byte; expected a file path.")
         seen.add(sid)
         q = Path(p)
         subjects.append((sid, q if q.is_absolute() else path.parent / q))
