@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from volreg.features.implicit import estimate_normals
 from volreg.warp.linear import LinearMap
 
-__all__ = ["surface_normals", "checked_normals", "NormalsCheck", "closest_points", "surface_gaps", "GAPS_MEASURED", "morph_vertices", "transfer_values", "linear_path"]
+__all__ = ["surface_normals", "checked_normals", "NormalsCheck", "closest_points", "surface_gaps", "morph_vertices", "transfer_values", "linear_path"]
 
 
 def _polydata(vertices: np.ndarray, triangles: np.ndarray) -> pv.PolyData:
@@ -202,14 +202,6 @@ def closest_points(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarr
     return closest, np.linalg.norm(closest - points, axis=1), cell
 
 
-#: What :func:`surface_gaps` measured, by the key it returns (``report.json`` ``measured``), in
-#: words after a distance ("a median 0.2 mm from TARGET").
-GAPS_MEASURED = {
-    "source_to_target": "from TARGET",
-    "source_to_target_points": "from TARGET's points (beyond half their spacing)",
-}
-
-
 def surface_gaps(warped: np.ndarray, target_vertices: np.ndarray, target_triangles: np.ndarray) -> tuple[np.ndarray, str]:
     """Distance of each warped source vertex to the target, a surface or a sample of one.
 
@@ -234,7 +226,7 @@ def surface_gaps(warped: np.ndarray, target_vertices: np.ndarray, target_triangl
     distance : (N,) float ndarray, mm
     measured : str
         ``"source_to_target"`` (to the triangles) or ``"source_to_target_points"``: a key of
-        :data:`GAPS_MEASURED`.
+        :data:`volreg.evaluation.surface_review.GAPS_MEASURED`.
     """
     if len(target_triangles):
         return closest_points(warped, target_vertices, target_triangles)[1], "source_to_target"

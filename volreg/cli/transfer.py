@@ -55,6 +55,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from volreg.evaluation.surface_review import (
+        GAPS_MEASURED,
         diameter,
         review_surface_distance,
         review_surface_extents,
@@ -62,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from volreg.io import check_writable, write_mesh
     from volreg.io.gifti import is_gifti, write_gifti_data
-    from volreg.morph import GAPS_MEASURED, surface_gaps, transfer_values
+    from volreg.morph import surface_gaps, transfer_values
 
     start = time.perf_counter()
     source = _read(args.source, "SOURCE", args.source_data)

@@ -16,7 +16,7 @@ import numpy as np
 
 from volreg.evaluation.review import Finding
 
-__all__ = ["SurfaceReviewLimits", "diameter", "review_surface_distance", "review_surface_extents",
+__all__ = ["GAPS_MEASURED", "SurfaceReviewLimits", "diameter", "review_surface_distance", "review_surface_extents",
            "review_surface_translation", "review_landmarks"]
 
 
@@ -107,6 +107,14 @@ def review_surface_extents(source: np.ndarray, target: np.ndarray,
     return [Finding(None, "extent_ratio", ratio, limits.max_extent_ratio, message)]
 
 
+#: How :func:`volreg.morph.surface_gaps` measured, by the key it returns (``report.json``
+#: ``measured``), in words after a distance ("a median 0.2 mm from TARGET").
+GAPS_MEASURED = {
+    "source_to_target": "from TARGET",
+    "source_to_target_points": "from TARGET's points (beyond half their spacing)",
+}
+
+
 def review_surface_distance(distance: np.ndarray, target_diameter: float,
                             limits: SurfaceReviewLimits = SurfaceReviewLimits(), *, hint: str = "",
                             measured: str = "source_to_target") -> list[Finding]:
@@ -123,7 +131,7 @@ def review_surface_distance(distance: np.ndarray, target_diameter: float,
     hint : str, optional
         A sentence to append (what to check, in the words of the command).
     measured : str, default "source_to_target"
-        How ``distance`` was measured: a key of :data:`volreg.morph.GAPS_MEASURED`
+        How ``distance`` was measured: a key of :data:`GAPS_MEASURED`
         (``"source_to_target_points"``: to a point cloud's points, beyond half their spacing).
 
     Returns
@@ -133,8 +141,7 @@ def review_surface_distance(distance: np.ndarray, target_diameter: float,
         over the target's diameter) or, where the median is within the limit,
         ``"p90_distance_fraction"`` (the 90th percentile's, a partial surface).
     """
-    from_what = {"source_to_target": "from TARGET",
-                 "source_to_target_points": "from TARGET's points (beyond half their spacing)"}[measured]
+    from_what = GAPS_MEASURED[measured]
     d = np.asarray(distance, float)
     median = float(np.median(d))
     fraction = median / target_diameter if target_diameter > 0 else math.inf
