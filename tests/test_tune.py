@@ -93,3 +93,12 @@ def test_bad_grid_refused_before_registering(pair, tmp_path, capsys, grid, words
     err = capsys.readouterr().err.strip()
     assert err.startswith("volreg tune: error: --grid") and "\n" not in err and words in err
     assert not (tmp_path / "out").exists()
+
+
+def test_scored_settings_are_printed_as_they_are_set(capsys):
+    """`min_det=0.99999999` was printed `min_det=1` (six significant digits), a value out of range."""
+    from volreg.cli.tune import _print_score
+
+    _print_score(0, 2, {"min_det": 0.99999999, "alpha": 10.0},
+                 {"consistency_mm": 0.1, "holdout_mm": 0.2, "score_mm": 0.3, "seconds": 1.0})
+    assert "min_det=0.99999999, alpha=10:" in capsys.readouterr().err

@@ -82,7 +82,7 @@ def parse_grid(specs: list[str]) -> dict[str, list[float]]:
 
 def _print_score(i: int, n: int, values: dict, row: dict) -> None:
     """The line on stderr for the ``i``-th of ``n`` settings scored."""
-    settings = ", ".join(f"{k}={v:g}" for k, v in values.items())
+    settings = ", ".join(f"{k}={v:.12g}" for k, v in values.items())
     print(f"{PROG} tune: [{i + 1}/{n}] {settings}: consistency {row['consistency_mm']:.3f} mm, "
           f"hold-out {row['holdout_mm']:.3f} mm, score {row['score_mm']:.3f} mm ({row['seconds']:.0f} s)",
           file=sys.stderr)
@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         write_text(table.getvalue(), paths["tune.csv"], force=args.force)
         folder.record(paths["tune.csv"])
         chosen = replace_settings(protocol, combos[best], name=f"{protocol.name}-tuned")
-        settings = ", ".join(f"{k}={v:g}" for k, v in combos[best].items())
+        settings = ", ".join(f"{k}={v:.12g}" for k, v in combos[best].items())
         comment = (f"written by `volreg tune` from protocol `{protocol.name}`: {settings} scored best of {len(combos)} "
                    f"(score {rows[best]['score_mm']:.4f} mm = consistency + hold-out surface distance"
                    f"{' + landmark error' if landmarks is not None else ''}; see tune.csv)")
