@@ -241,7 +241,7 @@ def test_signals_held_for_a_swap_while_other_threads_run():
     import threading
     import time
 
-    from volreg.io._atomic import _SignalsHeld
+    from volreg._signals import SignalsHeld
 
     class Stop(Exception):
         pass
@@ -257,7 +257,7 @@ def test_signals_held_for_a_swap_while_other_threads_run():
     steps = []
     try:
         with pytest.raises(Stop):
-            with _SignalsHeld():
+            with SignalsHeld():
                 os.kill(os.getpid(), signal.SIGTERM)
                 for _ in range(50):  # Python checks for signals between these steps
                     time.sleep(0.002)

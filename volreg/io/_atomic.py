@@ -398,15 +398,11 @@ def _link_tree(source: Path, target: Path) -> None:
     shutil.copytree(source, target, symlinks=True, copy_function=link, dirs_exist_ok=True)
 
 
-#: Kept under its former name, for the swap below.
-_SignalsHeld = SignalsHeld
-
-
 def _swap_in(staging: Path, final: Path) -> None:
     """Replace ``final`` (if any) by the complete result in ``staging``; see :func:`recover_folder`."""
     ready = _stage_path(final, "ready")
     old = _stage_path(final, "old")
-    with _SignalsHeld():
+    with SignalsHeld():
         os.rename(staging, ready)
         _staging_open.discard(staging)
         try:

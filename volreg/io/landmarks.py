@@ -36,15 +36,20 @@ def _frame(value: str, path: Path) -> bool:
     raise VolregIOError(f"Landmark file `{path}` has coordinate system {value!r}; expected LPS or RAS.")
 
 
+def _fcsv_frame(line: str, path: Path) -> bool:
+    """True for RAS, False for LPS, from a ``.fcsv`` ``# CoordinateSystem`` line: ``= RAS`` as
+    Slicer writes it, a colon read alike."""
+    value = line.split("=", 1)[1] if "=" in line else line.split("CoordinateSystem", 1)[1].lstrip(" :")
+    return _frame(value, path)
+
+
 def _read_fcsv(path: Path, text: str) -> np.ndarray:
     ras = True
     points = []
     for number, line in enumerate(text.splitlines(), start=1):
         if line.startswith("#"):
             if "CoordinateSystem" in line:
-                # "# CoordinateSystem = RAS" as Slicer writes it; a colon read alike
-                value = line.split("=", 1)[1] if "=" in line else line.split("CoordinateSystem", 1)[1].lstrip(" :")
-                ras = _frame(value, path)
+                ras = _fcsv_frame(line, path)
             continue
         if line.strip():
             r = next(csv.reader([line]))

@@ -42,7 +42,7 @@ import numpy as np
 from volreg.errors import VolregIOError
 from volreg.io._atomic import atomic_output
 from volreg.io.gifti import load_gifti
-from volreg.io.landmarks import _UNITS_MM, read_landmarks
+from volreg.io.landmarks import _fcsv_frame, _frame, _units_mm, read_landmarks
 from volreg.io.meshes import quiet_vtk, read_pyvista
 
 __all__ = ["POINT_SUFFIXES", "MESH_FORMATS", "PointSetFile", "check_same_format", "point_set_kind", "read_point_set",
@@ -265,14 +265,13 @@ def _csv_text(text: str, points: np.ndarray) -> str:
     return _write_lines(rows)
 
 
-def _fcsv_text(text: str, points: np.ndarray) -> str:
+def _fcsv_text(text: str, points: np.ndarray, path: Path) -> str:
     ras = True
     out, k = [], 0
     for line in text.splitlines():
         if line.startswith("#"):
-            if "CoordinateSystem" in line:  # "= RAS" as Slicer writes it; a colon read alike (read_landmarks)
-                value = line.split("=", 1)[1] if "=" in line else line.split("CoordinateSystem", 1)[1].lstrip(" :")
-                ras = value.strip().upper() in ("RAS", "0")
+            if "CoordinateSystem" in line:
+                ras = _fcsv_frame(line, path)
             out.append(line + "\n")
             continue
         if not line.strip():
@@ -286,12 +285,11 @@ def _fcsv_text(text: str, points: np.ndarray) -> str:
     return "".join(out)
 
 
-def _mrk_json_text(data: dict, points: np.ndarray) -> str:
+def _mrk_json_text(data: dict, points: np.ndarray, path: Path) -> str:
     k = 0
     for markup in data.get("markups", []):
-        ras = str(markup.get("coordinateSystem", "LPS")).strip().upper() in ("RAS", "0")
-        # back in the markup's own unit (read_landmarks converted it to mm)
-        per_unit = _UNITS_MM.get(str(markup.get("coordinateUnits", "mm")).strip().lower(), 1.0)
+        ras = _frame(markup.get("coordinateSystem", "LPS"), path)
+        per_unit = _units_mm(markup.get("coordinateUnits", "mm"), path)  # back in the markup's own unit
         for cp in markup.get("controlPoints", []):
             q = points[k]
             k += 1
@@ -338,9 +336,9 @@ def write_point_set(data: PointSetFile, points: np.ndarray, path: str | os.PathL
         if data.kind == "csv":
             text = _csv_text(data._content, q)
         elif data.kind == "fcsv":
-            text = _fcsv_text(data._content, q)
+            text = _fcsv_text(data._content, q, data.path)
         else:
-            text = _mrk_json_text(json.loads(json.dumps(data._content)), q)
+            text = _mrk_json_text(json.loads(json.dumps(data._content)), q, data.path)
         with atomic_output(p, force=force) as tmp:
             with open(tmp, "w", encoding="utf-8", newline="") as fh:
                 fh.write(text)
