@@ -23,7 +23,7 @@ import numpy as np
 
 from volreg.errors import GeometryError
 
-__all__ = ["Grid", "GridLike", "LabelVolume", "VoxelChunk", "as_grid"]
+__all__ = ["Grid", "GridLike", "LabelVolume", "VoxelChunk", "as_grid", "box_diameter"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,6 +91,20 @@ def apply_affine(points: np.ndarray, matrix: np.ndarray, offset: np.ndarray) -> 
                 np.multiply(block[:, b], matrix[a, b], out=t)
                 column += t
     return out
+
+
+def box_diameter(points: np.ndarray) -> float:
+    """The diagonal of the axis-aligned bounding box of ``points`` (N, D), mm (0 for no points).
+
+    The bounds are taken column by column (numpy reduces a C-ordered (N, 3) array along its first
+    axis much more slowly than each column), with the same values as ``points.min(axis=0)``.
+    """
+    points = np.asarray(points)
+    if len(points) == 0:
+        return 0.0
+    lo = np.array([points[:, d].min() for d in range(points.shape[1])])
+    hi = np.array([points[:, d].max() for d in range(points.shape[1])])
+    return float(np.linalg.norm(hi - lo))
 
 
 def label_boxes(array: np.ndarray) -> dict[int, tuple[slice, ...]]:
