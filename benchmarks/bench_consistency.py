@@ -50,7 +50,7 @@ def run_one(method: str) -> dict:
     t0 = time.perf_counter()
     if method.startswith("volreg"):
         from volreg.warp.inverse import InverseWarp
-        from volreg.register import register_labels
+        from volreg.pipeline.labels import register_labels
         from volreg.io.protocol import load_protocol
 
         name = method.split("-")[1]

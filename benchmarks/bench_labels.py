@@ -134,7 +134,7 @@ def run_one(method: str) -> dict:
     t0 = time.perf_counter()
     if method.startswith("volreg"):
         from volreg.warp.field import fields_on_grid
-        from volreg.register import register_labels
+        from volreg.pipeline.labels import register_labels
         from volreg.io.protocol import load_protocol
 
         import dataclasses

@@ -20,7 +20,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from shapes import bumpy_ellipsoid, label_volume  # noqa: E402
 from volreg.features.implicit import ImplicitSurface  # noqa: E402
 from volreg.settings import WarpSettings  # noqa: E402
-from volreg.register import register_surfaces  # noqa: E402
+from volreg.pipeline.surfaces import register_surfaces  # noqa: E402
 from volreg.features.label_surfaces import label_surface, vertex_normals  # noqa: E402
 from volreg.synthetic import GaussianBumps  # noqa: E402
 from volreg.grid import LabelVolume  # noqa: E402

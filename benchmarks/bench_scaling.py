@@ -49,7 +49,7 @@ def run_one(pad_fraction: float) -> dict:
     from bench_surfaces import _pair
 
     from volreg.settings import WarpSettings
-    from volreg.register import register_surfaces
+    from volreg.pipeline.surfaces import register_surfaces
     from volreg.morph import surface_normals
 
     v, faces, truth, diameter = _pair(10**9)  # all 117k vertices

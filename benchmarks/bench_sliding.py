@@ -66,7 +66,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 from shapes import bumpy_ellipsoid_parts, decimated_surface, folded_blob_inside  # noqa: E402
 from volreg.features.implicit import ImplicitSurface  # noqa: E402
-from volreg.register import mesh_min_width  # noqa: E402
+from volreg.pipeline.surfaces import mesh_min_width  # noqa: E402
 from volreg.features.label_surfaces import label_surface  # noqa: E402
 from volreg.grid import LabelVolume  # noqa: E402
 from volreg.settings import WarpSettings  # noqa: E402

@@ -55,7 +55,7 @@ def run_one(method: str, size: int) -> dict:
     t0 = time.perf_counter()
     if method == "volreg":
         from volreg.settings import WarpSettings
-        from volreg.register import register_surfaces
+        from volreg.pipeline.surfaces import register_surfaces
         from volreg.morph import surface_normals
 
         src = (v, surface_normals(v, faces))

@@ -479,7 +479,7 @@ def test_pyvista_is_loaded_before_a_command_only_where_it_may_be_used(command, w
     """Imports happen with the signals held back (a signal inside a C extension's import can crash
     the interpreter), so a command that may touch VTK loads pyvista then; NIfTI registration does not."""
     code = ("import sys; from volreg.cli import _preload; _preload(sys.argv[1], sys.argv[2:]); "
-            "print('pyvista' in sys.modules, 'volreg.register' in sys.modules)")
+            "print('pyvista' in sys.modules, 'volreg.outputs.registration' in sys.modules)")
     run = subprocess.run([sys.executable, "-c", code, command, *words], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == [str(loaded), "True"]

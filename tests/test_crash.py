@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from volreg.evaluation.consistency import CONSISTENCY_OUTPUTS
+from volreg.outputs.consistency import CONSISTENCY_OUTPUTS
 from volreg.grid import LabelVolume
 from volreg.io import read_image, read_labels, write_labels
 from volreg.io.fields import read_displacement, read_itk_linear
-from volreg.register import REGISTRATION_OUTPUTS
+from volreg.outputs.registration import REGISTRATION_OUTPUTS
 from volreg.warp.model import KernelWarp
 
 REPO = Path(__file__).resolve().parents[1]

@@ -141,7 +141,7 @@ def test_distance_maps_carry_a_label_without_a_surface():
     stage, which would move it by its own distance maps)."""
     from volreg.evaluation.metrics import dice
     from volreg.io.protocol import load_protocol
-    from volreg.register import register_labels
+    from volreg.pipeline.labels import register_labels
     from volreg.warp.field import fields_on_grid
     from volreg.warp.resample import resample_labels
     from volreg.grid import LabelVolume
@@ -175,7 +175,7 @@ def test_distance_maps_alone_drive_when_no_label_gives_a_surface():
     alone nothing drives and the registration stops with a clear error."""
     from volreg.evaluation.metrics import dice
     from volreg.errors import RegistrationInputError
-    from volreg.register import register_labels
+    from volreg.pipeline.labels import register_labels
     from volreg.io.protocol import load_protocol
     from volreg.warp.field import fields_on_grid
     from volreg.warp.resample import resample_labels

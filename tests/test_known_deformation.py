@@ -20,7 +20,7 @@ import pytest
 from shapes import bumpy_ellipsoid, decimated_surface, folded_blob_inside, label_volume
 from volreg.features.implicit import ImplicitSurface, default_min_width
 from volreg.settings import WarpSettings
-from volreg.register import register_surfaces
+from volreg.pipeline.surfaces import register_surfaces
 from volreg.features.label_surfaces import label_surface, vertex_normals
 from volreg.synthetic import GaussianBumps
 from volreg.warp.model import jacobian_det

@@ -116,7 +116,7 @@ def test_a_label_one_finer_voxel_thick_keeps_its_own_map():
     background's, so read on a 2 mm grid it is left in patches; it keeps the map of its own
     grid, while a ball beside it, read there with about the voxels its volume fills, is taken
     from the coarser grid."""
-    from volreg.register import _finer_on_coarser
+    from volreg.pipeline.label_features import finer_on_coarser as _finer_on_coarser
     from volreg.warp.linear import LinearMap
 
     def labels(p):

@@ -1,5 +1,5 @@
 """Writing a registration's outputs from the library: the output transaction, the pair checks,
-:func:`volreg.register.write_registration`, :func:`volreg.register.register_both_ways` and the
+:func:`volreg.outputs.registration.write_registration`, :func:`volreg.outputs.consistency.write_both_ways` and the
 consistency test's entry points, without the command line."""
 
 from __future__ import annotations
@@ -13,19 +13,14 @@ import pytest
 
 from volreg.cli._common import _summary_line
 from volreg.errors import RegistrationInputError, UsageError, VolregError
-from volreg.evaluation.consistency import CONSISTENCY_OUTPUTS, consistency_test, warp_pad, write_consistency_test
+from volreg.evaluation.consistency import consistency_test, warp_pad
+from volreg.outputs.consistency import CONSISTENCY_OUTPUTS, write_both_ways, write_consistency_test
 from volreg.grid import LabelVolume
 from volreg.io._atomic import output_folder
 from volreg.io.protocol import load_protocol
-from volreg.register import (
-    ITK_H5_OUTPUTS,
-    REGISTRATION_OUTPUTS,
-    LabelRegistration,
-    check_pair,
-    register_both_ways,
-    registration_outputs,
-    write_registration,
-)
+from volreg.outputs.registration import ITK_H5_OUTPUTS, REGISTRATION_OUTPUTS, registration_outputs, write_registration
+from volreg.pipeline.checks import check_pair
+from volreg.pipeline.labels import LabelRegistration
 from volreg.settings import OutputSettings
 from volreg.synthetic import GaussianBumps, deform_labels
 from volreg.warp.model import KernelWarp
@@ -148,18 +143,18 @@ def test_write_registration_writes_every_output_and_prints_nothing(small_pair, t
     report = write_registration(a, b, tmp_path / "out", protocol=protocol, inputs={"fixed": "a", "moving": "b"},
                                 on_fit=fitted.append)
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == sorted(REGISTRATION_OUTPUTS)
-    assert json.loads((tmp_path / "out" / "report.json").read_text()) == report
-    assert report["inputs"] == {"fixed": "a", "moving": "b"} and report["mean_dice"]["after"] > report["mean_dice"]["before"]
-    assert [s["stage"] for s in report["stages"]][-4:] == ["resample", "inverse", "metrics", "write"]
+    assert json.loads((tmp_path / "out" / "report.json").read_text()) == report.to_json()
+    assert report.inputs == {"fixed": "a", "moving": "b"} and report.mean_dice["after"] > report.mean_dice["before"]
+    assert [s["stage"] for s in report.stages][-4:] == ["resample", "inverse", "metrics", "write"]
     assert len(fitted) == 1 and isinstance(fitted[0], LabelRegistration)
-    assert report["levels"] == fitted[0].log
+    assert report.levels == fitted[0].log
     # The report's |u| figures are those of the field written (float32 there).
     from volreg.io.fields import read_displacement
 
     u, _ = read_displacement(tmp_path / "out" / "warp.nii.gz")
     size = np.linalg.norm(u, axis=-1)
-    assert report["displacement_mm"]["max"] == pytest.approx(size.max(), abs=1e-4) and size.max() > 0
-    assert report["displacement_mm"]["mean_in_labels"] == pytest.approx(size[a.array != 0].mean(), abs=1e-4)
+    assert report.displacement_mm["max"] == pytest.approx(size.max(), abs=1e-4) and size.max() > 0
+    assert report.displacement_mm["mean_in_labels"] == pytest.approx(size[a.array != 0].mean(), abs=1e-4)
     assert capsys.readouterr() == ("", "")
 
 
@@ -171,9 +166,9 @@ def test_itk_h5_outputs_follow_the_protocol(small_pair, tmp_path):
     report = write_registration(a, b, tmp_path / "out", protocol=no_h5)
     names = sorted(p.name for p in (tmp_path / "out").iterdir())
     assert names == sorted(registration_outputs(no_h5)) == sorted(set(REGISTRATION_OUTPUTS) - set(ITK_H5_OUTPUTS))
-    assert report["protocol"]["outputs"] == {"itk_h5": False}
-    assert _summary_line("register", report, tmp_path / "out").endswith(f"; {len(names)} files in "
-                                                                       f"{tmp_path / 'out'}{os.sep} ({report['seconds']:.0f} s)")
+    assert report.protocol["outputs"] == {"itk_h5": False}
+    assert _summary_line("register", report.to_json(), tmp_path / "out").endswith(f"; {len(names)} files in "
+                                                                       f"{tmp_path / 'out'}{os.sep} ({report.seconds:.0f} s)")
 
 
 def test_write_registration_leaves_nothing_when_a_write_fails(small_pair, tmp_path, monkeypatch):
@@ -192,7 +187,7 @@ def test_write_registration_leaves_nothing_when_a_write_fails(small_pair, tmp_pa
 def test_write_registration_leaves_nothing_when_a_stage_fails_during_the_writes(small_pair, tmp_path, monkeypatch):
     """The fixed grid's fields are written in the background while the inverse is computed; an
     error there waits for the writes that started and removes them with the rest."""
-    import volreg.register as reg
+    import volreg.outputs.registration as reg
 
     started = []
 
@@ -200,7 +195,7 @@ def test_write_registration_leaves_nothing_when_a_stage_fails_during_the_writes(
         started.append(True)
         raise MemoryError("Unable to allocate the inverse's grid.")
 
-    monkeypatch.setattr(reg, "_inverse_on_moving_grid", failing_inverse)
+    monkeypatch.setattr(reg, "inverse_on_moving_grid", failing_inverse)
     a, b, protocol = small_pair
     with pytest.raises(MemoryError, match="inverse"):
         write_registration(a, b, tmp_path / "deep" / "out", protocol=protocol)
@@ -210,10 +205,9 @@ def test_write_registration_leaves_nothing_when_a_stage_fails_during_the_writes(
 
 def test_both_ways_and_the_consistency_test(small_pair, tmp_path):
     a, b, protocol = small_pair
-    both = register_both_ways(a, b, protocol=protocol, outdir=tmp_path / "out",
-                              inputs={"A": {"path": "a"}, "B": {"path": "b"}})
+    both = write_both_ways(a, b, tmp_path / "out", protocol=protocol, inputs={"A": {"path": "a"}, "B": {"path": "b"}})
     assert set(both.reports) == {"forward", "backward"}
-    assert both.reports["backward"]["inputs"] == {"fixed": {"path": "b"}, "moving": {"path": "a"}}
+    assert both.reports["backward"].inputs == {"fixed": {"path": "b"}, "moving": {"path": "a"}}
     # the warps in memory are those written
     x = a.grid_points().reshape(-1, 3)[::11]
     for name in ("forward", "backward"):

@@ -11,7 +11,7 @@ import pytest
 
 from volreg.features.implicit import ImplicitSurface
 from volreg.settings import WarpSettings
-from volreg.register import register_surfaces
+from volreg.pipeline.surfaces import register_surfaces
 from volreg.features.label_surfaces import label_surface
 from volreg.grid import LabelVolume
 
@@ -242,7 +242,7 @@ def test_fit_warp_refuses_source_points_without_extent():
 
 
 def test_despeckle_removes_pieces_under_the_speck_fraction_and_judges_at_another():
-    from volreg.register import SPECK_FRACTION, despeckle
+    from volreg.pipeline.label_features import SPECK_FRACTION, despeckle
 
     a = np.zeros((30, 30, 30), np.uint8)
     a[2:12, 2:12, 2:12] = 3  # 1000 voxels

@@ -24,7 +24,7 @@ _SNIPPET = """
 import sys, tempfile
 if len(sys.argv) > 1:
     tempfile.tempdir = sys.argv[1]  # the system's temporary directory unusable too
-import volreg._jit, volreg.register, volreg.cli
+import volreg._jit, volreg.outputs.registration, volreg.cli
 print(volreg._jit.cache_location())
 import numpy as np
 from volreg.kernels._compiled import take_rows

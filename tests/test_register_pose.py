@@ -19,7 +19,7 @@ from shapes import BLOBS, Ellipsoid, grid_around, posed_volume, rotation, thick_
 import volreg
 from volreg.cli import main
 from volreg.io.protocol import protocol_to_toml
-from volreg.register import REGISTRATION_OUTPUTS
+from volreg.outputs.registration import REGISTRATION_OUTPUTS
 from volreg.settings import LinearSettings, ReviewSettings
 
 # The pose: a similarity of 30 degrees, scale 1.1 and a 21 mm shift.
@@ -348,7 +348,7 @@ def test_a_label_cut_by_the_moving_image_edge_is_reported_and_does_not_pull(tmp_
     assert np.count_nonzero(fixed.array == 8) > 100
     protocol = volreg.load_protocol("fast")
     protocol = dataclasses.replace(protocol, linear=LinearSettings("rigid"))
-    report = volreg.write_registration(fixed, cropped, tmp_path / "out", protocol=protocol)
+    report = volreg.write_registration(fixed, cropped, tmp_path / "out", protocol=protocol).to_json()
     assert report["cut_labels"] == {"fixed": [], "moving": [7]}
     assert report["labels_in_one_volume"] == {"fixed": [8], "moving": []}
     assert report["review"]["judged_labels"] == [1, 2, 3, 4, 5, 6]
@@ -389,7 +389,7 @@ def test_a_moving_image_showing_half_the_object_does_not_pull_the_rest():
     moving = moving.with_array(body((y - b) @ np.linalg.inv(a).T).reshape(moving.shape))
     result = volreg.register_labels(fixed, moving, protocol=volreg.load_protocol("default"))
     assert result.cut_labels == {"fixed": [], "moving": [1, 2]}
-    assert result.kernel_warp["kept"] == "warp", result.kernel_warp
+    assert result.kernel_warp.kept == "warp", result.kernel_warp
     x = fixed.grid_points()[fixed.array > 0]
     kernel = np.linalg.norm(result.warp(x) - result.warp.linear(x), axis=1)
     assert kernel.max() < 1.0, kernel.max()
@@ -417,7 +417,7 @@ def test_small_balls_read_from_a_coarser_grid_are_not_reported_as_worse(tmp_path
     fixed = volreg.LabelVolume(np.zeros((48,) * 3, np.uint8), (-23.5,) * 3, (1.0,) * 3, np.eye(3))
     fixed = fixed.with_array(labels(fixed.grid_points().reshape(-1, 3)).reshape(fixed.shape))
     moving = volreg.LabelVolume(fixed.array[::2, ::2, ::2].copy(), fixed.origin, (2.0,) * 3, np.eye(3))
-    report = volreg.write_registration(fixed, moving, tmp_path / "out", protocol=volreg.load_protocol("default"))
+    report = volreg.write_registration(fixed, moving, tmp_path / "out", protocol=volreg.load_protocol("default")).to_json()
     assert report["review"]["plausible"], report["review"]["findings"]
     drops = [v for v in range(2, 7)
              if report["labels"][str(v)]["before"]["dice"] - report["labels"][str(v)]["after"]["dice"] > 0.05]
@@ -489,7 +489,7 @@ def test_a_kernel_warp_that_lowers_the_overlap_is_left_out(tmp_path):
     registration, 0.60 mm).  The finer levels are not fitted, and the linear part alone is kept
     (measured 0.018 mm from the truth: the stretch), reported in report.json and by the review."""
     fixed, moving, truth = thick_slice_pair()
-    report = volreg.write_registration(fixed, moving, tmp_path / "out")
+    report = volreg.write_registration(fixed, moving, tmp_path / "out").to_json()
     check = report["kernel_warp"]
     assert check["kept"] == "linear" and check["dice_warp"] < check["dice_linear"] - check["margin"], check
     assert check["levels_fitted"] == 1
@@ -508,6 +508,6 @@ def test_a_kernel_warp_that_keeps_the_overlap_is_kept():
     moving = posed_volume(BLOBS, (40,) * 3, (1.5,) * 3, grid_around(POSE_B, (40,) * 3, (1.5,) * 3), matrix=POSE_A,
                           translation=POSE_B)
     result = volreg.register_labels(fixed, moving, protocol=volreg.load_protocol("fast"))
-    assert result.kernel_warp["kept"] == "warp" and result.warp.levels, result.kernel_warp
-    assert result.kernel_warp["levels_fitted"] == len(result.warp.levels) == len(result.log) > 1
-    assert result.kernel_warp["dice_warp"] >= result.kernel_warp["dice_linear"] - 0.02
+    assert result.kernel_warp.kept == "warp" and result.warp.levels, result.kernel_warp
+    assert result.kernel_warp.levels_fitted == len(result.warp.levels) == len(result.log) > 1
+    assert result.kernel_warp.dice_warp >= result.kernel_warp.dice_linear - 0.02

@@ -366,7 +366,7 @@ def test_interrupt_lost_in_a_ctypes_callback_still_stops_the_run(tmp_path, monke
     exit 0. The next progress report must raise it again: exit 130, one line, OUTDIR gone."""
     import ctypes
 
-    import volreg.register as registration
+    import volreg.outputs.registration as registration
     from test_register import blob_volume
 
     def raise_sigint() -> None:
@@ -464,7 +464,7 @@ def test_a_warp_folding_the_grid_stops_with_the_level_named():
 
 
 def test_register_writes_nothing_when_the_warp_folds(files, tmp_path, capsys, monkeypatch):
-    import volreg.register as registration
+    import volreg.outputs.registration as registration
 
     real = registration.register_labels
 

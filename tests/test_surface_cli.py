@@ -221,7 +221,7 @@ def test_the_centroids_weigh_points_by_the_surface_they_stand_for():
     """A sphere meshed four times as densely on one half: its vertices' mean lies 4 mm off the
     centre (radius 20 mm), the area-weighted centroid within 0.6 mm; 50 points of debris 300 mm
     away move the plain mean 4 mm, the weighted one under 1 mm."""
-    from volreg.register import _area_centroid
+    from volreg.pipeline.surfaces import _area_centroid
 
     sphere = pv.Sphere(radius=20.0, theta_resolution=60, phi_resolution=60)
     points = np.array(sphere.points, float)

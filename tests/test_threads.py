@@ -9,7 +9,8 @@ from volreg._threads import JobQueue, run_parts, single_blas, thread_map
 from volreg.features.implicit import ImplicitSurface
 from volreg.warp.field import fields_on_grid
 from volreg.warp.fit import fit_warp
-from volreg.register import register_labels, register_surfaces
+from volreg.pipeline.labels import register_labels
+from volreg.pipeline.surfaces import register_surfaces
 from volreg.features.label_surfaces import implicit_surfaces
 
 

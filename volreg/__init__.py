@@ -23,13 +23,16 @@ except PackageNotFoundError:  # running from a source tree without installation
 #: Public name -> the module that defines it.
 _API = {
     # the main jobs
-    "register_labels": "volreg.register",
-    "register_surfaces": "volreg.register",
-    "register_both_ways": "volreg.register",
-    "TwoWayRegistration": "volreg.register",
-    "write_registration": "volreg.register",
-    "check_pair": "volreg.register",
-    "LabelRegistration": "volreg.register",
+    "register_labels": "volreg.pipeline.labels",
+    "register_surfaces": "volreg.pipeline.surfaces",
+    "register_both_ways": "volreg.pipeline.two_way",
+    "TwoWayRegistration": "volreg.pipeline.two_way",
+    "write_registration": "volreg.outputs.registration",
+    "write_outputs": "volreg.outputs.registration",
+    "write_both_ways": "volreg.outputs.consistency",
+    "RegistrationReport": "volreg.evaluation.report",
+    "check_pair": "volreg.pipeline.checks",
+    "LabelRegistration": "volreg.pipeline.labels",
     "RegistrationResult": "volreg.warp.fit",
     # data and files
     "LabelVolume": "volreg.grid",
@@ -68,7 +71,7 @@ _API = {
     "label_scores": "volreg.evaluation.metrics",
     "review_registration": "volreg.evaluation.review",
     "consistency_test": "volreg.evaluation.consistency",
-    "write_consistency_test": "volreg.evaluation.consistency",
+    "write_consistency_test": "volreg.outputs.consistency",
     "tune_settings": "volreg.evaluation.tune",
     # errors
     "VolregError": "volreg.errors",

@@ -23,7 +23,10 @@ import numpy as np
 
 from volreg.errors import GeometryError
 
-__all__ = ["Grid", "GridLike", "LabelVolume", "VoxelChunk", "as_grid", "box_diameter"]
+__all__ = [
+    "Grid", "GridLike", "LabelVolume", "VoxelChunk", "as_grid", "box_diameter", "inside_field_of_view", "label_counts",
+    "label_world_boxes", "world_box",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,6 +108,25 @@ def box_diameter(points: np.ndarray) -> float:
     lo = np.array([points[:, d].min() for d in range(points.shape[1])])
     hi = np.array([points[:, d].max() for d in range(points.shape[1])])
     return float(np.linalg.norm(hi - lo))
+
+
+def label_counts(values: np.ndarray) -> dict[int, int]:
+    """The voxel count of each non-zero value of an integer array.
+
+    Parameters
+    ----------
+    values : int ndarray, any shape
+
+    Returns
+    -------
+    dict of int to int
+        Value -> count, in ascending order of value; 0 (background) left out.
+    """
+    if values.size and values.min() >= 0 and values.max() < 2**24:
+        c = np.bincount(values.ravel().astype(np.int64))
+        return {int(v): int(c[v]) for v in np.flatnonzero(c) if v != 0}
+    labels, c = np.unique(values, return_counts=True)
+    return {int(v): int(n) for v, n in zip(labels, c) if v != 0}
 
 
 def label_boxes(array: np.ndarray) -> dict[int, tuple[slice, ...]]:
@@ -507,3 +529,62 @@ def as_grid(target: GridLike, name: str = "grid") -> Grid:
     raise GeometryError(
         f"Expected `{name}` to be a Grid, a LabelVolume or a (shape, affine) pair, got {type(target).__name__}."
     )
+
+
+def inside_field_of_view(volume, points: np.ndarray, margin: float) -> np.ndarray:
+    """Whether each point (N, D), mm, lies inside ``volume``'s voxel domain by at least ``margin`` mm
+    (axes of a single voxel do not count)."""
+    index = volume.world_to_index(points)
+    keep = np.ones(len(points), dtype=bool)
+    for axis, (n, step) in enumerate(zip(volume.shape, volume.spacing)):
+        if n <= 1:
+            continue
+        m = margin / step
+        keep &= (index[:, axis] >= -0.5 + m) & (index[:, axis] <= n - 0.5 - m)
+    return keep
+
+
+def label_world_boxes(volume, labels: list[int], to_fixed=None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The world (mm) bounding boxes ``(lo, hi)`` of ``labels``' voxels in ``volume`` (those it
+    holds), their corners taken through ``to_fixed`` (a point map) when given.
+
+    Parameters
+    ----------
+    volume : LabelVolume
+    labels : list of int
+    to_fixed : callable, optional
+        ``(N, D) mm -> (N, D) mm``, applied to each box's voxel corners.
+
+    Returns
+    -------
+    list of (lo, hi)
+        (D,) float ndarrays, mm; one per label of ``labels`` that ``volume`` holds.
+    """
+    if not labels:
+        return []
+    all_boxes = volume.label_boxes()
+    out = []
+    for label in labels:
+        if label not in all_boxes:
+            continue
+        box = all_boxes[label]
+        corners = np.array([[s.start - 0.5 if c == 0 else s.stop - 0.5 for s, c in zip(box, bits)]
+                            for bits in np.ndindex(*([2] * len(box)))], float)
+        world = volume.index_to_world(corners)
+        if to_fixed is not None:
+            world = to_fixed(world)
+        out.append((world.min(axis=0), world.max(axis=0)))
+    return out
+
+
+
+def world_box(volume) -> tuple[np.ndarray, np.ndarray]:
+    """The LPS bounding box of the voxel domain of ``volume`` (voxel corners, not centres).
+
+    Returns
+    -------
+    lo, hi : (D,) float ndarrays, mm
+    """
+    corners = np.array(list(np.ndindex(*([2] * volume.ndim))), dtype=float)
+    pts = volume.index_to_world(corners * (np.array(volume.shape) - 1)[None] + (corners - 0.5))
+    return pts.min(axis=0), pts.max(axis=0)

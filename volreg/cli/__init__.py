@@ -42,7 +42,7 @@ COMMANDS = (surface, register, apply, protocols, demo, consistency, tune, regist
 #: status 130 or 143.
 PRELOAD = ("numpy", "scipy.ndimage", "scipy.optimize", "scipy.sparse", "numba", "SimpleITK", "nibabel",
            "skimage.measure", "volreg.io", "volreg.io.report_figure", "volreg.io.protocol",
-           "volreg.progress", "volreg.register")
+           "volreg.progress", "volreg.outputs.registration")
 
 #: pyvista (and VTK) are loaded too, in the same way, except for these commands when no argument
 #: names a VTK file (:data:`VTK_SUFFIXES`): they do not use it, and it takes about 0.25 s.

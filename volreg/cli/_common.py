@@ -15,7 +15,7 @@ from volreg.errors import UsageError, VolregError
 
 if TYPE_CHECKING:  # the command modules import numpy and the pipeline only when a command runs
     from volreg.grid import LabelVolume
-    from volreg.register import LabelRegistration
+    from volreg.pipeline.labels import LabelRegistration
 
 PROG = "volreg"
 
@@ -112,7 +112,7 @@ def _sha256(path: Path) -> str:
 
 
 def _fit_logger(command: str) -> Callable[[LabelRegistration], None]:
-    """An ``on_fit`` callback for :func:`volreg.register.write_registration` that logs, one line each
+    """An ``on_fit`` callback for :func:`volreg.outputs.registration.write_registration` that logs, one line each
     on stderr, the driving labels, the labels left out, the fit's stages and its warp levels."""
 
     def log(text: str) -> None:
@@ -129,7 +129,7 @@ def _fit_logger(command: str) -> Callable[[LabelRegistration], None]:
         for note in result.skipped:
             log(note)
         for st in result.stages:
-            log(f"{st['stage']}: {st['seconds']:.1f} s")
+            log(f"{st.stage}: {st.seconds:.1f} s")
         for lev in result.log:
             log(f"level {lev['level']}: width {lev['width']:.1f} mm, {lev['centres']} centres, "
                 f"{lev['samples']} samples, {lev['iterations']} iterations, objective "
@@ -141,7 +141,7 @@ def _fit_logger(command: str) -> Callable[[LabelRegistration], None]:
 
 def _summary_line(command: str, report: dict, outdir: Path) -> str:
     """The one line ``volreg register`` and ``volreg demo`` print on stdout."""
-    from volreg.register import ITK_H5_OUTPUTS, REGISTRATION_OUTPUTS
+    from volreg.outputs.registration import ITK_H5_OUTPUTS, REGISTRATION_OUTPUTS
 
     d = report["mean_dice"]
     shared = len(d.get("labels", report["labels"]))
@@ -165,7 +165,7 @@ def _load_landmarks(args, fixed: LabelVolume | None = None, moving: LabelVolume 
     import numpy as np
 
     from volreg.io.landmarks import read_landmarks
-    from volreg.register import world_box
+    from volreg.grid import world_box
 
     if args.landmarks is None:
         return None

@@ -118,7 +118,7 @@ def _fitting_points(data: SurfaceData, name: object) -> tuple[np.ndarray, np.nda
 
 def _register(source: SurfaceData, target: SurfaceData, protocol, landmarks, progress,
               names: tuple[object, object] = ("SOURCE", "TARGET")) -> KernelWarp:
-    """The kernel warp of ``source`` onto ``target`` (:func:`volreg.register.register_surfaces`).
+    """The kernel warp of ``source`` onto ``target`` (:func:`volreg.pipeline.surfaces.register_surfaces`).
 
     ``names`` name the two surfaces in errors (e.g. ``SOURCE `a.vtk```).  Surfaces whose
     sizes differ by more than :data:`MAX_SIZE_RATIO` are refused: one is most likely in
@@ -126,7 +126,7 @@ def _register(source: SurfaceData, target: SurfaceData, protocol, landmarks, pro
     """
     import numpy as np
 
-    from volreg.register import register_surfaces
+    from volreg.pipeline.surfaces import register_surfaces
 
     src = _fitting_points(source, names[0])
     tgt = _fitting_points(target, names[1])

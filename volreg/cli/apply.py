@@ -71,7 +71,7 @@ def _check_overlap(field, reference, warp_path, reference_path) -> None:
     """Refuse a displacement field whose grid misses the reference grid: it would act as the identity there."""
     import numpy as np
 
-    from volreg.register import world_box
+    from volreg.grid import world_box
 
     lo1, hi1 = world_box(field)
     lo2, hi2 = world_box(reference)
@@ -107,7 +107,7 @@ def _check_lands_inside(source, points, args) -> None:
     background), and warn where it sends under :data:`LANDS_INSIDE_WARN` of them inside."""
     import numpy as np
 
-    from volreg.register import world_box
+    from volreg.grid import world_box
 
     index = source.world_to_index(points.reshape(-1, source.ndim))
     inside = np.all((index >= -0.5) & (index <= np.array(source.shape) - 0.5), axis=1)

@@ -196,8 +196,8 @@ def _remove_earlier_results(outdir: Path) -> None:
     after a consistency test, or the reverse), would otherwise lie beside the new one."""
     import shutil
 
-    from volreg.evaluation.consistency import CONSISTENCY_OUTPUTS
-    from volreg.register import REGISTRATION_OUTPUTS
+    from volreg.outputs.consistency import CONSISTENCY_OUTPUTS
+    from volreg.outputs.registration import REGISTRATION_OUTPUTS
 
     (outdir / "batch_row.json").unlink(missing_ok=True)
     for name in (*REGISTRATION_OUTPUTS, *CONSISTENCY_OUTPUTS, "forward", "backward"):
@@ -217,11 +217,12 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
     retry); anything else propagates (a bug).
     """
     from volreg.cli._common import _sha256
-    from volreg.evaluation.consistency import write_consistency_test
+    from volreg.outputs.consistency import write_consistency_test
     from volreg.io import read_labels, write_json
     from volreg.io.protocol import load_protocol
     from volreg.progress import ProgressBars
-    from volreg.register import check_pair, write_registration
+    from volreg.outputs.registration import write_registration
+    from volreg.pipeline.checks import check_pair
 
     start = time.perf_counter()
     out, fpath, mpath = Path(outdir), Path(fixed), Path(moving)
@@ -251,7 +252,7 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
                            review=_review_cell({name: d["review"] for name, d in directions.items()}))
             else:
                 inputs = {"fixed": {"path": str(fpath), "sha256": sha[0]}, "moving": {"path": str(mpath), "sha256": sha[1]}}
-                rep = write_registration(a, b, out, protocol=proto, force=True, inputs=inputs, progress=progress)
+                rep = write_registration(a, b, out, protocol=proto, force=True, inputs=inputs, progress=progress).to_json()
                 row.update(mean_dice_before=rep["mean_dice"]["before"], mean_dice_after=rep["mean_dice"]["after"],
                            folded_fraction=rep["jacobian"]["folded_fraction"], review=_review_cell({"": rep["review"]}))
         row.update(status="done", error="", seconds=time.perf_counter() - start, fixed_sha256=sha[0], moving_sha256=sha[1],

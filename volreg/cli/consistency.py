@@ -1,6 +1,6 @@
 """``volreg consistency``: register both ways (or load both results), compose, report.
 
-Reads and checks the inputs, calls :func:`volreg.evaluation.consistency.write_consistency_test`
+Reads and checks the inputs, calls :func:`volreg.outputs.consistency.write_consistency_test`
 and prints its one-line summary.
 """
 
@@ -108,11 +108,11 @@ def _check_saved_inputs(args: argparse.Namespace, sha_a: str, sha_b: str) -> Non
 
 def run(args: argparse.Namespace) -> int:
     """``volreg consistency A B -o OUTDIR [--forward RESULT_AB --backward RESULT_BA]``."""
-    from volreg.evaluation.consistency import write_consistency_test
+    from volreg.outputs.consistency import write_consistency_test
     from volreg.io import read_labels
     from volreg.io.protocol import load_protocol
     from volreg.progress import ProgressBars
-    from volreg.register import check_pair
+    from volreg.pipeline.checks import check_pair
 
     start = time.perf_counter()
     if (args.forward is None) != (args.backward is None):

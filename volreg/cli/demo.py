@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     from volreg.io._atomic import output_folder
     from volreg.io.protocol import load_protocol
     from volreg.progress import ProgressBars
-    from volreg.register import write_registration
+    from volreg.outputs.registration import write_registration
 
     protocol = load_protocol(args.protocol)
     path = Path(frog_path())
@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         with ProgressBars(quiet=args.quiet) as progress:
             report = write_registration(fixed, moving, args.output, protocol=protocol, force=True, inputs=inputs,
                                         truth=truth, progress=progress,
-                                        on_fit=_fit_logger("demo") if args.verbose else None)
+                                        on_fit=_fit_logger("demo") if args.verbose else None).to_json()
     _warn_review("demo", report)
     print(_summary_line("demo", report, args.output))
     return 0

@@ -59,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
     from volreg.io import read_labels
     from volreg.io.protocol import load_protocol
     from volreg.progress import ProgressBars
-    from volreg.register import check_pair, write_registration
+    from volreg.outputs.registration import write_registration
+    from volreg.pipeline.checks import check_pair
     from volreg.settings import LinearSettings
 
     protocol = load_protocol(args.protocol)
@@ -78,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     with ProgressBars(quiet=args.quiet) as progress:
         report = write_registration(fixed, moving, args.output, protocol=protocol, drive_labels=args.drive_labels,
                                     landmarks=landmarks, force=args.force, inputs=inputs, progress=progress,
-                                    on_fit=_fit_logger("register") if args.verbose else None)
+                                    on_fit=_fit_logger("register") if args.verbose else None).to_json()
     _warn_review("register", report)
     print(_summary_line("register", report, args.output))
     return _strict_status("register", protocol, [report["review"]])

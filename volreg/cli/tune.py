@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     from volreg.io import read_labels, write_text
     from volreg.io._atomic import output_folder
     from volreg.io.protocol import load_protocol, protocol_to_toml
-    from volreg.register import check_pair
+    from volreg.pipeline.checks import check_pair
     from volreg.settings import replace_settings
 
     start = time.perf_counter()

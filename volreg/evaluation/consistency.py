@@ -10,22 +10,17 @@ error is reported beside the registration's accuracy, never alone.
 Also here: the padded neighbourhood of a label volume's objects (where the
 error is summarised) and the round trip of A's labels through B's grid.
 :func:`consistency_test` gives the test's figures for a pair of warps;
-:func:`write_consistency_test` registers both ways (or takes both warps), runs
-the test and writes its outputs, all or nothing, as ``volreg consistency`` does.
+:func:`volreg.outputs.consistency.write_consistency_test` registers both ways (or takes both
+warps), runs the test and writes its outputs, all or nothing, as ``volreg consistency`` does.
 """
 
 from __future__ import annotations
 
-import os
-import time
-from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
 from scipy import ndimage
 
-from volreg import __version__
 from volreg.warp.field import displacement_on_grid, linear_displacement_on_grid, support_slices
 from volreg.warp.model import linear_outside
 from volreg.evaluation.metrics import dice
@@ -33,7 +28,6 @@ from volreg.warp.resample import resample_labels
 from volreg.grid import LabelVolume, as_grid
 
 __all__ = [
-    "CONSISTENCY_OUTPUTS",
     "consistency_test",
     "padded_region",
     "round_trip_error",
@@ -42,7 +36,6 @@ __all__ = [
     "round_trip_labels",
     "round_trip_dice",
     "warp_pad",
-    "write_consistency_test",
 ]
 
 ProgressCallback = Callable[[str, int, int], None]
@@ -266,112 +259,3 @@ def consistency_test(
         "labels": per_label,
     }
     return report, error
-
-
-#: The files :func:`write_consistency_test` writes into its output folder (besides
-#: ``forward/`` and ``backward/`` when it registers).
-CONSISTENCY_OUTPUTS = ("consistency.json", "consistency_error.nii.gz", "consistency.png")
-
-
-def write_consistency_test(
-    a: LabelVolume,
-    b: LabelVolume,
-    outdir: str | os.PathLike[str],
-    *,
-    forward=None,
-    backward=None,
-    directions: Mapping | None = None,
-    protocol=None,
-    drive_labels: Sequence[int] | None = None,
-    force: bool = False,
-    inputs: Mapping | None = None,
-    progress: ProgressCallback | None = None,
-    on_fit: Callable | None = None,
-) -> dict:
-    """Register A to B and B to A (or take both warps), run :func:`consistency_test`, write its outputs.
-
-    Without ``forward`` and ``backward``, both directions are registered with
-    :func:`volreg.register.register_both_ways` and written into ``outdir/forward`` and
-    ``outdir/backward`` (every output of :func:`volreg.register.write_registration`).
-    Then ``outdir`` gets :data:`CONSISTENCY_OUTPUTS`: ``consistency.json`` (the report
-    returned), ``consistency_error.nii.gz`` (the error on A's grid, mm) and
-    ``consistency.png``.
-
-    Parameters
-    ----------
-    a, b : LabelVolume
-    outdir : path-like
-        The output folder; created with missing parents.
-    forward, backward : KernelWarp, optional
-        Both warps, when they are not to be registered (A -> B and B -> A).
-    directions : dict, optional
-        With ``forward`` and ``backward``: what the report records of where they came
-        from (``{"forward": {...}, "backward": {...}}``).
-    protocol : Protocol, optional
-        When registering; default :func:`volreg.io.protocol.load_protocol` ``("default")``.
-    drive_labels : sequence of int, optional
-        When registering, as :func:`volreg.register.register_labels`.
-    force : bool, default False
-        Write into a non-empty ``outdir``, replacing outputs.
-    inputs : dict, optional
-        ``{"A": ..., "B": ...}``: what the reports record as the inputs.
-    progress, on_fit : callable, optional
-        As :func:`volreg.register.write_registration`.
-
-    Returns
-    -------
-    dict
-        The report, as written to ``consistency.json`` (NaN as ``None``): the figures of
-        :func:`consistency_test` plus ``inputs``, ``directions`` (per direction its output
-        folder and, when registered here, its mean Dice and seconds), ``lambda_consistency``
-        (the symmetric option's weight, as the backward warp records it), ``seconds`` and
-        ``versions``.
-
-    Raises
-    ------
-    VolregError
-        As :func:`volreg.register.write_registration`.  On any error (and on an interrupt)
-        every file written so far, the registrations' too, and the folders created are removed.
-    """
-    from volreg.io import write_json, write_scalar
-    from volreg.io._atomic import output_folder
-    from volreg.io.report_figure import write_error_figure
-    from volreg.io.summary import json_safe, package_versions
-    from volreg.register import register_both_ways
-
-    if (forward is None) != (backward is None):
-        raise ValueError("Expected both `forward` and `backward` warps, or neither (to register both ways).")
-    start = time.perf_counter()
-    outdir = Path(outdir)
-    with output_folder(outdir, force) as folder:
-        paths = folder.check_writable(CONSISTENCY_OUTPUTS, force=force)  # in staging, swapped in at the end
-        if forward is None:
-            both = register_both_ways(a, b, protocol=protocol, drive_labels=drive_labels, outdir=outdir, force=force,
-                                      inputs=inputs, progress=progress, on_fit=on_fit)
-            forward, backward = both.forward.warp, both.backward.warp
-            directions = {name: {"outdir": str(outdir / name), "mean_dice": rep["mean_dice"], "seconds": rep["seconds"],
-                                 "folded_fraction": rep["jacobian"]["folded_fraction"], "review": rep["review"]}
-                          for name, rep in both.reports.items()}
-        figures, error = consistency_test(a, b, forward, backward, progress=progress)
-        report = {
-            "volreg_version": __version__,
-            "command": "consistency",
-            "inputs": {} if inputs is None else inputs,
-            "directions": {} if directions is None else directions,
-            # the symmetric option's weight, as recorded in the backward warp's settings
-            "lambda_consistency": backward.settings.get("lambda_consistency", 0.0),
-            **figures,
-            "seconds": time.perf_counter() - start,
-            "versions": package_versions(),
-        }
-        write_scalar(error, a, paths["consistency_error.nii.gz"], force=force)
-        folder.record(paths["consistency_error.nii.gz"])
-        r = figures["region"]
-        write_error_figure(paths["consistency.png"], a.array, error, spacing=a.spacing, force=force,
-                           title=f"volreg consistency: |tau_BA(tau_AB(x)) - x|, mean {r['mean_mm'] or 0:.3g} mm, "
-                           f"p95 {r['p95_mm'] or 0:.3g} mm over A's padded labels")
-        folder.record(paths["consistency.png"])
-        report = json_safe(report)
-        write_json(report, paths["consistency.json"], force=force)
-        folder.record(paths["consistency.json"])
-    return report

@@ -398,7 +398,7 @@ def review_registration(
     folded_fraction : float
         Fraction of the fixed labels' voxels where ``det d tau / dx <= 0``.
     kernel_warp : dict, optional
-        The kernel warp's overlap check (:func:`volreg.register.kernel_warp_overlap`:
+        The kernel warp's overlap check (:func:`volreg.pipeline.labels.kernel_warp_overlap`:
         ``dice_linear``, ``dice_warp``, ``margin``, ``kept``); with ``kept`` ``"linear"`` the
         result is the linear part alone, which is reported.
     limits : ReviewLimits

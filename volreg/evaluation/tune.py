@@ -4,7 +4,7 @@ Every candidate setting registers A to B and B to A and is scored, in mm, by
 
 * the inverse-consistency error ``mean |tau_BA(tau_AB(x)) - x|`` over A's labels padded
   by the warp's ``pad`` (:mod:`volreg.evaluation.consistency`), the two directions registered
-  by :func:`volreg.register.register_both_ways`;
+  by :func:`volreg.pipeline.two_way.register_both_ways`;
 * a hold-out locational cost: the mean distance from each label's surface vertices,
   carried by the warp, to the same label's surface in the other volume, both ways.  The
   warp is fitted to feature values at octree samples, never at these vertices;
@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from volreg.evaluation.consistency import error_on_grid, padded_region, warp_pad
-from volreg.register import register_both_ways
+from volreg.pipeline.two_way import register_both_ways
 from volreg.settings import Protocol, replace_settings
 from volreg.features.label_surfaces import Surface, label_surfaces
 from volreg.errors import RegistrationDiverged, RegistrationInputError
