@@ -1,4 +1,5 @@
-"""The package's layout: every module imports on its own, no import cycles, the public API resolves."""
+"""The package's layout: every module imports on its own, no import cycles, the stages in order, no
+private name across packages, the public API resolves."""
 
 from __future__ import annotations
 
@@ -97,3 +98,78 @@ def test_every_user_facing_error_derives_from_the_base():
             if isinstance(node, ast.ClassDef) and not node.name.startswith("_") and node.name.endswith(("Error", "Diverged")):
                 defined.append(f"{name}.{node.name}")
     assert [d for d in defined if not d.startswith("volreg.errors.")] == []
+
+
+#: The stages of the package in the order they may import one another: a module imports only
+#: modules of its own stage or an earlier one (the first prefix that matches names the stage).
+#: Infrastructure (threads, the compiled loops' cache, signals, memory) comes first, with the
+#: errors and settings; ``evaluation.metrics`` is a leaf of pure functions on arrays (Dice,
+#: folded fractions) beside the grid, so that every later stage may use it.
+STAGES = (
+    ("volreg.errors", "volreg.settings", "volreg._memory", "volreg._jit", "volreg._cache_folder", "volreg._lazy",
+     "volreg._signals", "volreg._threads"),
+    ("volreg.grid", "volreg.linear_map", "volreg.evaluation.metrics"),
+    ("volreg.io",),
+    ("volreg.kernels",),
+    ("volreg.features",),
+    ("volreg.warp", "volreg.synthetic"),
+    ("volreg.pipeline", "volreg.morph", "volreg.demo"),
+    ("volreg.evaluation",),
+    ("volreg.outputs", "volreg.cohort"),
+    ("volreg.cli", "volreg.progress", "volreg.precompile", "volreg._precompile", "volreg.__main__"),
+)
+
+
+def _stage_of(module: str) -> int | None:
+    for rank, prefixes in enumerate(STAGES):
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return rank
+    return None
+
+
+def _module_files() -> dict[str, Path]:
+    files = {}
+    for name in MODULES:
+        rel = name.split(".")[1:]
+        path = PACKAGE.joinpath(*rel)
+        files[name] = path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+    return files
+
+
+def test_every_module_has_a_stage():
+    assert [m for m in MODULES if m != "volreg" and _stage_of(m) is None] == []
+
+
+def test_no_module_imports_a_later_stage():
+    upward = []
+    for name, path in _module_files().items():
+        if name == "volreg":
+            continue  # the public API: lazy names of every stage
+        for target in _imports(path, name):
+            if target == "volreg" or target == name:
+                continue
+            if _stage_of(target) > _stage_of(name):
+                upward.append(f"{name} -> {target}")
+    assert sorted(set(upward)) == []
+
+
+def _package_of(module: str, path: Path) -> str:
+    return module if path.name == "__init__.py" else module.rpartition(".")[0]
+
+
+def test_no_private_name_is_imported_from_another_package():
+    """``from volreg.x.y import _name`` only within the package ``volreg.x`` (and ``from volreg
+    import _module`` only within ``volreg`` itself)."""
+    files = _module_files()
+    crossing = []
+    for name, path in files.items():
+        here = _package_of(name, path)
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not isinstance(node, ast.ImportFrom) or node.level or not (node.module or "").startswith("volreg"):
+                continue
+            source = node.module
+            source_package = source if source in files and files[source].name == "__init__.py" else source.rpartition(".")[0]
+            for alias in node.names:
+                if alias.name.startswith("_") and not alias.name.startswith("__") and source_package != here:
+                    crossing.append(f"{name}: from {source} import {alias.name}")
+    assert crossing == []

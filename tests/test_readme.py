@@ -23,8 +23,8 @@ DOCS = sorted((REPO / "docs").glob("*.md"))
 README_MAX_CHARS = 12_500
 
 #: The names the README's Python example needs from the public API.
-SNIPPET_NAMES = ("read_labels", "load_protocol", "register_labels", "resample_labels", "write_labels",
-                 "KernelWarp", "InverseWarp", "write_registration")
+SNIPPET_NAMES = ("read_labels", "load_protocol", "register_labels", "resample_labels", "KernelWarp", "InverseWarp",
+                 "write_outputs")
 
 
 def _without_code(text: str) -> str:
@@ -74,22 +74,23 @@ def test_readme_python_example_runs_and_registers(tmp_path, monkeypatch):
     tau = result.warp
     assert isinstance(tau, volreg.KernelWarp) and tau.levels
     # The warp brings the moving labels onto the fixed ones.
-    warped = volreg.read_labels(tmp_path / "warped.nii.gz")
+    warped = volreg.read_labels(tmp_path / "out" / "warped.nii.gz")
     assert warped.same_geometry(fixed) and warped.array.dtype == moving.array.dtype
     assert set(np.unique(warped.array)) <= {0, 1, 2}
     scores_before = volreg.label_scores(fixed.array, moving.array, [1, 2], fixed.spacing)
     scores_after = volreg.label_scores(fixed.array, warped.array, [1, 2], fixed.spacing)
     for v in (1, 2):
         assert scores_after[v]["dice"] > scores_before[v]["dice"]
-    # The saved model is the warp; the inverse undoes it.
+    # The saved model is the warp registered once (the outputs are written from it); the inverse undoes it.
     x = fixed.grid_points().reshape(-1, 3)[::97]
-    assert np.array_equal(volreg.KernelWarp.load(tmp_path / "model.npz")(x), tau(x))
+    assert np.array_equal(volreg.KernelWarp.load(tmp_path / "out" / "model.npz")(x), tau(x))
     assert np.abs(namespace["back"](tau(x)) - x).max() < 1e-3
-    # write_registration wrote every output of `volreg register` and reports an improvement.
+    # write_outputs wrote every output of `volreg register` and reports an improvement.
     for name in ("warp.nii.gz", "inverse_warp.nii.gz", "warped.nii.gz", "model.npz", "jacobian.nii.gz",
                  "report.json", "report.png", "warp.h5", "inverse_warp.h5"):
         assert (tmp_path / "out" / name).is_file(), name
-    assert report["mean_dice"]["after"] > report["mean_dice"]["before"]
+    assert report.mean_dice["after"] > report.mean_dice["before"]
+    assert namespace["warped"].shape == fixed.shape
 
 
 def test_readme_is_an_overview():
