@@ -206,8 +206,7 @@ def surface_pairs(clean_fixed, clean_moving, labels: list[int], settings: Surfac
     volumes = (clean_fixed,) if clean_moving is None else (clean_fixed, clean_moving)
     # label_surface counts the blur in each volume's own largest spacing
     smoothing = [settings.smoothing * unit / voxel_size(volume) for volume in volumes]
-    # Both volumes' meshes on the threads at once (one volume after the other, the 1 mm phantom's
-    # grey shell left a thread idle for most of each: 2.3 s in all).
+    # Both volumes' meshes on the threads at once: one volume after the other leaves a thread idle.
     # Without implicit surfaces the meshes only delimit the warp volume X (within pad, 10 % of the
     # diameter, of their vertices): marching cubes on every second voxel is enough for that.
     step = 1 if clean_moving is not None else 2
@@ -246,17 +245,13 @@ def implicit_pairs(s_fixed, s_moving, used: list[int], settings: SurfaceSettings
     def fit(job) -> ImplicitSurface:
         surface, min_width, top = job
         # Coordinate descent stops once a sweep changes the fitted values by 1e-3 of the finest
-        # width on average (1/25 of the tube epsilon), not ImplicitSurface's 1e-4: the 1 mm
-        # phantom's grey shell then takes 19 sweeps at its finest level instead of 47, its 99th
-        # percentile residual is 0.117 mm instead of 0.102 (tube 0.1 mm), and the endpoint error of
-        # the whole-command cases moved by at most 0.0012 mm (phantom 0.2335 / 0.5380 -> 0.2335 /
-        # 0.5368 mm, frog 0.5424 / 0.8724 -> 0.5426 / 0.8726, parcels 0.3492 / 0.6674 -> 0.3496 /
-        # 0.6669) with their implicit surfaces fitted in 20-28 % less time.
+        # width on average (1/25 of the tube epsilon), not ImplicitSurface's 1e-4: far fewer
+        # sweeps at the finest level, for residuals still within the tube and the same warp to
+        # about a micrometre.
         return ImplicitSurface(surface.vertices, surface.normals, min_width=min_width, max_width=top, offset=top,
                                tol=1e-3 * min_width)
 
-    # The fits are independent: on two threads (numba releases the GIL) the frog's took 1.3 s
-    # instead of 2.3 s at 3 mm, with identical results.
+    # The fits are independent and numba releases the GIL: on the threads, with identical results.
     fits = thread_map(fit, jobs)
     try:
         for i, (f1, f2) in enumerate(zip(fits, fits)):
@@ -303,8 +298,8 @@ def finer_on_coarser(fixed, moving, linear) -> OnCoarser | None:
     volume = coarse.with_array(labels.reshape(coarse.shape))
     # A label one or two finer voxels thick has a blurred indicator below the background's in
     # places and is eroded or lost on the coarser grid: such a label (under 3/4 of the coarse
-    # voxels its volume fills, through L; other labels keep 0.92-1.02 of them) keeps its own
-    # grid's map. A sheet 1.2 mm thick at 1 mm kept 51 % on a 2 mm grid, one 1.5 mm thick 69 %.
+    # voxels its volume fills, through L; other labels keep about all of them) keeps its own
+    # grid's map.
     per_voxel = np.prod(fine.spacing) / (abs(float(np.linalg.det(through.matrix))) * np.prod(coarse.spacing))
     fine_counts, coarse_counts = label_counts(fine.array), label_counts(labels)
     kept = {v: box for v, box in volume.label_boxes().items()
@@ -332,8 +327,7 @@ def distance_pairs(fixed, moving, labels: list[int], boxes_f: dict, boxes_m: dic
         return volume, v, boxes, side == "moving"
 
     # The maps are independent, and their filters and loops release the GIL: made side by side
-    # on the threads (one after another, the 100-label parcellation's 200 maps took 1.0 s at
-    # 1.2 cores; side by side 0.7 s).
+    # on the threads.
     jobs = [source(side, v) for v in labels for side in ("fixed", "moving")]
     maps = []
     for f in thread_map(lambda job: voxel_distance(*job[:3], settings, unit), jobs):
