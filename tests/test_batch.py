@@ -17,7 +17,7 @@ from volreg.cli import main
 from volreg.io import write_labels
 from volreg.synthetic import GaussianBumps, deform_labels
 
-from test_register import blob_volume
+from helpers import blob_volume
 
 distributed = pytest.importorskip("dask.distributed")
 

@@ -22,6 +22,7 @@ from volreg.io import VolregIOError, write_labels
 from volreg.settings import SurfaceSettings
 
 from shapes import rotation
+from helpers import write_nifti as _nifti
 
 # Geometry of the 3-D test volume: oblique, anisotropic, off-centre shapes, so that
 # a flipped or transposed axis anywhere between input and outputs shows.
@@ -227,10 +228,6 @@ def test_vti_input(tmp_path):
 # --------------------------------------------------------------------------- refusals
 
 
-def _nifti(path: Path, data: np.ndarray) -> Path:
-    nib.save(nib.Nifti1Image(data, np.eye(4)), path)
-    return path
-
 
 def _bad_text(tmp: Path) -> Path:
     path = tmp / "notes.txt"
@@ -406,6 +403,7 @@ HEAVY_MODULES = ("numpy", "numba", "scipy", "SimpleITK", "nibabel", "pyvista", "
          r"usage: volreg register .* volreg register: error: the following arguments are required: MOVING, -o/--output"),
     ],
 )
+@pytest.mark.system
 def test_parser_imports_no_heavy_module(argv, status, stream, pattern):
     """--version, --help and usage errors answer without importing numpy, numba, SimpleITK, pyvista, ..."""
     proc = subprocess.run([sys.executable, "-X", "importtime", "-m", "volreg", *argv],
@@ -421,6 +419,7 @@ def test_parser_imports_no_heavy_module(argv, status, stream, pattern):
     assert re.fullmatch(pattern, " ".join(output.split())), output
 
 
+@pytest.mark.system
 def test_python_m_volreg(disc2d, tmp_path):
     out = tmp_path / "out"
     ok = subprocess.run(
@@ -455,6 +454,7 @@ def test_thin_label_is_contoured_with_less_smoothing(tmp_path):
     assert np.all(lo >= [16, 1, 16]) and np.all(hi <= [18, 14, 18])
 
 
+@pytest.mark.system
 def test_closed_stdout_pipe_exits_quietly():
     """`volreg protocols | head -c 1`: the reader goes away; no traceback, the SIGPIPE status."""
     read_end, write_end = os.pipe()
@@ -475,6 +475,7 @@ def test_closed_stdout_pipe_exits_quietly():
     ("register", ["a.VTI", "b.nii.gz"], True),
     ("surface", ["a.nii.gz"], True),
 ])
+@pytest.mark.system
 def test_pyvista_is_loaded_before_a_command_only_where_it_may_be_used(command, words, loaded):
     """Imports happen with the signals held back (a signal inside a C extension's import can crash
     the interpreter), so a command that may touch VTK loads pyvista then; NIfTI registration does not."""
@@ -490,6 +491,7 @@ def test_pyvista_is_loaded_before_a_command_only_where_it_may_be_used(command, w
     (["protocols"], 0, "default"),
     (["register", "missing.nii.gz", "also-missing.nii.gz", "-o", "out"], 2, "does not exist"),
 ])
+@pytest.mark.system
 def test_console_command_ends_quickly_with_mains_status_output_and_exit_handlers(tmp_path, words, status, shown):
     """The console command ends by os._exit after main: the status is main's, everything printed
     reaches the pipe, and atexit handlers (a library's clean-up) still run, after main."""
@@ -513,6 +515,7 @@ def test_vtk_suffixes_cover_every_format_read_through_pyvista():
 
 
 @pytest.mark.parametrize("closed", [(2,), (1, 2), (0, 1, 2)])
+@pytest.mark.system
 def test_register_with_its_output_streams_closed_writes_every_output(disc2d, tmp_path, closed):
     """`volreg register A B -o OUT 2>&-` (and `>&- 2>&-`): Python starts with no stream there, and
     the first progress line ended the command with exit status 1 and no output."""

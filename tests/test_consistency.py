@@ -17,7 +17,7 @@ from volreg.synthetic import GaussianBumps, deform_labels
 from volreg.warp.model import KernelWarp, WarpLevel
 
 from test_inverse import smooth_warp
-from test_register import TEST_PROTOCOL, blob_volume, run
+from helpers import TEST_PROTOCOL, blob_volume, run
 
 OUTPUTS = {"consistency.json", "consistency_error.nii.gz", "consistency.png", "forward", "backward"}
 

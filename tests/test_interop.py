@@ -22,7 +22,7 @@ from volreg.cli import main
 from volreg.synthetic import GaussianBumps, deform_labels
 
 from test_outputs_library import SMALL_PROTOCOL
-from test_register import blob_volume
+from helpers import blob_volume
 
 #: Oblique and flipped (determinant -1) grids of the two volumes.
 FIXED_DIRECTION = rotation(25.0, (0.3, 0.5, 0.8)) @ np.diag([1.0, -1.0, 1.0])

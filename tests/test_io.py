@@ -29,6 +29,7 @@ from volreg.io import (
     write_scalar,
 )
 from volreg.io.fields import read_displacement, write_displacement, write_itk_composite
+from helpers import write_nifti as _nifti
 
 # NIfTI stores origin, spacing and the qform quaternion as float32: relative
 # error ~6e-8, i.e. well under 1e-5 mm for coordinates of a few hundred mm.
@@ -207,10 +208,6 @@ def test_write_scalar_rejects_wrong_shape(tmp_path):
 
 # --------------------------------------------------------------------------- float and 4-D inputs
 
-
-def _nifti(path: Path, data: np.ndarray, affine=None) -> Path:
-    nib.save(nib.Nifti1Image(data, np.eye(4) if affine is None else affine), path)
-    return path
 
 
 def test_float_integral_labels_accepted(tmp_path):

@@ -26,6 +26,7 @@ def _modules() -> list[str]:
 MODULES = _modules()
 
 
+@pytest.mark.system
 def test_every_module_imports_first_in_a_fresh_interpreter():
     # One interpreter per module, each importing that module before anything else of volreg:
     # a cycle shows as "partially initialized module" here, whatever order the tests run in.

@@ -38,7 +38,7 @@ from volreg.warp.model import (
 from volreg.warp.resample import resample_labels, resample_labels_at
 
 from shapes import rotation
-from test_register import blob_volume, run
+from helpers import blob_volume, run
 from test_warp import assert_jacobian_close, fd_jacobian
 
 

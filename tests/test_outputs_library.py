@@ -25,7 +25,7 @@ from volreg.settings import OutputSettings
 from volreg.synthetic import GaussianBumps, deform_labels
 from volreg.warp.model import KernelWarp
 
-from test_register import blob_volume
+from helpers import blob_volume
 
 #: Two warp levels (32 and 16 mm) on 24^3 volumes of 2.5 mm voxels: a few seconds per registration.
 SMALL_PROTOCOL = "[protocol]\nname = \"small\"\n[warp]\nmin_width = 12.0\npad = 6.0\nmax_iter = 40\n"

@@ -19,7 +19,7 @@ from volreg._precompile import LOOPS, argument_types
 from volreg.io import write_labels
 from volreg.synthetic import GaussianBumps, deform_labels
 
-from test_register import blob_volume
+from helpers import blob_volume
 
 #: Run in a fresh interpreter: register a small pair with the default protocol, then print every
 #: signature that any of volreg's compiled loops holds (the cache is warm or not: loaded

@@ -111,6 +111,7 @@ def test_label_resampling_follows_its_definition(volume, block, seed):
 
 @FAST
 @given(label_volumes(), st.integers(1, 3), st.integers(0, 2**31 - 1))
+@pytest.mark.system
 def test_gaussian_label_resampling_follows_its_definition(volume, block, seed):
     """``"gaussian"``: a point whose linear stencil holds one value takes it, a point at a voxel
     centre that voxel's value; any other point inside the image the value (the background

@@ -20,43 +20,7 @@ from volreg.warp.model import KernelWarp
 
 from shapes import rotation
 
-SHAPE = (40, 40, 40)
-SPACING = np.array([1.5, 1.5, 1.5])
-
-
-def blob_volume(direction=np.eye(3), origin=(-30.0, -30.0, -30.0), spacing=SPACING, shape=SHAPE) -> LabelVolume:
-    """An outer ellipsoidal blob (label 1) around an inner sphere (label 2), in world mm
-    (the shapes are defined in world space, so every grid orientation holds the same objects)."""
-    tmp = LabelVolume(np.zeros(shape, np.uint8), origin, spacing, direction)
-    x = tmp.grid_points()
-    centre = tmp.index_to_world((np.array(shape)[None] - 1) / 2.0)[0]
-    d = x - centre
-    outer = ((d / [21.0, 17.0, 14.0]) ** 2).sum(-1) < 1
-    inner = (((d - [4.0, 2.0, 0.0]) / 6.5) ** 2).sum(-1) < 1
-    arr = np.zeros(shape, np.uint8)
-    arr[outer] = 1
-    arr[inner] = 2
-    return tmp.with_array(arr)
-
-
-#: A protocol for these small volumes (blob diameter ~65 mm): warp widths down to 8 mm.
-TEST_PROTOCOL = """
-[protocol]
-name = "test"
-[warp]
-min_width = 8.0
-pad = 6.0
-"""
-
-
-def run(args, protocol: bool = True) -> int:
-    """``volreg ARGS`` in-process; ``register`` gets the test protocol unless one is given."""
-    args = [str(a) for a in args]
-    if protocol and args[0] == "register" and "--protocol" not in args:
-        path = Path(args[args.index("-o") + 1]).parent / "test-protocol.toml"
-        path.write_text(TEST_PROTOCOL)
-        args += ["--protocol", str(path)]
-    return main(args)
+from helpers import SHAPE, SPACING, TEST_PROTOCOL, blob_volume, run
 
 
 @pytest.fixture(scope="module")

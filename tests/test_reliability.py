@@ -26,24 +26,12 @@ from volreg.warp.fit import fit_warp
 from volreg.warp.model import KernelWarp
 from volreg.warp.objective import FeaturePair
 
-from test_register import TEST_PROTOCOL
+from helpers import TEST_PROTOCOL, cube as _cube, write_nifti as _nifti
 
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 REPO = Path(__file__).resolve().parent.parent
 
 
-def _cube(shape=(16, 16, 16), lo=4, hi=12, label=1, origin=(0.0, 0.0, 0.0)) -> LabelVolume:
-    arr = np.zeros(shape, np.uint8)
-    arr[lo:hi, lo:hi, lo:hi] = label
-    return LabelVolume(arr, origin, (1.0, 1.0, 1.0), np.eye(3))
-
-
-def _nifti(path: Path, data: np.ndarray, affine=np.eye(4), **header) -> Path:
-    img = nib.Nifti1Image(data, affine)
-    for key, value in header.items():
-        img.header[key] = value
-    nib.save(img, str(path))
-    return path
 
 
 def _mha(path: Path, *, spacing="1 1 1", matrix="1 0 0 0 1 0 0 0 1", dims=(4, 4, 4)) -> Path:
@@ -325,10 +313,11 @@ def _start(args, tmp_path):
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+@pytest.mark.system
 def test_interrupted_registration_leaves_nothing(tmp_path, sig):
     """Kill `volreg register` mid-run: a clean one-line message, non-zero exit, OUTDIR gone."""
     from volreg.synthetic import GaussianBumps, deform_labels
-    from test_register import blob_volume
+    from helpers import blob_volume
 
     a = blob_volume()
     write_labels(a, tmp_path / "a.nii.gz")
@@ -367,7 +356,7 @@ def test_interrupt_lost_in_a_ctypes_callback_still_stops_the_run(tmp_path, monke
     import ctypes
 
     import volreg.outputs.registration as registration
-    from test_register import blob_volume
+    from helpers import blob_volume
 
     def raise_sigint() -> None:
         raise KeyboardInterrupt("SIGINT")
@@ -392,11 +381,12 @@ def test_interrupt_lost_in_a_ctypes_callback_still_stops_the_run(tmp_path, monke
 # ----------------------------------------------------------------------------- determinism
 
 
+@pytest.mark.system
 def test_registration_is_deterministic_across_runs_and_threads(tmp_path):
     """Two runs give byte-identical outputs; 1 and 2 threads give the same warp (within 1e-6 mm)."""
     from volreg.synthetic import GaussianBumps, deform_labels
     from volreg.warp.model import KernelWarp
-    from test_register import blob_volume
+    from helpers import blob_volume
 
     a = blob_volume()
     write_labels(a, tmp_path / "a.nii.gz")

@@ -30,6 +30,7 @@ from volreg.cli import main
 from volreg.io import VolregIOError, read_labels, read_mesh, write_labels
 from volreg.io.landmarks import read_landmarks
 from volreg.warp.model import KernelWarp
+from helpers import cube as _cube, write_nifti as _nifti
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -41,11 +42,6 @@ MHD = ("ObjectType = Image\nNDims = 3\nDimSize = 4 4 4\nElementType = MET_UCHAR\
 NHDR = "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 4 4 4\nencoding: raw\nspacings: 1 1 1\ndata file: {}\n"
 
 
-def _cube(shape=(16, 16, 16), lo=4, hi=12) -> LabelVolume:
-    arr = np.zeros(shape, np.uint8)
-    arr[lo:hi, lo:hi, lo:hi] = 1
-    return LabelVolume(arr, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(3))
-
 
 def _patch_dim(path: Path, index: int, value: int) -> Path:
     """Overwrite dim[index] of a stored NIfTI-1 header (int16 at byte 40 + 2 index)."""
@@ -55,10 +51,6 @@ def _patch_dim(path: Path, index: int, value: int) -> Path:
     path.write_bytes(gzip.compress(bytes(raw)) if gz else bytes(raw))
     return path
 
-
-def _nifti(path: Path, data: np.ndarray) -> Path:
-    nib.save(nib.Nifti1Image(data, np.eye(4)), str(path))
-    return path
 
 
 def _npy_header(shape, descr="<f8") -> bytes:
@@ -523,7 +515,7 @@ def test_batch_refuses_ids_sharing_a_folder(tmp_path, capsys, pairs, ids):
 @pytest.fixture(scope="module")
 def blobs(tmp_path_factory):
     from volreg.synthetic import GaussianBumps, deform_labels
-    from test_register import blob_volume
+    from helpers import blob_volume
 
     d = tmp_path_factory.mktemp("blobs")
     base = blob_volume(shape=(24, 24, 24), spacing=np.array([2.5, 2.5, 2.5]))
@@ -563,6 +555,7 @@ def test_batch_pair_redone_when_settings_change_and_temporaries_cleaned(blobs, t
     assert "redone" not in saved
 
 
+@pytest.mark.system
 def test_batch_interrupt_says_what_remains(blobs, tmp_path):
     """SIGTERM during a batch: exit 143 and one line saying how many pairs finished (kept) and how
     many did not; the finished pairs' results are complete."""

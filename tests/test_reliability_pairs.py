@@ -273,6 +273,7 @@ def test_a_fold_guard_at_or_above_one_is_refused(tmp_path, setting):
 
 
 @pytest.mark.parametrize("header", ["zero pixdim", "NaN sform"])
+@pytest.mark.system
 def test_a_broken_nifti_header_gives_one_line_and_nothing_else(tmp_path, capfd, header):
     """The libraries' own diagnostics (nibabel's log of a pixdim it fixes, ITK's linear-algebra
     dump for a NaN sform) do not reach the terminal before volreg's one-line error."""

@@ -254,6 +254,7 @@ def test_morph_that_registers_runs_the_checks_of_register_surfaces(pair, tmp_pat
     assert len(err) == 1 and err[0].startswith("volreg morph: warning: ") and "centroids' translation" in err[0], err
 
 
+@pytest.mark.system
 def test_landmarks_in_another_order_are_named(pair, tmp_path, capsys):
     d, v, _ = pair
     idx = [0, 100, 400, 800, 1200]

@@ -15,7 +15,7 @@ from volreg.io.protocol import load_protocol, protocol_to_toml
 from volreg.settings import replace_settings
 from volreg.synthetic import GaussianBumps, deform_labels
 
-from test_register import TEST_PROTOCOL, blob_volume, run
+from helpers import TEST_PROTOCOL, blob_volume, run
 
 
 @pytest.fixture(scope="module")
