@@ -69,7 +69,7 @@ def run_batch(manifest: Path, out: Path, workers: int, protocol: str) -> tuple[f
 def run_serial(manifest: Path, out: Path, protocol: str) -> float:
     """The same registrations, one after another in a fresh process, without Dask."""
     code = (
-        "import sys, csv; from pathlib import Path; from volreg.cli.batch import read_manifest, run_pair\n"
+        "import sys, csv; from pathlib import Path; from volreg.cohort import read_manifest, run_pair\n"
         f"m = Path({str(manifest)!r}); t = m.parent / 'template.nii.gz'\n"
         "for sid, p in read_manifest(m):\n"
         f"    r = run_pair('template', str(t), sid, str(p), str(Path({str(out)!r}) / sid), {protocol!r})\n"

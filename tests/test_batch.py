@@ -157,7 +157,7 @@ def test_consistency_pairs(cohort, tmp_path):
 
 
 def test_the_review_cell_names_the_direction_of_each_finding():
-    from volreg.cli.batch import _review_cell
+    from volreg.cohort import _review_cell
 
     found = {"findings": [{"message": "mean Dice 0.00"}]}
     assert _review_cell({"forward": {"findings": []}, "backward": found}) == "backward: mean Dice 0.00"
@@ -172,7 +172,7 @@ def test_an_interrupt_waits_for_worker_processes_being_launched(monkeypatch):
     import multiprocessing.popen_spawn_posix as popen
     import time
 
-    from volreg.cli import batch
+    from volreg import cohort as batch
 
     launched, release = threading.Event(), threading.Event()
     spawn = popen.util.spawnv_passfds
@@ -207,7 +207,7 @@ def test_a_first_run_submits_its_tasks_once_the_compiling_helpers_have_ended(coh
     import sys
     import time
 
-    from volreg import _precompile
+    from volreg import precompile as _precompile
 
     d, _ = cohort
     shares, events = [], []
@@ -267,7 +267,7 @@ def test_a_scheduler_address_without_host_or_port_is_refused_before_any_folder(t
 def test_an_unreachable_scheduler_is_one_line_and_leaves_no_folder(tmp_path, capsys, monkeypatch):
     import socket
 
-    from volreg.cli import batch
+    from volreg import cohort as batch
 
     monkeypatch.setattr(batch, "SCHEDULER_TIMEOUT_S", 2.0)
     with socket.socket() as s:  # a port nothing listens on

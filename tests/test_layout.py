@@ -103,12 +103,13 @@ def test_every_user_facing_error_derives_from_the_base():
 
 #: The stages of the package in the order they may import one another: a module imports only
 #: modules of its own stage or an earlier one (the first prefix that matches names the stage).
-#: Infrastructure (threads, the compiled loops' cache, signals, memory) comes first, with the
+#: Infrastructure (threads, the compiled loops' cache and its helper processes, signals, memory,
+#: progress callbacks) comes first, with the
 #: errors and settings; ``evaluation.metrics`` is a leaf of pure functions on arrays (Dice,
 #: folded fractions) beside the grid, so that every later stage may use it.
 STAGES = (
     ("volreg.errors", "volreg.settings", "volreg._memory", "volreg._jit", "volreg._cache_folder", "volreg._lazy",
-     "volreg._signals", "volreg._threads"),
+     "volreg._signals", "volreg._threads", "volreg.progress", "volreg.precompile"),
     ("volreg.grid", "volreg.linear_map", "volreg.evaluation.metrics"),
     ("volreg.io",),
     ("volreg.kernels",),
@@ -117,7 +118,7 @@ STAGES = (
     ("volreg.pipeline", "volreg.morph", "volreg.demo"),
     ("volreg.evaluation",),
     ("volreg.outputs", "volreg.cohort"),
-    ("volreg.cli", "volreg.progress", "volreg.precompile", "volreg._precompile", "volreg.__main__"),
+    ("volreg.cli", "volreg.__main__"),
 )
 
 

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import nibabel as nib
 import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from volreg import LabelVolume
 from volreg.cli import main
 from volreg.io import read_labels, write_labels
 from volreg.io.fields import read_displacement

@@ -25,7 +25,6 @@ import numpy as np
 import pytest
 import pyvista as pv
 
-from volreg import LabelVolume
 from volreg.cli import main
 from volreg.io import VolregIOError, read_labels, read_mesh, write_labels
 from volreg.io.landmarks import read_landmarks
@@ -356,7 +355,7 @@ def test_unreadable_files_are_not_called_missing(tmp_path, unreadable, capsys):
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and name in err and "not readable (permission denied)" in err, err
         assert "does not exist" not in err
-    from volreg.cli.batch import read_manifest
+    from volreg.cohort import read_manifest
     from volreg.errors import UsageError
 
     with pytest.raises(UsageError, match="locked.csv` is not readable"):
@@ -365,7 +364,7 @@ def test_unreadable_files_are_not_called_missing(tmp_path, unreadable, capsys):
 
 def test_byte_order_mark_in_csv_headers(tmp_path):
     """Spreadsheet programs start UTF-8 CSV files with a byte-order mark: read as if it were not there."""
-    from volreg.cli.batch import read_manifest
+    from volreg.cohort import read_manifest
 
     bom = "\ufeff"
     (tmp_path / "m.csv").write_text(bom + "id,path\ns1,a.nii.gz\ns2,/abs/b.nii.gz\n", encoding="utf-8")
@@ -384,7 +383,7 @@ def test_manifest_rows_as_users_write_them(tmp_path):
     (an id with one is refused: it names a folder, as one with a NUL byte), and a value holding
     U+2028 is one value (str.splitlines split the row there); `..` is named as a special folder
     and a header with spaces shows what was read."""
-    from volreg.cli.batch import read_manifest
+    from volreg.cohort import read_manifest
     from volreg.errors import UsageError
 
     def refused(text: str, words: str) -> None:
@@ -531,7 +530,7 @@ def blobs(tmp_path_factory):
 def test_batch_pair_redone_when_settings_change_and_temporaries_cleaned(blobs, tmp_path):
     """A finished pair is skipped only with the settings it was made with; a pair (re)started loses
     the temporary files a killed worker left; a protocol's name alone changes nothing."""
-    from volreg.cli.batch import run_pair
+    from volreg.cohort import run_pair
 
     d = blobs
     out = tmp_path / "pair"

@@ -32,6 +32,9 @@ _API = {
     "write_both_ways": "volreg.outputs.consistency",
     "RegistrationReport": "volreg.evaluation.report",
     "check_pair": "volreg.pipeline.checks",
+    "register_cohort": "volreg.cohort",
+    "read_manifest": "volreg.cohort",
+    "CohortSummary": "volreg.cohort",
     "LabelRegistration": "volreg.pipeline.labels",
     "RegistrationResult": "volreg.warp.fit",
     # data and files
@@ -82,6 +85,7 @@ _API = {
     "RegistrationInputError": "volreg.errors",
     "RegistrationDiverged": "volreg.errors",
     "UsageError": "volreg.errors",
+    "SchedulerUnavailable": "volreg.errors",
     "VolregWarning": "volreg.errors",
 }
 

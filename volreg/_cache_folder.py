@@ -1,6 +1,6 @@
 """Where volreg has numba cache its compiled loops when no usual folder can be written.
 
-Kept apart from :mod:`volreg._jit` (which imports numba) so that :mod:`volreg._precompile` can
+Kept apart from :mod:`volreg._jit` (which imports numba) so that :mod:`volreg.precompile` can
 look there without importing numba.
 """
 

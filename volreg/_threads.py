@@ -8,7 +8,7 @@ two leading arguments, ``part`` and ``parts``: each covers the items
 threads that take the next part as they come free, so a part that takes longer than the
 others does not hold the rest up.  numba's own parallel loops (``prange``) would compile each
 body twice (the function and its parallel kernel); serial loops compile in about half the time,
-and compiling is most of a first run's cost (:mod:`volreg._precompile`).
+and compiling is most of a first run's cost (:mod:`volreg.precompile`).
 
 **Independent jobs** (the implicit-surface fits of several labels) run on :func:`thread_map`'s
 threads; jobs that become ready one after another while other work goes on (the outputs'

@@ -10,6 +10,7 @@ catches those keeps working.  Anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 __all__ = [
+    "SchedulerUnavailable",
     "VolregError",
     "VolregIOError",
     "GeometryError",
@@ -53,6 +54,27 @@ class RegistrationDiverged(VolregError, RuntimeError):
 
 class UsageError(VolregError, ValueError):
     """A command-line request that cannot be carried out (bad argument or combination)."""
+
+
+class SchedulerUnavailable(VolregError, RuntimeError):
+    """No Dask scheduler answered at the address given for a cohort (nothing was registered)."""
+
+
+class CohortInterrupted(KeyboardInterrupt):  # an interrupt, not an error: outside __all__'s errors
+    """A cohort's run interrupted by SIGINT or SIGTERM after its cluster stopped: the finished pairs
+    are kept (a rerun skips them).
+
+    Attributes
+    ----------
+    signal_name : str
+        ``"SIGINT"`` or ``"SIGTERM"``.
+    finished, total : int
+        Pairs finished (their results complete on disk) and pairs planned.
+    """
+
+    def __init__(self, signal_name: str, finished: int, total: int) -> None:
+        super().__init__(signal_name)
+        self.signal_name, self.finished, self.total = signal_name, finished, total
 
 
 class VolregWarning(UserWarning):

@@ -53,7 +53,7 @@ VTK_SUFFIXES = (".vti", ".vtk", ".vtp", ".ply", ".stl", ".obj")
 
 
 #: The commands that register label volumes: on a first run a helper process compiles their loops
-#: alongside the command (:mod:`volreg._precompile`); for ``batch``, one per local worker while the
+#: alongside the command (:mod:`volreg.precompile`); for ``batch``, one per local worker while the
 #: cluster starts, its tasks waiting for them (not beside a remote ``--scheduler``, whose workers
 #: have caches of their own).
 COMPILE_AHEAD = ("register", "consistency", "tune", "demo", "batch")
@@ -231,7 +231,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # The helpers first: on a first run they compile while this process imports. One beside
         # a command; for batch, one per local worker, which wait for them (see volreg.cli.batch).
         if args.command in COMPILE_AHEAD and not getattr(args, "scheduler", None):
-            from volreg import _precompile
+            from volreg import precompile as _precompile
 
             workers = getattr(args, "workers", None) or 2
             helpers = _precompile.start(min(workers, os.cpu_count() or 1) if args.command == "batch" else 1)
@@ -316,7 +316,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise
     finally:
         if helpers:
-            from volreg import _precompile
+            from volreg import precompile as _precompile
 
             _precompile.stop(helpers)
         filters.__exit__(None, None, None)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import hashlib
 import math
 import os
 import sys
@@ -103,12 +102,10 @@ def _strict_status(command: str, protocol, reviews: list[dict]) -> int:
 
 
 def _sha256(path: Path) -> str:
-    """The SHA-256 checksum of a file, as the reports record inputs."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+    """The SHA-256 checksum of a file, as the reports record inputs (numpy is loaded only now)."""
+    from volreg.io.summary import file_sha256
+
+    return file_sha256(path)
 
 
 def _fit_logger(command: str) -> Callable[[LabelRegistration], None]:

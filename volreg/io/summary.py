@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import importlib.metadata
 import json
 import os
@@ -92,3 +93,12 @@ def write_text(text: str, path: str | os.PathLike[str], *, force: bool = False) 
             tmp.write_text(text, encoding="utf-8")
         except OSError as exc:
             raise VolregIOError(f"File `{p}` could not be written: {exc.strerror}.") from exc
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """The SHA-256 checksum (hex) of a file, as the reports record their inputs."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

@@ -23,7 +23,7 @@ from volreg.features.distance_maps import VoxelDistance
 from volreg.features.implicit import ImplicitSurface
 from volreg.features.label_surfaces import surfaces_of_volumes, voxel_size
 from volreg.features.mapped import LinearlyMapped
-from volreg.grid import LabelVolume, box_diameter, inside_field_of_view, label_counts, label_world_boxes
+from volreg.grid import LabelVolume, box_diameter, inside_field_of_view, label_counts
 from volreg.settings import Protocol, SurfaceSettings
 from volreg.warp.field import indices_through
 from volreg.warp.linear import LinearMap

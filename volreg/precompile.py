@@ -265,7 +265,7 @@ def start(shares: int = 1) -> list[subprocess.Popen]:
         words = [["cold", f"{k}/{shares}"] for k in range(shares)]
     helpers = []
     for share in words:
-        command = [sys.executable, "-m", "volreg._precompile", *share]
+        command = [sys.executable, "-m", "volreg.precompile", *share]
         try:
             helpers.append(subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                             stderr=subprocess.DEVNULL, close_fds=True))
