@@ -47,7 +47,7 @@ from volreg.io._atomic import atomic_output
 from volreg.io._guards import check_image_data_files, check_readable
 from volreg.io.images import (_check_header_fields, _check_input, _check_nifti, _itk_quiet, _nifti_float_voxels,
                               _sitk_reason)
-from volreg.warp.linear import LinearMap
+from volreg.linear_map import LinearMap
 
 __all__ = [
     "write_displacement",
