@@ -22,7 +22,7 @@ from volreg._threads import run_parts
 from volreg.features.distance_maps import _POINTS, VoxelDistance, _bspline3_segments
 from volreg.features.implicit import ImplicitSurface
 from volreg.features.mapped import LinearlyMapped, congruence
-from volreg.kernels._compiled import _segmented_sums
+from volreg.kernels import segmented_sums
 from volreg.kernels.grid import max_runs
 
 __all__ = ["FeatureBatch"]
@@ -77,7 +77,7 @@ class _Implicit:
         # Parts of equal numbers of points, not of features: one feature may hold most of them (the
         # 100-label parcellation's white core, 42 % of the samples), and parts of whole features
         # kept the second thread idle most of the time.
-        run_parts(_segmented_sums, n, points, rstart, self.jobs, self.poff, self.soff, self.px,
+        run_parts(segmented_sums, n, points, rstart, self.jobs, self.poff, self.soff, self.px,
                   self.py, self.pz, self.coef, self.start, self.lo, self.cell, self.dims, self.sigma, self.max_runs,
                   int(order), val, grad, hess, grain=_QUERIES)
         val[:, 0] += np.repeat(self.offset, np.diff(rstart))

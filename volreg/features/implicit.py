@@ -35,7 +35,7 @@ import scipy.sparse as sp
 
 from volreg._jit import njit
 from volreg._threads import query_workers
-from volreg.kernels import CellGrid, _check_points, kernel_matrix, kernel_sum, put_rows, spatial_order, take_rows
+from volreg.kernels import CellGrid, check_points, kernel_matrix, kernel_sum, put_rows, spatial_order, take_rows
 from volreg.kernels.grid import column_bounds
 from volreg.kernels.wu import wu
 
@@ -68,7 +68,7 @@ def _median_spacing(tree: cKDTree) -> float:
 def default_min_width(points: np.ndarray) -> float:
     """:class:`ImplicitSurface`'s default finest width for ``points`` (N, D) mm: 8 times the
     median distance between neighbouring points, mm."""
-    return 8.0 * _median_spacing(cKDTree(_check_points("points", points)))
+    return 8.0 * _median_spacing(cKDTree(check_points("points", points)))
 
 
 def thin_points(points: np.ndarray, spacing: float) -> np.ndarray:
@@ -133,7 +133,7 @@ def estimate_normals(points: np.ndarray, *, k: int = 12) -> np.ndarray:
     (N, D) float ndarray
         Unit normals.
     """
-    points = _check_points("points", points)
+    points = check_points("points", points)
     n, dim = points.shape
     if n <= dim:
         raise ValueError(f"Expected more than {dim} points to estimate normals, got {n}.")
@@ -170,7 +170,7 @@ def estimate_normals(points: np.ndarray, *, k: int = 12) -> np.ndarray:
 
 
 def _unit_normals(normals: np.ndarray, n: int, dim: int) -> np.ndarray:
-    normals = _check_points("normals", normals, dim)
+    normals = check_points("normals", normals, dim)
     if normals.shape[0] != n:
         raise ValueError(f"Expected `normals` of shape ({n}, {dim}), got {normals.shape}.")
     length = np.linalg.norm(normals, axis=1)
@@ -339,7 +339,7 @@ class ImplicitSurface:
         max_sweeps: int = 200,
         progress: ProgressCallback | None = None,
     ) -> None:
-        points = _check_points("points", points)
+        points = check_points("points", points)
         n, dim = points.shape
         if dim not in (2, 3):
             raise ValueError(f"Expected `points` in 2 or 3 dimensions, got D={dim}.")
@@ -437,7 +437,7 @@ class ImplicitSurface:
         gradient : (N, D) float ndarray (if ``order >= 1``)
         hessian : (N, D, D) float ndarray, 1/mm (if ``order >= 2``)
         """
-        x = _check_points("x", x, self.dim)
+        x = check_points("x", x, self.dim)
         n = len(x)
         perm = spatial_order(x, 0.5 * self.levels[-1].width) if self.levels else None
         xs = x if perm is None else take_rows(x, perm)

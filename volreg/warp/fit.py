@@ -40,7 +40,7 @@ import scipy.sparse.linalg
 from scipy.spatial import cKDTree
 from volreg._memory import available_bytes
 from volreg._threads import single_blas
-from volreg.kernels import CellGrid, SharedPatternCSR, _check_points, kernel_gradient_matrices, kernel_matrix, kernel_sum
+from volreg.kernels import CellGrid, SharedPatternCSR, check_points, kernel_gradient_matrices, kernel_matrix, kernel_sum
 from volreg.kernels.grid import column_bounds
 from volreg.warp.objective import FeaturePair, LevelObjective, simplex_vertices
 from volreg.warp.sampling import octree_sample
@@ -260,7 +260,7 @@ def _check_inputs(features, source_points, landmarks, settings: WarpSettings, pr
     if valid is not None and not callable(valid):
         raise ValueError(f"Expected `valid` as a callable (samples (N, D) mm -> (N,) bool) or None, "
                          f"got {type(valid).__name__}.")
-    pts = _check_points("source_points", source_points)
+    pts = check_points("source_points", source_points)
     if len(pts) < 2:
         raise ValueError(f"Expected at least 2 `source_points`, got {len(pts)}.")
     dim = pts.shape[1]

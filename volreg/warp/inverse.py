@@ -37,9 +37,9 @@ import numpy as np
 from volreg._jit import njit
 from volreg._threads import part_range, run_parts
 from volreg.grid import apply_affine
-from volreg.kernels import _check_points
+from volreg.kernels import check_points
 from volreg.kernels.grid import rows_within
-from volreg.warp.linear import LinearMap
+from volreg.linear_map import LinearMap
 from volreg.warp.model import _box_through, _PointMap, linear_outside
 from volreg.warp.objective import _det_cofactor
 
@@ -140,7 +140,7 @@ def invert_points(
         raise ValueError(f"Expected `tol` > 0, got {tol!r}.")
     if int(max_iter) < 1:
         raise ValueError(f"Expected `max_iter` >= 1, got {max_iter!r}.")
-    y_all = _check_points("targets", targets, warp.dim)
+    y_all = check_points("targets", targets, warp.dim)
     n = len(y_all)
     bounds, linear = linear_outside([warp])
     if linear.is_identity:

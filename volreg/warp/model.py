@@ -11,7 +11,7 @@ and the Jacobian is analytic::
 
     J[n, a, b] = d tau_a / d x_b = A_ab + sum_l sum_j c_j[a] d k_l(x_n, x_j) / d x_b
 
-A linear part ``x -> A x + b`` (:class:`~volreg.warp.linear.LinearMap`, ``det A > 0``)
+A linear part ``x -> A x + b`` (:class:`~volreg.linear_map.LinearMap`, ``det A > 0``)
 may precede the kernel expansion; it is the identity (``A = I``, ``b = 0``) unless
 given, and then the evaluation is exactly that of ``x + sum ...``.  The kernel
 sums are evaluated at ``x`` itself (fixed space), so the centres ``x_j`` are
@@ -40,8 +40,8 @@ from typing import Any, Callable, Union
 
 import numpy as np
 
-from volreg.kernels import CellGrid, _check_points, kernel_sum, put_rows, spatial_order, take_rows
-from volreg.warp.linear import LinearMap
+from volreg.kernels import CellGrid, check_points, kernel_sum, put_rows, spatial_order, take_rows
+from volreg.linear_map import LinearMap
 
 __all__ = [
     "WarpLevel",
@@ -224,7 +224,7 @@ class _PointMap:
         self, points: np.ndarray, *, chunk: int | None = None, progress: ProgressCallback | None = None
     ) -> np.ndarray:
         """``u(points) = tau(points) - points``, (N, D) mm (LPS vectors)."""
-        points = _check_points("points", points, self.dim)
+        points = check_points("points", points, self.dim)
         return self.evaluate(points, order=0, chunk=chunk, progress=progress)[0] - points
 
     def jacobian(
@@ -440,7 +440,7 @@ class KernelWarp(_PointMap):
         """
         order = _check_order(order)
         chunk = _check_chunk(chunk)
-        points = _check_points("points", points, self.dim)
+        points = check_points("points", points, self.dim)
         n, dim = points.shape
         # Without a linear part the points are added as they are (no product with I).
         affine = None if self._linear.is_identity else self._linear
@@ -865,7 +865,7 @@ class ComposedWarp(_PointMap):
         """
         order = _check_order(order)
         chunk = _check_chunk(chunk)
-        points = _check_points("points", points, self.dim)
+        points = check_points("points", points, self.dim)
         n, dim = points.shape
         out = np.empty((n, dim))
         jac = np.empty((n, dim, dim)) if order == 1 else None
