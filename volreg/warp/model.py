@@ -71,8 +71,8 @@ def jacobian_det(jac: np.ndarray) -> np.ndarray:
     """Determinants of a stack of 2 x 2 or 3 x 3 Jacobians, in closed form.
 
     The same values as ``np.linalg.det`` (to rounding) without its LU
-    factorisation per matrix, which took about 3x as long on stacks of
-    3 x 3 matrices (30,000: 3.5 against 1.0 ms).
+    factorisation per matrix, which costs several times as long on stacks of
+    small matrices.
 
     Parameters
     ----------
@@ -236,10 +236,9 @@ class _PointMap:
 
 #: Warp evaluations of more points than this visit them in spatial order: a warp's kernel sums
 #: then run in blocks of nearby queries (the SIMD loops) instead of one neighbour search per
-#: query.  The inverse evaluates the warp at tens of thousands of scattered preimages at a time:
-#: on a posed 3 mm / 2 mm frog pair (6.9 M moving voxels) the inverse took 3.6-4.0 s with this
-#: threshold against 4.9-5.2 s with :data:`~volreg.kernels.grid.SORT_ABOVE` (50 000), the
-#: results within 1e-13 mm.
+#: query.  The inverse evaluates the warp at tens of thousands of scattered preimages at a time,
+#: too few for :data:`~volreg.kernels.grid.SORT_ABOVE` and enough for the sort to pay (the
+#: results differ by rounding only).
 WARP_SORT_ABOVE = 2048
 
 
