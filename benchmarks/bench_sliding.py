@@ -186,7 +186,7 @@ def _pre_stage(f1, f2, diameter: float, settings, kind: str, penalty: float):
     from scipy.optimize import least_squares
 
     from volreg.features.mapped import LinearlyMapped
-    from volreg.warp.linear import LinearMap
+    from volreg.linear_map import LinearMap
     from volreg.warp.sampling import octree_sample
 
     st = settings.resolved(diameter)

@@ -15,9 +15,9 @@ from volreg.cli import main
 from volreg.grid import Grid
 from volreg.io.fields import write_displacement, write_itk_linear
 from volreg.io.landmarks import read_landmarks
+from volreg.linear_map import LinearMap
 from volreg.warp.field import displacement_on_grid
 from volreg.warp.inverse import InverseWarp
-from volreg.warp.linear import LinearMap
 from volreg.warp.model import KernelWarp, WarpLevel
 from volreg.warp.points import DisplacementField, transform_normals, transform_points
 

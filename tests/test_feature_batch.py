@@ -9,7 +9,7 @@ from volreg.features.distance_maps import VoxelDistance
 from volreg.features.implicit import ImplicitSurface
 from volreg.features.mapped import LinearlyMapped
 from volreg.kernels import kernel_matrix
-from volreg.warp.linear import LinearMap
+from volreg.linear_map import LinearMap
 from volreg.warp.objective import FeaturePair, LevelObjective
 
 

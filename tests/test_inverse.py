@@ -93,7 +93,7 @@ def test_grid_start_from_the_sampled_forward_field(dim):
     preimages (a linear part included), NaN where the preimage is off the grid; Newton from them
     gives the plain inverse's answer to its 1e-6 mm."""
     from volreg.warp.inverse import GridStart
-    from volreg.warp.linear import LinearMap
+    from volreg.linear_map import LinearMap
 
     angle = np.deg2rad(8.0)
     rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])

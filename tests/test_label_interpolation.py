@@ -117,7 +117,7 @@ def test_a_label_one_finer_voxel_thick_keeps_its_own_map():
     grid, while a ball beside it, read there with about the voxels its volume fills, is taken
     from the coarser grid."""
     from volreg.pipeline.label_features import finer_on_coarser as _finer_on_coarser
-    from volreg.warp.linear import LinearMap
+    from volreg.linear_map import LinearMap
 
     def labels(p):
         out = np.zeros(len(p), np.uint8)

@@ -19,7 +19,8 @@ from shapes import grid_around as _around
 from shapes import posed_volume as _volume
 
 from volreg.grid import LabelVolume
-from volreg.warp.linear import LinearFit, LinearMap, cut_labels, fit_linear
+from volreg.linear_map import LinearMap
+from volreg.warp.linear import LinearFit, cut_labels, fit_linear
 
 
 def _error(fit: LinearFit, matrix, translation, fixed: LabelVolume) -> float:
@@ -267,7 +268,8 @@ def test_grids_here_match_label_volume_of_the_shapes_module():
 def test_cost_jacobian_is_the_derivative_of_the_residuals():
     """The analytic Jacobian (chain rule through the interpolated maps) against central
     differences, on distance maps that are linear functions (interpolated exactly)."""
-    from volreg.warp import linear as lin
+    from volreg.warp import linear_cost as cost_module
+    from volreg.warp import linear_labels as labels_module
 
     rng = np.random.default_rng(7)
     for dim in (2, 3):
@@ -283,15 +285,18 @@ def test_cost_jacobian_is_the_derivative_of_the_residuals():
             grads = np.gradient(value, *volume.spacing)
             return np.full(dim, 3.0), volume.spacing.copy(), np.stack([value, *grads], axis=-1)
 
-        bank_f, bank_m = lin._MapBank(vol_f, [linear_map(vol_f)]), lin._MapBank(vol_m, [linear_map(vol_m)])
-        fwd = lin._Samples(vol_f.index_to_world(rng.uniform(12, 22, (40, dim))), np.zeros(40, int), np.ones(40))
-        back = lin._Samples(vol_m.index_to_world(rng.uniform(12, 22, (40, dim))), np.zeros(40, int), np.ones(40))
+        bank_f = labels_module._MapBank(vol_f, [linear_map(vol_f)])
+        bank_m = labels_module._MapBank(vol_m, [linear_map(vol_m)])
+        fwd = labels_module._Samples(vol_f.index_to_world(rng.uniform(12, 22, (40, dim))), np.zeros(40, int),
+                                     np.ones(40))
+        back = labels_module._Samples(vol_m.index_to_world(rng.uniform(12, 22, (40, dim))), np.zeros(40, int),
+                                      np.ones(40))
         a0 = np.eye(dim) + 0.05 * rng.normal(size=(dim, dim))
         start = LinearMap(a0, vol_m.index_to_world(np.full((1, dim), 17.0))[0]
                           - a0 @ vol_f.index_to_world(np.full((1, dim), 17.0))[0])
         for kind in ("rigid", "similarity", "affine"):
-            local = lin._Local(kind, dim)
-            cost = lin._Cost(local, start, rng.normal(size=dim), bank_f, bank_m, fwd, back)
+            local = cost_module._Local(kind, dim)
+            cost = cost_module._Cost(local, start, rng.normal(size=dim), bank_f, bank_m, fwd, back)
             p = 0.03 * rng.normal(size=local.size)
             _, jac = cost.evaluate(p)
             numeric = np.zeros_like(jac)
@@ -332,10 +337,10 @@ def test_a_bank_of_maps_samples_each_map_as_a_bank_of_it_alone(monkeypatch, join
     """Samples of several labels' distance maps, read from one joined array or from each map's
     own block, equal those of one-map banks bit for bit (interpolated inside a map's box,
     continued beyond it)."""
-    from volreg.warp import linear
-    from volreg.warp.linear import _distance_map, _MapBank
+    from volreg.warp import linear_labels
+    from volreg.warp.linear_labels import _distance_map, _MapBank
 
-    monkeypatch.setattr(linear, "_JOIN_BYTES", 64 << 20 if join else 0)
+    monkeypatch.setattr(linear_labels, "_JOIN_BYTES", 64 << 20 if join else 0)
 
     rng = np.random.default_rng(5)
     array = np.zeros((30, 26, 22), dtype=np.int16)
@@ -363,23 +368,23 @@ def test_gradient_slab_by_slab_is_numpys_gradient_bit_for_bit(monkeypatch, shape
     """The distance maps' gradient, written slab by slab into single precision, equals
     ``np.gradient`` along every axis cast to float32, with slabs of the fewest rows (4), a few
     rows and all."""
-    from volreg.warp import linear
+    from volreg.warp import linear_labels
 
     rng = np.random.default_rng(len(shape))
     dist = rng.normal(0.0, 10.0, shape)
     step = rng.uniform(0.5, 3.0, len(shape))
     expected = np.stack([np.gradient(dist, step[a], axis=a) for a in range(len(shape))], axis=-1).astype(np.float32)
     for slab in (1, 2 * int(np.prod(shape[1:])), 1 << 16):
-        monkeypatch.setattr(linear, "_SLAB_VALUES", slab)
+        monkeypatch.setattr(linear_labels, "_SLAB_VALUES", slab)
         out = np.full(shape + (len(shape),), np.nan, dtype=np.float32)
-        linear._gradient_into(dist, step, out)
+        linear_labels._gradient_into(dist, step, out)
         assert np.array_equal(out, expected)
 
 
 def test_distance_map_is_signed_distance_to_the_faces_and_its_gradient():
     """A label map's values: distance to the faces between inside and outside cells (negative
     inside) and its central differences, on a grid of unequal spacings."""
-    from volreg.warp.linear import _distance_map
+    from volreg.warp.linear_labels import _distance_map
 
     array = np.zeros((24, 20, 18), dtype=np.int16)
     array[6:16, 5:15, 4:12] = 3
@@ -405,7 +410,7 @@ def test_distance_map_is_signed_distance_to_the_faces_and_its_gradient():
 def test_overlap_of_maps_is_the_labels_dice():
     """A box of 10 voxels along x against the same box 2 voxels along: Dice 8/10 through the
     identity, 1 through the shift."""
-    from volreg.warp.linear import _mean_dice
+    from volreg.warp.linear import mean_dice_through
 
     a = np.zeros((40, 30, 30), np.uint8)
     a[10:20, 10:20, 10:20] = 1
@@ -414,23 +419,23 @@ def test_overlap_of_maps_is_the_labels_dice():
     fixed = LabelVolume(a, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(3))
     moving = LabelVolume(b, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), np.eye(3))
     maps = [LinearMap.identity(3), LinearMap(np.eye(3), np.array([2.0, 0.0, 0.0]))]
-    assert _mean_dice(fixed, moving, maps, [1], fixed.label_boxes()) == pytest.approx([0.8, 1.0])
+    assert mean_dice_through(fixed, moving, maps, [1], fixed.label_boxes()) == pytest.approx([0.8, 1.0])
 
 
 def test_a_fit_that_overlaps_clearly_worse_than_its_start_gives_way(monkeypatch):
     """Where the coarse-to-fine solve runs into a degenerate map (forced here: every level
     squashes x by half), the labels' overlap keeps the chosen start instead, and the log says so."""
-    import volreg.warp.linear as linear
+    import volreg.warp.linear_refine as refine
 
-    run = linear._run
+    run = refine._run
 
     def squashing(local, start, *args, **kwargs):
         found, info, used = run(local, start, *args, **kwargs)
-        if args[-2] == linear._LEVEL_EVALUATIONS:
+        if args[-2] == refine._LEVEL_EVALUATIONS:
             found = LinearMap(found.matrix @ np.diag([0.5, 1.0, 1.0]), found.translation)
         return found, info, used
 
-    monkeypatch.setattr(linear, "_run", squashing)
+    monkeypatch.setattr(refine, "_run", squashing)
     fixed = _volume(BLOBS, (32, 32, 32), (1.5,) * 3, _around((0, 0, 0), (32,) * 3, (1.5,) * 3))
     moving = _volume(BLOBS, (32, 32, 32), (1.5,) * 3, _around((4, 0, 0), (32,) * 3, (1.5,) * 3),
                      matrix=np.eye(3), translation=np.array([4.0, 0.0, 0.0]))

@@ -17,6 +17,7 @@ from volreg import LabelVolume
 from volreg.evaluation.consistency import error_on_grid, round_trip_error
 from volreg.io import VolregIOError, read_labels, write_labels
 from volreg.io.fields import read_itk_linear, write_itk_linear
+from volreg.linear_map import LinearMap
 from volreg.morph import linear_path, morph_vertices
 from volreg.warp.field import (
     displacement_on_grid,
@@ -27,7 +28,6 @@ from volreg.warp.field import (
     support_slices,
 )
 from volreg.warp.inverse import InverseWarp, invert_points
-from volreg.warp.linear import LinearMap
 from volreg.warp.model import (
     ComposedWarp,
     KernelWarp,
@@ -290,7 +290,7 @@ def test_indices_through_a_displacement_are_those_of_the_displaced_world_points(
 def test_indices_through_a_linear_map_are_those_of_the_mapped_world_points():
     """With a linear map L (an affine with a shear and scales), the moving grid's indices of
     L(x + u(x)) and of L(x) equal ``world_to_index`` of the mapped world points."""
-    from volreg.warp.linear import LinearMap
+    from volreg.linear_map import LinearMap
 
     warp = linear_warp(3, seed=5)
     fixed = oblique_grid()

@@ -62,7 +62,7 @@ _API = {
     "OutputSettings": "volreg.settings",
     # the warp
     "KernelWarp": "volreg.warp.model",
-    "LinearMap": "volreg.warp.linear",
+    "LinearMap": "volreg.linear_map",
     "fit_linear": "volreg.warp.linear",
     "InverseWarp": "volreg.warp.inverse",
     "resample_labels": "volreg.warp.resample",

@@ -19,7 +19,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from volreg.features.implicit import estimate_normals
-from volreg.warp.linear import LinearMap
+from volreg.linear_map import LinearMap
 
 __all__ = ["surface_normals", "checked_normals", "NormalsCheck", "closest_points", "surface_gaps", "morph_vertices", "transfer_values", "linear_path"]
 

@@ -391,7 +391,7 @@ def review_registration(
     label_interior : dict of int to int, optional
         Interior voxel count of each label in the fixed volume (:func:`label_voxel_counts`).
     linear : dict, optional
-        :meth:`~volreg.warp.linear.LinearMap.describe` of the linear part (``rotation_deg``,
+        :meth:`~volreg.linear_map.LinearMap.describe` of the linear part (``rotation_deg``,
         ``scales`` are read), or ``None`` without a linear stage.
     cut_labels : iterable of int
         Labels cut by the edge of either image: not judged on Dice or distance.

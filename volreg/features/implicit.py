@@ -35,7 +35,7 @@ import scipy.sparse as sp
 
 from volreg._jit import njit
 from volreg._threads import query_workers
-from volreg.kernels import CellGrid, _check_points, kernel_matrix, kernel_sum, put_rows, spatial_order, take_rows
+from volreg.kernels import CellGrid, check_points, kernel_matrix, kernel_sum, put_rows, spatial_order, take_rows
 from volreg.kernels.grid import column_bounds
 from volreg.kernels.wu import wu
 
@@ -56,9 +56,9 @@ SPACING_SAMPLE = 20000
 def _median_spacing(tree: cKDTree) -> float:
     """Median distance from each of the tree's points to its nearest other point, mm.
 
-    Over every k-th point where there are more than twice :data:`SPACING_SAMPLE` (a 1 mm
-    brain-size label's 482,000 vertices: 0.36 s of one core for all of them; the median of
-    a sample of 20,000 is within about 1 % of it).
+    Over every k-th point where there are more than twice :data:`SPACING_SAMPLE` (a large
+    label's vertices take long to query all; the median of a sample of that size is close to
+    that of all).
     """
     data = tree.data
     step = max(len(data) // SPACING_SAMPLE, 1) if len(data) > 2 * SPACING_SAMPLE else 1
@@ -68,7 +68,7 @@ def _median_spacing(tree: cKDTree) -> float:
 def default_min_width(points: np.ndarray) -> float:
     """:class:`ImplicitSurface`'s default finest width for ``points`` (N, D) mm: 8 times the
     median distance between neighbouring points, mm."""
-    return 8.0 * _median_spacing(cKDTree(_check_points("points", points)))
+    return 8.0 * _median_spacing(cKDTree(check_points("points", points)))
 
 
 def thin_points(points: np.ndarray, spacing: float) -> np.ndarray:
@@ -97,7 +97,7 @@ def thin_points(points: np.ndarray, spacing: float) -> np.ndarray:
         key = np.unique(cell, axis=0, return_inverse=True)[1].ravel()
     # Per cell, the nearest point (the lowest index among equals), as ``np.lexsort((dist, key))``
     # would choose it, without sorting the distances: a stable sort of the integer keys, then
-    # each cell's least distance (482k vertices: 0.05 s instead of 0.15 s).
+    # each cell's least distance (a fraction of the lexsort's time).
     order = np.argsort(key, kind="stable")
     sorted_key = key[order]
     new_cell = np.ones(len(order), dtype=bool)
@@ -133,7 +133,7 @@ def estimate_normals(points: np.ndarray, *, k: int = 12) -> np.ndarray:
     (N, D) float ndarray
         Unit normals.
     """
-    points = _check_points("points", points)
+    points = check_points("points", points)
     n, dim = points.shape
     if n <= dim:
         raise ValueError(f"Expected more than {dim} points to estimate normals, got {n}.")
@@ -170,7 +170,7 @@ def estimate_normals(points: np.ndarray, *, k: int = 12) -> np.ndarray:
 
 
 def _unit_normals(normals: np.ndarray, n: int, dim: int) -> np.ndarray:
-    normals = _check_points("normals", normals, dim)
+    normals = check_points("normals", normals, dim)
     if normals.shape[0] != n:
         raise ValueError(f"Expected `normals` of shape ({n}, {dim}), got {normals.shape}.")
     length = np.linalg.norm(normals, axis=1)
@@ -190,7 +190,7 @@ def _offsurface(points, normals, delta, tree) -> tuple[np.ndarray, np.ndarray]:
     for sign in (1.0, -1.0):
         p = points + sign * delta * normals
         # Only whether a surface point lies within 0.9 delta matters: the bounded search stops
-        # there (inf where none does), a third faster than the nearest point's exact distance.
+        # there (inf where none does), faster than the nearest point's exact distance.
         dist, _ = tree.query(p, 1, distance_upper_bound=0.9 * delta, workers=query_workers())
         ok = dist >= 0.9 * delta
         pts.append(p[ok])
@@ -304,10 +304,9 @@ class ImplicitSurface:
         count as outside, as their true signed distance is at least about that).
     tol : float, mm, optional
         Coordinate descent stops after a sweep that changes the fitted values by
-        less than this on average; default ``1e-4 * min_width``.  (On a 1 mm
-        brain-size surface of 480k vertices the finest level then stops after
-        48 sweeps instead of running to ``max_sweeps`` = 200; ``f`` moved by
-        0.001 mm on average, at most 0.04 mm: well within the tube ``epsilon``.)
+        less than this on average; default ``1e-4 * min_width``.  (On a large
+        surface the finest level then stops well before ``max_sweeps``, and ``f``
+        moves by far less than the tube ``epsilon`` in the sweeps left out.)
     max_sweeps : int
         Limit on coordinate-descent sweeps per level.
     progress : callable, optional
@@ -339,7 +338,7 @@ class ImplicitSurface:
         max_sweeps: int = 200,
         progress: ProgressCallback | None = None,
     ) -> None:
-        points = _check_points("points", points)
+        points = check_points("points", points)
         n, dim = points.shape
         if dim not in (2, 3):
             raise ValueError(f"Expected `points` in 2 or 3 dimensions, got D={dim}.")
@@ -379,15 +378,15 @@ class ImplicitSurface:
             x = np.concatenate([sp_pts, off_pts])
             y = np.concatenate([np.zeros(len(sp_pts)), off_val])
             # The training points cell by cell: coordinate descent then updates the fitted values
-            # of near neighbours one after the other, in cache (the 1 mm phantom's grey shell,
-            # 480k vertices: 15 % faster, f within 0.04 mm of the fit in the order given).
+            # of near neighbours one after the other, in cache (faster on a large surface; f is
+            # that of the fit in the order given to well within the tube epsilon).
             perm = spatial_order(x, width)
             if perm is not None:
                 x, y = x[perm], y[perm]
             grid = CellGrid.build(x, width)
             residual = y - self.evaluate(x, order=0)[0]
             # Coordinate descent only walks the rows, and reads the kernel values in single precision:
-            # the sweeps read half the bytes (the sums stay double), and f moves by less than 1e-5 mm.
+            # the sweeps read half the bytes (the sums stay double), and f moves by less than `tol`.
             kmat = kernel_matrix(x, grid, width, sort=False, dtype=np.float32)
             beta = np.zeros(len(x))
             kbeta = np.zeros(len(x))
@@ -437,7 +436,7 @@ class ImplicitSurface:
         gradient : (N, D) float ndarray (if ``order >= 1``)
         hessian : (N, D, D) float ndarray, 1/mm (if ``order >= 2``)
         """
-        x = _check_points("x", x, self.dim)
+        x = check_points("x", x, self.dim)
         n = len(x)
         perm = spatial_order(x, 0.5 * self.levels[-1].width) if self.levels else None
         xs = x if perm is None else take_rows(x, perm)

@@ -13,7 +13,7 @@ sform (code 1) holding the RAS form of the LPS grid.  The vector components
 are *not* flipped to RAS: ITK (and so ANTs, SimpleITK, Slicer) store them as
 LPS, and read them back as such.
 
-A linear transform ``x -> A x + b`` (:class:`~volreg.warp.linear.LinearMap`) is
+A linear transform ``x -> A x + b`` (:class:`~volreg.linear_map.LinearMap`) is
 written as ITK's ``AffineTransform_double_3_3`` (``_2_2`` in 2-D): ``Parameters``
 are ``A`` row by row, then ``b``; ``FixedParameters`` the centre, zero.  ITK's
 transforms map points of the output (fixed) space to the input (moving) space,
@@ -47,7 +47,7 @@ from volreg.io._atomic import atomic_output
 from volreg.io._guards import check_image_data_files, check_readable
 from volreg.io.images import (_check_header_fields, _check_input, _check_nifti, _itk_quiet, _nifti_float_voxels,
                               _sitk_reason)
-from volreg.warp.linear import LinearMap
+from volreg.linear_map import LinearMap
 
 __all__ = [
     "write_displacement",
@@ -468,7 +468,7 @@ def write_itk_linear(path: str | os.PathLike[str], linear: LinearMap, *, force: 
     VolregIOError
         On another suffix, or an existing ``path`` without ``force``.
     ValueError
-        If ``linear`` is not a :class:`~volreg.warp.linear.LinearMap`.
+        If ``linear`` is not a :class:`~volreg.linear_map.LinearMap`.
     """
     p = Path(path)
     if not p.name.lower().endswith(_ITK_TEXT_SUFFIXES):

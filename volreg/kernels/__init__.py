@@ -14,19 +14,20 @@ grid
 sums
     :func:`kernel_sum` (compiled, over a CellGrid), :func:`kernel_sum_reference`
     (scipy KD-tree, the test oracle), :func:`kernel_matrix`,
-    :func:`kernel_gradient_matrices`.
+    :func:`kernel_gradient_matrices`; :func:`check_points`, the check of every
+    point array the kernel sums and their callers take.
 sparse
     :class:`SharedPatternCSR`, products with matrices sharing one pattern.
 _compiled
-    Every numba loop (private).
+    Every numba loop, private except :func:`segmented_sums`: the kernel sums of many point sets,
+    each at its own segment of the queries, in one parallel loop (for :mod:`volreg.features.batch`).
 """
 
+from volreg.kernels._compiled import segmented_sums
 from volreg.kernels.grid import CellGrid, put_rows, spatial_order, take_rows
 from volreg.kernels.sparse import SharedPatternCSR
 from volreg.kernels.sums import (
-    _check_points as _check_points,  # shared with volreg.warp, volreg.features
-)
-from volreg.kernels.sums import (
+    check_points,
     kernel_gradient_matrices,
     kernel_matrix,
     kernel_sum,
@@ -37,11 +38,13 @@ from volreg.kernels.wu import wu, wu_derivatives
 __all__ = [
     "CellGrid",
     "SharedPatternCSR",
+    "check_points",
     "kernel_gradient_matrices",
     "kernel_matrix",
     "kernel_sum",
     "kernel_sum_reference",
     "put_rows",
+    "segmented_sums",
     "spatial_order",
     "take_rows",
     "wu",

@@ -1,4 +1,5 @@
-"""Compiled (numba) loops of the kernel sums; private, called through ``grid``, ``sums`` and ``sparse``.
+"""Compiled (numba) loops of the kernel sums; private, called through ``grid``, ``sums`` and ``sparse``,
+but :func:`segmented_sums` (exported by :mod:`volreg.kernels` for :mod:`volreg.features.batch`).
 
 Every loop evaluates the Wu kernel (13) through :func:`volreg.kernels.wu.wu_terms`,
 inlined.  Loops marked ``fastmath`` are branch-free over the candidate points
@@ -889,8 +890,8 @@ def put_rows(src: np.ndarray, perm: np.ndarray) -> np.ndarray:
 
 
 @njit(nogil=True, fastmath=True)
-def _segmented_sums(part, parts, queries, rstart, jstart, poff, soff, px, py, pz, coef, sstart, lo, cell, dims, sigma,
-                    max_runs, order, val, grad, hess):
+def segmented_sums(part, parts, queries, rstart, jstart, poff, soff, px, py, pz, coef, sstart, lo, cell, dims, sigma,
+                   max_runs, order, val, grad, hess):
     """Add kernel sums of several point sets, each at its own segment of the queries.
 
     Segment ``f`` (queries ``rstart[f]:rstart[f + 1]``) gets the sums of the jobs

@@ -29,11 +29,31 @@ from volreg._threads import run_parts
 from volreg.kernels.grid import CellGrid, max_runs, put_rows, spatial_order, take_rows
 from volreg.kernels.wu import wu_derivatives, wu_slope
 
-__all__ = ["kernel_gradient_matrices", "kernel_matrix", "kernel_sum", "kernel_sum_reference"]
+__all__ = ["check_points", "kernel_gradient_matrices", "kernel_matrix", "kernel_sum", "kernel_sum_reference"]
 
 
-def _check_points(name: str, x: np.ndarray, dim: int | None = None) -> np.ndarray:
-    """``x`` as a C-contiguous (N, D) float array of finite values; errors name it ``name``."""
+def check_points(name: str, x: np.ndarray, dim: int | None = None) -> np.ndarray:
+    """``x`` as a C-contiguous (N, D) float array of finite values, checked.
+
+    Parameters
+    ----------
+    name : str
+        The argument's name, for the error messages.
+    x : (N, D) array_like
+        Points (mm, in the callers).
+    dim : int, optional
+        The D that ``x`` must have; any when None.
+
+    Returns
+    -------
+    (N, D) float64 ndarray, C-contiguous
+        ``x`` itself where it already is one.
+
+    Raises
+    ------
+    ValueError
+        ``x`` is not two-dimensional, has another D than ``dim``, or holds NaN or Inf.
+    """
     x = np.asarray(x, dtype=float)
     if x.ndim != 2 or (dim is not None and x.shape[1] != dim):
         want = f"(N, {dim})" if dim is not None else "(N, D)"
@@ -187,11 +207,11 @@ def kernel_sum(
         raise ValueError(f"Expected `order` in (0, 1, 2), got {order}.")
     if not sigma > 0:
         raise ValueError(f"Expected a positive kernel width `sigma`, got {sigma}.")
-    grid = centres if isinstance(centres, CellGrid) else CellGrid.build(_check_points("centres", centres), sigma)
+    grid = centres if isinstance(centres, CellGrid) else CellGrid.build(check_points("centres", centres), sigma)
     if grid.radius < sigma:
         raise ValueError(f"Expected a CellGrid built for radius >= sigma={sigma}, got {grid.radius}.")
     dim = grid.points.shape[1]
-    queries = _check_points("queries", queries, dim)
+    queries = check_points("queries", queries, dim)
     coef, vector = _as_coefficients(coeffs, grid.points.shape[0])
     coef = np.ascontiguousarray(coef[grid.order])
     n, m = queries.shape[0], coef.shape[1]
@@ -243,9 +263,9 @@ def kernel_sum_reference(
     tuple of float ndarray
         As :func:`kernel_sum`.
     """
-    centres = _check_points("centres", centres)
+    centres = check_points("centres", centres)
     dim = centres.shape[1]
-    queries = _check_points("queries", queries, dim)
+    queries = check_points("queries", queries, dim)
     coef, vector = _as_coefficients(coeffs, centres.shape[0])
     n, m = queries.shape[0], coef.shape[1]
     tree = cKDTree(centres)
@@ -301,9 +321,9 @@ def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float, *
     """
     if np.dtype(dtype) not in (np.float32, np.float64):
         raise ValueError(f"Expected `dtype` float32 or float64, got {np.dtype(dtype)}.")
-    grid = cols if isinstance(cols, CellGrid) else CellGrid.build(_check_points("cols", cols), sigma)
+    grid = cols if isinstance(cols, CellGrid) else CellGrid.build(check_points("cols", cols), sigma)
     dim = grid.points.shape[1]
-    rows = _check_points("rows", rows, dim)
+    rows = check_points("rows", rows, dim)
     if grid.radius < sigma:
         raise ValueError(f"Expected a CellGrid built for radius >= sigma={sigma}, got {grid.radius}.")
     indptr = np.zeros(len(rows) + 1, dtype=np.int64)
@@ -347,8 +367,8 @@ def kernel_gradient_matrices(rows: np.ndarray, cols: np.ndarray, sigma: float) -
         ``J(x_i) = I + sum_j c_j (G[:, i, j])^T`` is the Jacobian of
         ``x + sum_j c_j k(x, c_j)``; the pattern is that of :func:`kernel_matrix`.
     """
-    rows = _check_points("rows", rows)
-    cols = _check_points("cols", cols, rows.shape[1])
+    rows = check_points("rows", rows)
+    cols = check_points("cols", cols, rows.shape[1])
     k = kernel_matrix(rows, cols, sigma)
     i = np.repeat(np.arange(k.shape[0]), np.diff(k.indptr))
     d = rows[i] - cols[k.indices]

@@ -14,8 +14,7 @@ import numpy as np
 
 from volreg.warp.field import displacement_on_grid, fields_on_grid, indices_through
 from volreg.warp.fit import check_folding
-from volreg.warp.inverse import GridStart, InverseWarp
-from volreg.warp.inverse import _linear_of as linear_part  # MERGE
+from volreg.warp.inverse import GridStart, InverseWarp, linear_part
 from volreg.warp.resample import resample_labels_at
 
 __all__ = ["INVERSE_GRID_TOL", "FixedGridFields", "inverse_on_moving_grid", "sample_on_fixed_grid"]

@@ -26,7 +26,7 @@ from volreg.features.mapped import LinearlyMapped
 from volreg.grid import LabelVolume, box_diameter, inside_field_of_view, label_counts
 from volreg.settings import Protocol, SurfaceSettings
 from volreg.warp.field import indices_through
-from volreg.warp.linear import LinearMap
+from volreg.linear_map import LinearMap
 from volreg.warp.objective import FeaturePair
 from volreg.warp.resample import resample_labels_at
 

@@ -28,8 +28,8 @@ from volreg.pipeline.label_features import (
 )
 from volreg.settings import Protocol
 from volreg.warp.fit import RegistrationResult, fit_warp
-from volreg.warp.linear import LinearFit, LinearMap, fit_linear
-from volreg.warp.linear import _mean_dice as mean_dice_through  # MERGE
+from volreg.linear_map import LinearMap
+from volreg.warp.linear import LinearFit, fit_linear, mean_dice_through
 from volreg.warp.model import KernelWarp
 
 __all__ = ["KERNEL_DICE_MARGIN", "KernelWarpCheck", "LabelRegistration", "StageTime", "kernel_warp_overlap",

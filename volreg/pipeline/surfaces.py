@@ -19,7 +19,7 @@ from volreg.features.mapped import LinearlyMapped
 from volreg.grid import box_diameter
 from volreg.settings import WarpSettings
 from volreg.warp.fit import RegistrationResult, fit_warp
-from volreg.warp.linear import LinearMap
+from volreg.linear_map import LinearMap
 from volreg.warp.objective import FeaturePair
 
 __all__ = ["centroid_shift", "mesh_min_width", "register_surfaces"]

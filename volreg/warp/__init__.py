@@ -3,8 +3,11 @@
 Modules
 -------
 linear
-    :class:`~volreg.warp.linear.LinearMap` (the linear part A x + b) and :func:`~volreg.warp.linear.fit_linear`,
-    the rigid/similarity/affine stage fitted to label moments and distance maps before the kernel warp.
+    :func:`~volreg.warp.linear.fit_linear`, the rigid/similarity/affine stage fitted to label moments and
+    distance maps before the kernel warp; its map is a :class:`~volreg.linear_map.LinearMap` (A x + b).
+linear_labels, linear_starts, linear_cost, linear_refine
+    The linear stage's parts: the labels' moments, boundary samples and distance maps; the candidate
+    starts and their scoring; the cost and one least-squares solve; the coarse-to-fine refinement.
 model
     :class:`~volreg.warp.model.KernelWarp` (evaluate, Jacobian, compose) and its ``.npz`` file format.
 sampling

@@ -20,7 +20,7 @@ import numpy as np
 
 from volreg._threads import single_blas, thread_map
 from volreg.grid import Grid, GridLike, apply_affine, as_grid
-from volreg.warp.linear import LinearMap
+from volreg.linear_map import LinearMap
 from volreg.warp.model import jacobian_det, linear_outside
 
 __all__ = [

@@ -40,7 +40,7 @@ import scipy.sparse.linalg
 from scipy.spatial import cKDTree
 from volreg._memory import available_bytes
 from volreg._threads import single_blas
-from volreg.kernels import CellGrid, SharedPatternCSR, _check_points, kernel_gradient_matrices, kernel_matrix, kernel_sum
+from volreg.kernels import CellGrid, SharedPatternCSR, check_points, kernel_gradient_matrices, kernel_matrix, kernel_sum
 from volreg.kernels.grid import column_bounds
 from volreg.warp.objective import FeaturePair, LevelObjective, simplex_vertices
 from volreg.warp.sampling import octree_sample
@@ -141,13 +141,10 @@ def _feature_samples(features, samples: np.ndarray, band: float | None, reach: f
     source surface points (``|f1(x)| <= band`` for features without points),
     where an implicit surface is distance-like.  Farther out a kernel fit
     extrapolates freely, and ``f1`` and ``f2`` differ there by fitting artefacts
-    of tens of mm that the warp would try to explain (measured on the frog: rms
-    ``f1 - f2`` 0.8-1.1 mm within 10 mm of a surface, 3-12 mm at 20-80 mm).
-    ``band=None`` takes half the finest kernel width of ``f1`` (objects with
-    ``widths``) or every sample.  On the frog demo (``fast`` protocol), fixed
-    bands of 6 and 12 mm gave endpoint errors of 1.80 and 1.84 mm; half, one
-    and two finest widths (6-11, 13-21, 25-43 mm) 2.15, 2.99 and 3.48 mm;
-    the identity 3.09 mm.
+    of tens of mm that the warp would try to explain (far more than near the
+    surfaces).  ``band=None`` takes half the finest kernel width of ``f1``
+    (objects with ``widths``) or every sample; the narrower the band, the fewer of
+    those artefacts the warp follows.
 
     Returns ``None`` when every feature counts every sample.
     """
@@ -260,7 +257,7 @@ def _check_inputs(features, source_points, landmarks, settings: WarpSettings, pr
     if valid is not None and not callable(valid):
         raise ValueError(f"Expected `valid` as a callable (samples (N, D) mm -> (N,) bool) or None, "
                          f"got {type(valid).__name__}.")
-    pts = _check_points("source_points", source_points)
+    pts = check_points("source_points", source_points)
     if len(pts) < 2:
         raise ValueError(f"Expected at least 2 `source_points`, got {len(pts)}.")
     dim = pts.shape[1]
@@ -459,8 +456,8 @@ class _FoldSet:
     that, the fit is checked at every point, and points that crossed the margin join the
     set for another round.  At the end the barrier is 0 at every point outside the set, so
     the minimiser is that of the barrier over all points, without multiplying all of them
-    (samples and children: 9x the samples) at each step (on the frog demo that was 70 % of
-    the fit's time, with no point active).
+    (samples and children: 9x the samples) at each step, which would take most of the fit's
+    time with no point active.
 
     Parameters
     ----------
@@ -580,9 +577,9 @@ class _Whitened:
 
 #: Levels with at most this many unknowns (centres times D) are solved by Gauss-Newton
 #: (:func:`_gauss_newton`) while no fold-barrier rows are active, with L-BFGS otherwise.  Its
-#: model's Hessian is assembled densely, which pays for the coarsest level (32 centres: 6
-#: iterations against L-BFGS's 16-31 on the frog, the parcellation and the 1 mm phantom, each
-#: ending at a lower objective) but not for the next (192 centres: 2x slower than L-BFGS).
+#: model's Hessian is assembled densely, which pays for the coarsest level (a few dozen centres:
+#: far fewer iterations than L-BFGS, ending at a lower objective) but not for the next
+#: (a couple of hundred centres: slower than L-BFGS).
 GAUSS_NEWTON_MAX_UNKNOWNS = 300
 
 

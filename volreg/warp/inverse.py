@@ -37,13 +37,13 @@ import numpy as np
 from volreg._jit import njit
 from volreg._threads import part_range, run_parts
 from volreg.grid import apply_affine
-from volreg.kernels import _check_points
+from volreg.kernels import check_points
 from volreg.kernels.grid import rows_within
-from volreg.warp.linear import LinearMap
+from volreg.linear_map import LinearMap
 from volreg.warp.model import _box_through, _PointMap, linear_outside
 from volreg.warp.objective import _det_cofactor
 
-__all__ = ["InverseSolution", "invert_points", "InverseWarp", "GridStart"]
+__all__ = ["InverseSolution", "invert_points", "InverseWarp", "GridStart", "linear_part"]
 
 ProgressCallback = Callable[[str, int, int], None]
 
@@ -77,8 +77,20 @@ def _in_box(points: np.ndarray, bounds) -> np.ndarray:
     return rows_within(points, lo, hi)
 
 
-def _linear_of(warp) -> LinearMap:
-    """The linear part of a map (the identity for one without)."""
+def linear_part(warp) -> LinearMap:
+    """The linear part of a map, the identity for one without.
+
+    Parameters
+    ----------
+    warp : KernelWarp, ComposedWarp, InverseWarp or any map with ``dim``
+        A map with a ``linear`` attribute (a :class:`~volreg.linear_map.LinearMap` or None),
+        or without one.
+
+    Returns
+    -------
+    LinearMap
+        ``warp.linear``, or ``LinearMap.identity(warp.dim)`` where that is missing or None.
+    """
     linear = getattr(warp, "linear", None)
     return LinearMap.identity(warp.dim) if linear is None else linear
 
@@ -124,7 +136,7 @@ def invert_points(
         start saves evaluations; the answer is the same to within ``tol``.  The
         starts are checked first without the Jacobian: a start within ``tol`` of
         its target costs one evaluation of ``tau`` alone (so a start pays where
-        it is mostly within ``tol``, as :class:`GridStart`'s are at 1e-3 voxel).
+        it is mostly within ``tol``, as :class:`GridStart`'s are).
         A start further off then takes up to :data:`CHORD_STEPS` chord steps
         (:func:`_chord_steps`: one evaluation of ``tau`` each, the linear part's
         matrix for the Jacobian), and the Jacobian and Newton's steps only where
@@ -140,74 +152,18 @@ def invert_points(
         raise ValueError(f"Expected `tol` > 0, got {tol!r}.")
     if int(max_iter) < 1:
         raise ValueError(f"Expected `max_iter` >= 1, got {max_iter!r}.")
-    y_all = _check_points("targets", targets, warp.dim)
-    n = len(y_all)
-    bounds, linear = linear_outside([warp])
-    if linear.is_identity:
-        # tau = identity outside the box: targets there are their own preimages, exactly
-        affine = None
-        x_all = y_all.copy()
-        res_all = np.zeros(n)
-        inside = np.flatnonzero(_in_box(y_all, bounds))
-        det_floor = min_det
+    y_all = check_points("targets", targets, warp.dim)
+    affine, x_all, res_all, inside = _linear_preimages(warp, y_all)
+    if affine is None:
+        a_inv, det_floor = np.eye(warp.dim), min_det
     else:
-        affine = linear
-        a_inv = np.linalg.inv(linear.matrix)
-        x_all = linear.inverse()(y_all)  # the preimage wherever it lies outside the box
-        inside = _in_box(x_all, bounds)
-        res_all = np.zeros(n)
-        res_all[~inside] = np.linalg.norm(linear(x_all[~inside]) - y_all[~inside], axis=1)  # rounding only
-        inside = np.flatnonzero(inside)
-        det_floor = min_det * float(np.linalg.det(linear.matrix))
+        a_inv, det_floor = np.linalg.inv(affine.matrix), min_det * float(np.linalg.det(affine.matrix))
     worst_iter = 0
     for s in range(0, len(inside), chunk):
         idx = inside[s : s + chunk]
         y = y_all[idx]
-        x = np.full_like(y, np.nan) if start is None else np.asarray(start(y), dtype=float).reshape(y.shape)
-        fresh = np.flatnonzero(~np.isfinite(x @ np.ones(x.shape[1])))  # rows holding NaN or Inf
-        if fresh.size:
-            yf = y[fresh]
-            if affine is None:
-                tau_y, = warp.evaluate(yf, order=0)
-                x[fresh] = 2.0 * yf - tau_y  # x0 = y - u(y)
-            else:
-                z = x_all[idx[fresh]]  # L^-1(y)
-                tau_z, = warp.evaluate(z, order=0)
-                x[fresh] = z - (tau_z - yf) @ a_inv.T  # x0 = z - A^-1 u(z), as tau(z) - y = u(z) up to rounding
-        if start is None:
-            tau_x, jac = warp.evaluate(x, order=1)
-        else:  # the Jacobian only where the start is not within tol already
-            tau_x, = warp.evaluate(x, order=0)
-            jac = np.empty((len(y), warp.dim, warp.dim))
-        r = tau_x - y
-        rn = np.linalg.norm(r, axis=1)
-        active = np.flatnonzero(rn > tol)
-        if start is not None and active.size:
-            active = _chord_steps(warp, x, r, rn, y, active, tol, np.eye(warp.dim) if affine is None else a_inv)
-        if start is not None and active.size:
-            _, jac[active] = warp.evaluate(x[active], order=1)
-        it = 0
-        while active.size and it < max_iter:
-            it += 1
-            xa, ra, ja, rna = x[active], r[active], jac[active], rn[active]
-            step = _newton_steps(ja, ra, det_floor, np.eye(warp.dim) if affine is None else a_inv)
-            scale = np.ones(len(active))
-            for _ in range(6):  # halve steps that do not reduce the residual
-                xn = xa + scale[:, None] * step
-                tn, = warp.evaluate(xn, order=0)
-                rnew = tn - y[active]
-                rnn = np.linalg.norm(rnew, axis=1)
-                worse = rnn >= rna
-                if not worse.any():
-                    break
-                scale[worse] *= 0.5
-            better = rnn < rna
-            upd = active[better]
-            x[upd], r[upd], rn[upd] = xn[better], rnew[better], rnn[better]
-            # points that could not improve are stuck: drop them (their residual says so)
-            active = upd[rn[upd] > tol]
-            if active.size and it < max_iter:  # the Jacobian only where another step follows
-                _, jac[active] = warp.evaluate(x[active], order=1)
+        x = _starting_points(warp, y, x_all[idx], affine, a_inv, start)
+        rn, it = _solve(warp, x, y, tol, max_iter, det_floor, a_inv, started=start is not None)
         worst_iter = max(worst_iter, it)
         x_all[idx] = x
         res_all[idx] = rn
@@ -215,6 +171,114 @@ def invert_points(
             progress("invert warp", min(s + chunk, len(inside)), len(inside))
     return InverseSolution(points=x_all, residual=res_all, iterations=worst_iter, converged=res_all <= tol)
 
+
+def _linear_preimages(warp, y_all: np.ndarray) -> tuple[LinearMap | None, np.ndarray, np.ndarray, np.ndarray]:
+    """The preimages of the targets that lie beyond the warp's box, and the targets left to solve.
+
+    Outside its box (``bounds()``) the warp is its linear part ``L``: a target whose linear
+    preimage ``L^-1(y)`` lies outside the box has that preimage, exactly (the target itself
+    for a warp without a linear part).
+
+    Returns
+    -------
+    affine : LinearMap or None
+        The linear part, None where it is the identity.
+    x_all : (N, D) float ndarray, mm
+        ``L^-1(y)`` for every target (``y`` without a linear part): the answer outside the box.
+    res_all : (N,) float ndarray, mm
+        ``|L(x) - y|`` there (rounding only), 0 elsewhere.
+    inside : (K,) int ndarray
+        The targets to solve by Newton's method.
+    """
+    n = len(y_all)
+    bounds, linear = linear_outside([warp])
+    if linear.is_identity:
+        # tau = identity outside the box: targets there are their own preimages, exactly
+        x_all = y_all.copy()
+        res_all = np.zeros(n)
+        return None, x_all, res_all, np.flatnonzero(_in_box(y_all, bounds))
+    x_all = linear.inverse()(y_all)  # the preimage wherever it lies outside the box
+    inside = _in_box(x_all, bounds)
+    res_all = np.zeros(n)
+    res_all[~inside] = np.linalg.norm(linear(x_all[~inside]) - y_all[~inside], axis=1)  # rounding only
+    return linear, x_all, res_all, np.flatnonzero(inside)
+
+
+def _starting_points(warp, y: np.ndarray, z: np.ndarray, affine: LinearMap | None, a_inv: np.ndarray,
+                     start: Callable[[np.ndarray], np.ndarray] | None) -> np.ndarray:
+    """Newton's starting points (N, D) mm for targets ``y`` (N, D) mm with linear preimages ``z``.
+
+    ``start(y)`` where given, and where it has none (NaN or Inf rows), or without it,
+    ``x0 = z - A^-1 u(z)`` (``x0 = y - u(y)`` without a linear part).
+    """
+    x = np.full_like(y, np.nan) if start is None else np.asarray(start(y), dtype=float).reshape(y.shape)
+    fresh = np.flatnonzero(~np.isfinite(x @ np.ones(x.shape[1])))  # rows holding NaN or Inf
+    if fresh.size:
+        yf = y[fresh]
+        if affine is None:
+            tau_y, = warp.evaluate(yf, order=0)
+            x[fresh] = 2.0 * yf - tau_y  # x0 = y - u(y)
+        else:
+            zf = z[fresh]  # L^-1(y)
+            tau_z, = warp.evaluate(zf, order=0)
+            x[fresh] = zf - (tau_z - yf) @ a_inv.T  # x0 = z - A^-1 u(z), as tau(z) - y = u(z) up to rounding
+    return x
+
+
+def _solve(warp, x: np.ndarray, y: np.ndarray, tol: float, max_iter: int, det_floor: float, a_inv: np.ndarray,
+           *, started: bool) -> tuple[np.ndarray, int]:
+    """Solve ``tau(x) = y`` from ``x`` (in place), with chord steps first where ``started``.
+
+    Returns
+    -------
+    rn : (N,) float ndarray, mm
+        ``|tau(x) - y|`` at the points found.
+    iterations : int
+        Newton iterations taken.
+    """
+    if not started:
+        tau_x, jac = warp.evaluate(x, order=1)
+    else:  # the Jacobian only where the start is not within tol already
+        tau_x, = warp.evaluate(x, order=0)
+        jac = np.empty((len(y), warp.dim, warp.dim))
+    r = tau_x - y
+    rn = np.linalg.norm(r, axis=1)
+    active = np.flatnonzero(rn > tol)
+    if started and active.size:
+        active = _chord_steps(warp, x, r, rn, y, active, tol, a_inv)
+    if started and active.size:
+        _, jac[active] = warp.evaluate(x[active], order=1)
+    return rn, _newton_iterations(warp, x, r, rn, jac, y, active, tol, max_iter, det_floor, a_inv)
+
+
+def _newton_iterations(warp, x: np.ndarray, r: np.ndarray, rn: np.ndarray, jac: np.ndarray, y: np.ndarray,
+                       active: np.ndarray, tol: float, max_iter: int, det_floor: float, a_inv: np.ndarray) -> int:
+    """Newton's steps (:func:`_newton_steps`) at the rows ``active`` until each is within ``tol``
+    or stuck, at most ``max_iter``; ``x``, the residuals ``r``, their norms ``rn`` and the
+    Jacobians ``jac`` are updated in place.  Returns the iterations taken."""
+    it = 0
+    while active.size and it < max_iter:
+        it += 1
+        xa, ra, ja, rna = x[active], r[active], jac[active], rn[active]
+        step = _newton_steps(ja, ra, det_floor, a_inv)
+        scale = np.ones(len(active))
+        for _ in range(6):  # halve steps that do not reduce the residual
+            xn = xa + scale[:, None] * step
+            tn, = warp.evaluate(xn, order=0)
+            rnew = tn - y[active]
+            rnn = np.linalg.norm(rnew, axis=1)
+            worse = rnn >= rna
+            if not worse.any():
+                break
+            scale[worse] *= 0.5
+        better = rnn < rna
+        upd = active[better]
+        x[upd], r[upd], rn[upd] = xn[better], rnew[better], rnn[better]
+        # points that could not improve are stuck: drop them (their residual says so)
+        active = upd[rn[upd] > tol]
+        if active.size and it < max_iter:  # the Jacobian only where another step follows
+            _, jac[active] = warp.evaluate(x[active], order=1)
+    return it
 
 
 #: Chord steps (:func:`_chord_steps`) tried from a start before Newton's method.
@@ -229,10 +293,10 @@ def _chord_steps(warp, x: np.ndarray, r: np.ndarray, rn: np.ndarray, y: np.ndarr
 
     The linear part's matrix ``A`` stands in for the Jacobian ``J = A (I + du/dx)``: each step
     costs one evaluation of ``tau`` without the Jacobian (about half the cost of one with it) and
-    shrinks the error by about ``|du/dx|``, so from a start a few micrometres off
-    (:class:`GridStart` on a 2 mm grid: 39 % of a posed 1 mm brain's voxels above 1e-3 mm, at
-    most 0.012 mm) one or two steps reach the tolerance.  A row a step does not improve (near a
-    fold, where ``du/dx`` is large) keeps its value and is left to Newton's method.
+    shrinks the error by about ``|du/dx|``, so from a start a few micrometres off (as
+    :class:`GridStart`'s are where they miss the tolerance) one or two steps reach it.  A row a
+    step does not improve (near a fold, where ``du/dx`` is large) keeps its value and is left to
+    Newton's method.
     """
     newton = []
     for _ in range(CHORD_STEPS):
@@ -306,7 +370,7 @@ class InverseWarp(_PointMap):
     @property
     def linear(self) -> LinearMap:
         """``L^-1``, the inverse of the warp's linear part: the inverse map outside :meth:`bounds`."""
-        linear = _linear_of(self.warp)
+        linear = linear_part(self.warp)
         return linear if linear.is_identity else linear.inverse()
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -321,7 +385,7 @@ class InverseWarp(_PointMap):
         if not hasattr(self.warp, "bounds"):
             return np.full(self.dim, -np.inf), np.full(self.dim, np.inf)
         box = self.warp.bounds()
-        linear = _linear_of(self.warp)
+        linear = linear_part(self.warp)
         if box is None or linear.is_identity:
             return box
         return _box_through(box, linear)
@@ -342,7 +406,6 @@ class InverseWarp(_PointMap):
             return (sol.points,)
         _, jac = self.warp.evaluate(sol.points, order=1)
         return sol.points, np.linalg.inv(jac)
-
 
 
 @njit(nogil=True)
@@ -393,7 +456,6 @@ def _grid_fixed_point(part, parts, u, w2i, w2i_offset, a_inv, b, y, max_iter, se
             out[p, a] = x[a] if done else np.nan
 
 
-
 class GridStart:
     """Starting points for :func:`invert_points` from the forward warp sampled on a grid.
 
@@ -402,10 +464,10 @@ class GridStart:
     interpolation of the displacement ``u = tau - id`` on ``grid`` (which the
     outputs compute anyway), from ``x_0 = L^-1(y)``.  Each step costs one
     interpolation instead of kernel sums; Newton's method then needs about one
-    exact step from the result (on a 1 mm brain-size warp the starts were
-    0.0003 mm from the exact preimage on average, at most 0.004 mm).  Rows whose
-    iterates leave the grid, or have not settled to ``settle`` mm within
-    ``iterations`` steps (near a fold), are NaN: no start.
+    exact step from the result (the interpolated displacement is close to the
+    warp's between voxel centres).  Rows whose iterates leave the grid, or have
+    not settled to ``settle`` mm within ``iterations`` steps (near a fold), are
+    NaN: no start.
 
     Parameters
     ----------

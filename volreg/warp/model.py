@@ -11,7 +11,7 @@ and the Jacobian is analytic::
 
     J[n, a, b] = d tau_a / d x_b = A_ab + sum_l sum_j c_j[a] d k_l(x_n, x_j) / d x_b
 
-A linear part ``x -> A x + b`` (:class:`~volreg.warp.linear.LinearMap`, ``det A > 0``)
+A linear part ``x -> A x + b`` (:class:`~volreg.linear_map.LinearMap`, ``det A > 0``)
 may precede the kernel expansion; it is the identity (``A = I``, ``b = 0``) unless
 given, and then the evaluation is exactly that of ``x + sum ...``.  The kernel
 sums are evaluated at ``x`` itself (fixed space), so the centres ``x_j`` are
@@ -40,8 +40,8 @@ from typing import Any, Callable, Union
 
 import numpy as np
 
-from volreg.kernels import CellGrid, _check_points, kernel_sum, put_rows, spatial_order, take_rows
-from volreg.warp.linear import LinearMap
+from volreg.kernels import CellGrid, check_points, kernel_sum, put_rows, spatial_order, take_rows
+from volreg.linear_map import LinearMap
 
 __all__ = [
     "WarpLevel",
@@ -71,8 +71,8 @@ def jacobian_det(jac: np.ndarray) -> np.ndarray:
     """Determinants of a stack of 2 x 2 or 3 x 3 Jacobians, in closed form.
 
     The same values as ``np.linalg.det`` (to rounding) without its LU
-    factorisation per matrix, which took about 3x as long on stacks of
-    3 x 3 matrices (30,000: 3.5 against 1.0 ms).
+    factorisation per matrix, which costs several times as long on stacks of
+    small matrices.
 
     Parameters
     ----------
@@ -224,7 +224,7 @@ class _PointMap:
         self, points: np.ndarray, *, chunk: int | None = None, progress: ProgressCallback | None = None
     ) -> np.ndarray:
         """``u(points) = tau(points) - points``, (N, D) mm (LPS vectors)."""
-        points = _check_points("points", points, self.dim)
+        points = check_points("points", points, self.dim)
         return self.evaluate(points, order=0, chunk=chunk, progress=progress)[0] - points
 
     def jacobian(
@@ -236,10 +236,9 @@ class _PointMap:
 
 #: Warp evaluations of more points than this visit them in spatial order: a warp's kernel sums
 #: then run in blocks of nearby queries (the SIMD loops) instead of one neighbour search per
-#: query.  The inverse evaluates the warp at tens of thousands of scattered preimages at a time:
-#: on a posed 3 mm / 2 mm frog pair (6.9 M moving voxels) the inverse took 3.6-4.0 s with this
-#: threshold against 4.9-5.2 s with :data:`~volreg.kernels.grid.SORT_ABOVE` (50 000), the
-#: results within 1e-13 mm.
+#: query.  The inverse evaluates the warp at tens of thousands of scattered preimages at a time,
+#: too few for :data:`~volreg.kernels.grid.SORT_ABOVE` and enough for the sort to pay (the
+#: results differ by rounding only).
 WARP_SORT_ABOVE = 2048
 
 
@@ -440,7 +439,7 @@ class KernelWarp(_PointMap):
         """
         order = _check_order(order)
         chunk = _check_chunk(chunk)
-        points = _check_points("points", points, self.dim)
+        points = check_points("points", points, self.dim)
         n, dim = points.shape
         # Without a linear part the points are added as they are (no product with I).
         affine = None if self._linear.is_identity else self._linear
@@ -865,7 +864,7 @@ class ComposedWarp(_PointMap):
         """
         order = _check_order(order)
         chunk = _check_chunk(chunk)
-        points = _check_points("points", points, self.dim)
+        points = check_points("points", points, self.dim)
         n, dim = points.shape
         out = np.empty((n, dim))
         jac = np.empty((n, dim, dim)) if order == 1 else None

@@ -8,7 +8,7 @@ three forms a saved result takes:
 
 - a kernel warp (:class:`~volreg.warp.model.KernelWarp`): ``tau`` exactly, and
   ``tau^-1`` by Newton's method (:func:`~volreg.warp.inverse.invert_points`);
-- a linear map (:class:`~volreg.warp.linear.LinearMap`, e.g. ``linear.tfm``):
+- a linear map (:class:`~volreg.linear_map.LinearMap`, e.g. ``linear.tfm``):
   ``A x + b`` and its exact inverse ``A^-1 (y - b)``;
 - a displacement field on a grid (:class:`DisplacementField`): ``p + u(p)`` with
   ``u`` interpolated linearly at ``p``, as ITK's ``DisplacementFieldTransform``
@@ -30,8 +30,8 @@ import numpy as np
 from scipy import ndimage
 
 from volreg.grid import Grid, as_grid
+from volreg.linear_map import LinearMap
 from volreg.warp.inverse import InverseWarp, invert_points
-from volreg.warp.linear import LinearMap
 
 __all__ = ["DisplacementField", "MappedPoints", "transform_points", "transform_normals"]
 

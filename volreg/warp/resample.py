@@ -28,11 +28,9 @@ spacing and read at the points by cubic B-spline; a point takes the label whose
 blurred indicator is largest, the background's (one minus the labels' sum)
 included.  Between voxel centres it reads a boundary from several voxels rather
 than two, so it tells better which side of a boundary a point lies on: on labels
-sampled from analytic shapes (30 Voronoi cells of an ellipsoid, a blob with
-bumps) on oblique 1 mm grids and read at random points, it gave the wrong label
-at 0.53 % and 0.33 % of the points where ``"label"`` gave 0.99 % and 0.60 %
-(nearest neighbour 1.58 % and 1.02 %); on 1 x 1 x 1.5 mm grids 0.70 % and 0.41 %
-against 1.15 % and 0.64 %.  At voxel centres the input comes back, as with
+sampled from analytic shapes on oblique grids and read at random points, it gives
+the wrong label at fewer points than ``"label"`` (and ``"label"`` at fewer than
+nearest neighbour).  At voxel centres the input comes back, as with
 ``"label"``.  Ties (a boundary through the point) go to the lower label value, or
 to a preferred value given per point (:func:`resample_labels_at`, ``prefer``).
 """
@@ -57,10 +55,9 @@ ProgressCallback = Callable[[str, int, int], None]
 FAR_MM = 1e9
 
 #: Standard deviation of the ``"gaussian"`` label interpolation's blur, in voxels (of the
-#: geometric-mean spacing). Of 0.55-1.5, 1.0 misread the fewest random points on labels sampled
-#: from analytic shapes at 1 mm and at 1 x 1 x 1.5 mm (0.49 % and 0.29 %, 0.8 0.04 % more); with
-#: 0.8 the registrations that read one volume's labels on the other's coarser grid ended nearest
-#: the truth (`bench_pose.py` cases 1, 3 and 8: 0.28, 0.14, 0.11 mm; with 1.0 0.30, 0.15, 0.12).
+#: geometric-mean spacing). With it the registrations that read one volume's labels on the
+#: other's coarser grid end nearest the truth (`bench_pose.py`), and labels sampled from analytic
+#: shapes are misread at about as few random points as with the blur that misreads the fewest.
 GAUSSIAN_SIGMA = 0.8
 
 #: ``"gaussian"`` with ``prefer``: a preferred value whose blurred indicator is within this of
@@ -129,8 +126,7 @@ def _mixed_stencils(array: np.ndarray, index: np.ndarray, points: np.ndarray, ou
     strides = [int(np.prod(shape[d + 1:], dtype=np.int64)) for d in range(array.ndim)]  # C order, in voxels
     # Each corner's voxel is taken by its flat position: the lowest corner's, plus per axis a step
     # of one stride or none (clamped at the image's edges, as the interpolation is). Integer sums
-    # of columns instead of gathering D index arrays per corner: the 3 mm frog's 1.8 M points in
-    # 0.09 s instead of 0.19 s.
+    # of columns instead of gathering D index arrays per corner: about half the time.
     values = np.ascontiguousarray(array).reshape(-1)
     mixed = []
     for s in range(0, len(points), chunk):
@@ -231,70 +227,144 @@ def resample_labels_at(
     # The image covers its voxels: continuous indices in [-1/2, n - 1/2] (as ITK).
     size = np.array(image.shape)
     valid = rows_within(index, np.full(image.ndim, -0.5), size - 0.5)
+    out = np.zeros(len(index), dtype=array.dtype)
     if method == "nearest":
         nearest = np.clip(np.floor(index[valid] + 0.5).astype(np.int64), 0, size - 1)
-        out = np.zeros(len(index), dtype=array.dtype)
         out[valid] = array[tuple(nearest.T)]
         return out
 
-    out = np.zeros(len(index), dtype=array.dtype)
-    best = np.zeros(len(index), dtype=np.float32)  # a point is a label's only where its distance < 0
-    boxes = image.label_boxes()
-    labels = image.labels()
     # A point whose linear stencil holds one value only takes that value: that label's distance is
     # negative at every corner, every other label's positive (the background: all positive). Only
     # the other points, near a boundary, need the distance maps below.
-    slab_order = _mixed_stencils(array, index, np.flatnonzero(valid), out)
+    near_boundary = _mixed_stencils(array, index, np.flatnonzero(valid), out)
+    blur = None
     if method == "gaussian":
         # At a voxel centre the voxel's own label, as "label" gives it there.
-        near_centre = np.all(np.abs(index[slab_order] - np.round(index[slab_order])) < _AT_CENTRE, axis=1)
-        centres = slab_order[near_centre]
-        out[centres] = array[tuple(np.clip(np.round(index[centres]).astype(np.int64), 0, size - 1).T)]
-        slab_order = slab_order[~near_centre]
+        near_boundary = _take_at_centres(array, index, near_boundary, out)
+        blur = _Blur.of(image, len(index), prefer is not None)
+        margin = max(margin, blur.margin)
+    best, near_boundary = _read_labels(image, index, near_boundary, margin, blur, prefer, out, progress)
+    if blur is not None:
+        blur.finish(array, index, near_boundary, best, prefer, out)
+    return out
+
+
+def _take_at_centres(array: np.ndarray, index: np.ndarray, rows: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Give the ``rows`` of ``index`` within :data:`_AT_CENTRE` of a voxel centre that voxel's
+    value (in ``out``); return the other rows."""
+    near_centre = np.all(np.abs(index[rows] - np.round(index[rows])) < _AT_CENTRE, axis=1)
+    centres = rows[near_centre]
+    out[centres] = array[tuple(np.clip(np.round(index[centres]).astype(np.int64), 0,
+                                       np.array(array.shape) - 1).T)]
+    return rows[~near_centre]
+
+
+class _Blur:
+    """The ``"gaussian"`` reading's blur and the sums it keeps over the labels.
+
+    ``total``: the labels' blurred indicators summed per point (the background's is one minus
+    it: the blur and the spline are linear); ``preferred``: the blurred indicator of each point's
+    preferred value, where one is given.
+    """
+
+    def __init__(self, sigma: float, margin: int, total: np.ndarray, preferred: np.ndarray | None) -> None:
+        self.sigma, self.margin, self.total, self.preferred = sigma, margin, total, preferred
+
+    @classmethod
+    def of(cls, image: LabelVolume, n: int, with_prefer: bool) -> "_Blur":
+        """The blur of ``image`` (:data:`GAUSSIAN_SIGMA`) for ``n`` points, and the margin (voxels)
+        around a label's box that its reach needs."""
         sigma = GAUSSIAN_SIGMA * float(np.exp(np.mean(np.log(image.spacing))))  # mm
-        margin = max(margin, int(np.ceil(4 * sigma / np.min(image.spacing))) + 2)
-        # The blurred indicators of the labels and the background sum to one (the blur and the
-        # spline are linear): the background's is one minus the labels' sum.
-        total = np.zeros(len(index), dtype=np.float32)
-        preferred = None if prefer is None else np.zeros(len(index), dtype=np.float32)  # its blurred indicator
+        margin = int(np.ceil(4 * sigma / np.min(image.spacing))) + 2
+        return cls(sigma, margin, np.zeros(n, dtype=np.float32), np.zeros(n, dtype=np.float32) if with_prefer else None)
+
+    def finish(self, array: np.ndarray, index: np.ndarray, rows: np.ndarray, best: np.ndarray,
+               prefer: np.ndarray | None, out: np.ndarray) -> None:
+        """At ``rows``, the background where its blurred indicator is the largest, then the
+        preferred values on ties (in place in ``out``)."""
+        rest = 1.0 - self.total[rows]  # the background's blurred indicator
+        background = rows[rest > -best[rows]]
+        out[background] = 0
+        if self.preferred is not None:
+            wanted = prefer[rows]
+            lead = np.maximum(-best[rows], rest) - np.where(wanted == 0, rest, self.preferred[rows])
+            tied = lead < TIE
+            out[rows[tied]] = wanted[tied]
+            _prefer_between_centres(array, index, rows, prefer, out)
+
+
+def _read_labels(image: LabelVolume, index: np.ndarray, rows: np.ndarray, margin: int, blur: _Blur | None,
+                 prefer: np.ndarray | None, out: np.ndarray,
+                 progress: ProgressCallback | None) -> tuple[np.ndarray, np.ndarray]:
+    """Label by label, the label whose distance (or minus blurred indicator, with ``blur``) is
+    most negative at the ``rows`` of ``index`` (in place in ``out``).
+
+    Parameters
+    ----------
+    image : LabelVolume
+    index : (N, D) float ndarray
+        Continuous indices into ``image``.
+    rows : (K,) int ndarray
+        The rows to read: those near a boundary.
+    margin : int
+        Voxels around each label's box where its map is computed.
+    blur : _Blur or None
+        ``"gaussian"``: blurred indicators (its sums are updated); None: signed distances.
+    prefer : (N,) integer ndarray or None
+    out : (N,) ndarray
+        Written at the rows where a label wins.
+    progress : callable, optional
+        ``progress("resample labels", done, total)`` per label.
+
+    Returns
+    -------
+    best : (N,) float32 ndarray
+        The winning distance (or minus blurred indicator) per row, 0 where none is negative.
+    rows : (K,) int ndarray
+        ``rows`` in the order they were read (by first index where there are many labels).
+    """
+    array = image.array
+    best = np.zeros(len(index), dtype=np.float32)  # a point is a label's only where its distance < 0
+    boxes = image.label_boxes()
+    labels = image.labels()
     # Those points' interpolation voxels lie within one voxel diagonal of a voxel of another
     # value: the distances of a label that one of them holds are at most that long at all of
     # them, and a label none of them holds is positive at all of them. Distances clipped to
     # the diagonal (a little more, for rounding) therefore give the same labels as the full
-    # maps, near the boundaries only (the 1 mm phantom's two labels: 0.17 s instead of 2.3 s).
+    # maps, near the boundaries only, at a fraction of their cost.
     diagonal = 1.001 * float(np.linalg.norm(image.spacing))
     # With many labels, the points sorted by their first index: each label's candidates
-    # are then one slab of them, and small labels do not each scan every point (500 labels at
-    # 1.5 mm: 14 s instead of 29 s). With few labels the sort would cost more than it saves.
+    # are then one slab of them, and small labels do not each scan every point. With few
+    # labels the sort would cost more than it saves.
     if len(labels) > 8:
-        slab_order = slab_order[np.argsort(index[slab_order, 0], kind="stable")]
+        rows = rows[np.argsort(index[rows, 0], kind="stable")]
     # Their indices gathered once in that order: each label's candidates are then a slice.
-    slab_index = index[slab_order]
+    slab_index = index[rows]
     slab_key = slab_index[:, 0] if len(labels) > 8 else None
     for n, value in enumerate(labels):
         box = boxes[int(value)]
         lo = np.array([max(s.start - margin, 0) for s in box])
         hi = np.array([min(s.stop + margin, size) for s, size in zip(box, image.shape)])
         # Points whose linear stencil touches the crop.
-        first, stop = 0, len(slab_order)
+        first, stop = 0, len(rows)
         if slab_key is not None:
             first = np.searchsorted(slab_key, lo[0] - 1, side="right")
             stop = np.searchsorted(slab_key, hi[0], side="left")
         candidates = slab_index[first:stop]
         touches = rows_within(candidates, lo - 1, hi, closed=False)
-        near = slab_order[first:stop][touches]
+        near = rows[first:stop][touches]
         if near.size:
             crop = array[tuple(slice(a, b) for a, b in zip(lo, hi))]
             at = (candidates[touches] - lo).T
-            if method == "gaussian":
+            if blur is not None:
                 # Minus the blurred indicator, so that the largest wins as the most negative distance.
-                blurred = ndimage.gaussian_filter((crop == value).astype(np.float32), sigma / image.spacing,
+                blurred = ndimage.gaussian_filter((crop == value).astype(np.float32), blur.sigma / image.spacing,
                                                   mode="nearest")
                 d = -ndimage.map_coordinates(blurred, at, order=3, mode="nearest")
-                total[near] -= d
-                if preferred is not None:
+                blur.total[near] -= d
+                if blur.preferred is not None:
                     mine = prefer[near] == value
-                    preferred[near[mine]] = -d[mine]
+                    blur.preferred[near[mine]] = -d[mine]
             else:
                 sdf = clipped_signed_distance(crop == value, image.spacing, diagonal)
                 d = ndimage.map_coordinates(sdf, at, order=1, mode="nearest")
@@ -304,17 +374,7 @@ def resample_labels_at(
             out[sel] = value
         if progress is not None:
             progress("resample labels", n + 1, len(labels))
-    if method == "gaussian":
-        rest = 1.0 - total[slab_order]  # the background's blurred indicator
-        background = slab_order[rest > -best[slab_order]]
-        out[background] = 0
-        if preferred is not None:
-            wanted = prefer[slab_order]
-            lead = np.maximum(-best[slab_order], rest) - np.where(wanted == 0, rest, preferred[slab_order])
-            tied = lead < TIE
-            out[slab_order[tied]] = wanted[tied]
-            _prefer_between_centres(array, index, slab_order, prefer, out)
-    return out
+    return best, rows
 
 
 def _prefer_between_centres(array: np.ndarray, index: np.ndarray, rows: np.ndarray, prefer: np.ndarray,
@@ -325,8 +385,8 @@ def _prefer_between_centres(array: np.ndarray, index: np.ndarray, rows: np.ndarr
     holds it (in place in ``out``).
 
     There the labels do not tell which value the point has: the nearest samples are split, and
-    a blur decides by farther voxels, whose curved boundaries pull it inwards (a ball of radius
-    5 voxels, blurred by 0.8 voxel, reads as one 0.13 voxel smaller; of 9 voxels, 0.07 smaller).
+    a blur decides by farther voxels, whose curved boundaries pull it inwards (a small ball,
+    blurred, reads as a smaller one, the more so the smaller it is).
     """
     frac = index[rows] - np.floor(index[rows])
     half = np.abs(frac - 0.5) < _AT_CENTRE
