@@ -72,6 +72,7 @@ MODULE_TIERS = {
     "test_sampling.py": "unit",
     "test_settings.py": "unit",
     "test_surface_cli.py": "integration",
+    "test_surface_inputs.py": "unit",
     "test_surfaces.py": "unit",
     "test_threads.py": "integration",
     "test_tune.py": "integration",

@@ -99,7 +99,7 @@ def test_argument_types_are_those_numba_infers():
 
 
 def _cold_in(cache: Path) -> list[int]:
-    code = "import json; from volreg import _precompile; print(json.dumps(_precompile.cold_loops()))"
+    code = "import json; from volreg import precompile; print(json.dumps(precompile.cold_loops()))"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                           env=_env(NUMBA_CACHE_DIR=str(cache)))
     assert proc.returncode == 0, proc.stderr

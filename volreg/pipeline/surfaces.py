@@ -17,12 +17,16 @@ from volreg._threads import single_blas, thread_map
 from volreg.features.implicit import ImplicitSurface, default_min_width
 from volreg.features.mapped import LinearlyMapped
 from volreg.grid import box_diameter
+from volreg.io.meshes import SurfaceData
+from volreg.pipeline.surface_inputs import check_point_extent, check_size_ratio, fitting_points
+from volreg.settings import Protocol
 from volreg.settings import WarpSettings
+from volreg.warp.model import KernelWarp
 from volreg.warp.fit import RegistrationResult, fit_warp
 from volreg.linear_map import LinearMap
 from volreg.warp.objective import FeaturePair
 
-__all__ = ["centroid_shift", "mesh_min_width", "register_surfaces"]
+__all__ = ["centroid_shift", "mesh_min_width", "register_surface_pair", "register_surfaces"]
 
 
 def _pyvista():
@@ -52,6 +56,22 @@ def _surface_points(surface) -> ImplicitSurface | tuple[np.ndarray, np.ndarray]:
     )
 
 
+def _check_objects(objects: list, data: list, names: tuple[object, object], n_source: int) -> None:
+    """Refuse objects that span no volume (:func:`~volreg.pipeline.surface_inputs.check_point_extent`)
+    and a source and target of sizes as far apart as two units
+    (:func:`~volreg.pipeline.surface_inputs.check_size_ratio`); fitted implicit surfaces are taken as they are."""
+    pv = _pyvista()
+    points = [None if isinstance(d, ImplicitSurface) else d[0] for d in data]
+    for k, (obj, p) in enumerate(zip(objects, points)):
+        if p is not None and len(p) >= 2:
+            cloud = not (pv is not None and isinstance(obj, pv.PolyData) and len(obj.faces) > 0)
+            check_point_extent(p, names[0] if k < n_source else names[1], cloud=cloud)
+    src = [p for p in points[:n_source] if p is not None and len(p)]
+    tgt = [p for p in points[n_source:] if p is not None and len(p)]
+    if src and tgt:
+        check_size_ratio(np.concatenate(src), np.concatenate(tgt), names)
+
+
 @single_blas
 def register_surfaces(
     source,
@@ -61,6 +81,7 @@ def register_surfaces(
     settings: WarpSettings = WarpSettings(),
     progress: Callable[[str, int, int], None] | None = None,
     align_centroids: bool = True,
+    check_names: tuple[object, object] = ("`source`", "`target`"),
 ) -> RegistrationResult:
     """Register ``source`` onto ``target``: ``result.warp`` maps source points to target points.
 
@@ -84,6 +105,12 @@ def register_surfaces(
         6 % of the diameter from their partners, 25 mm 11 % (the warped source on the target).
         Rotations and scales are not found: the two must be in one frame and turned alike.
 
+    check_names : pair of str
+        How errors name the source and the target.  Objects that span no volume (all points at
+        one point or on a line, a point cloud in a plane) and a source and target whose sizes
+        differ more than millimetres and centimetres could are refused
+        (:mod:`volreg.pipeline.surface_inputs`), as the surface commands refuse them.
+
     Returns
     -------
     RegistrationResult
@@ -95,6 +122,7 @@ def register_surfaces(
     if len(sources) != len(targets):
         raise ValueError(f"Expected as many `target` objects as `source` objects, got {len(targets)} and {len(sources)}.")
     data = [_surface_points(x) for x in sources + targets]
+    _check_objects(sources + targets, data, check_names, len(sources))
 
     def points_of(objects) -> np.ndarray:
         return np.concatenate([d.points if isinstance(d, ImplicitSurface) else d[0] for d in objects])
@@ -174,3 +202,32 @@ def mesh_min_width(points: np.ndarray, finest: float) -> float:
     spacings (8 is :class:`~volreg.features.implicit.ImplicitSurface`'s default)."""
     default = default_min_width(points)  # 8 vertex spacings
     return min(default, max(finest, 3.0 * default / 8.0))
+
+
+def register_surface_pair(source: SurfaceData, target: SurfaceData, protocol: Protocol, landmarks=None,
+                          progress: Callable[[str, int, int], None] | None = None,
+                          names: tuple[object, object] = ("SOURCE", "TARGET")) -> KernelWarp:
+    """The kernel warp of ``source`` onto ``target`` (:func:`~volreg.pipeline.surfaces.register_surfaces`),
+    both checked first (:func:`fitting_points`, :func:`check_size_ratio`).
+
+    Parameters
+    ----------
+    source, target : SurfaceData
+    protocol : Protocol
+        Its ``warp`` settings.
+    landmarks : pair of (L, 3) float ndarrays, optional
+        Source points and their target partners, LPS mm.
+    progress : callable, optional
+    names : pair of str
+        How errors name the two surfaces (e.g. ``SOURCE `a.vtk```).
+
+    Returns
+    -------
+    KernelWarp
+        Source points -> target points, LPS mm.
+    """
+    src = fitting_points(source, names[0])
+    tgt = fitting_points(target, names[1])
+    check_size_ratio(src[0], tgt[0], names)
+    return register_surfaces(src, tgt, landmarks=landmarks, settings=protocol.warp, progress=progress,
+                             check_names=names).warp
