@@ -492,26 +492,35 @@ def output_folder(
         raise UsageError(f"Output directory `{final}` exists and is not empty; pass --force to write into it.")
     if relative is not None:
         folder = OutputFolder(where, make_directory(where), final=final)
-        staging = None
+        staging = held = None
     elif _replaceable(final):
         created = make_directory(final.parent)
         staging = _stage_path(final, "new")
+        # Held from the staging folder's creation until the cleanup below guards it: an interrupt
+        # in between would leave the folder behind.  One that came meanwhile is raised in the try.
+        held = SignalsHeld()
+        held.__enter__()
         try:
             staging.mkdir()
             _staging_open.add(staging)
             if final.is_dir():
                 _link_tree(final, staging)
-        except OSError as exc:
+        except BaseException as exc:
             _remove_tree(staging)
             _staging_open.discard(staging)
             _remove_directories(created)
-            raise VolregIOError(f"Output directory `{final}` could not be prepared: {exc.strerror}.") from exc
+            held.__exit__(None, None, None)
+            if isinstance(exc, OSError):
+                raise VolregIOError(f"Output directory `{final}` could not be prepared: {exc.strerror}.") from exc
+            raise
         folder = OutputFolder(staging, created, final=final)
     else:
         folder = OutputFolder(final, make_directory(final))
-        staging = None
+        staging = held = None
     token = _open_folder.set(folder)
     try:
+        if held is not None:
+            held.__exit__(None, None, None)
         yield folder
     except BaseException:
         if staging is not None:
