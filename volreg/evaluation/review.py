@@ -28,12 +28,8 @@ import numpy as np
 
 from volreg.grid import label_counts
 
-__all__ = ["Finding", "ReviewLimits", "findings_summary", "judged_labels", "label_counts", "label_voxel_counts",
+__all__ = ["Finding", "ReviewLimits", "findings_summary", "judged_labels", "label_voxel_counts",
            "review_registration"]
-
-#: The former private name of :func:`label_counts` (:func:`volreg.grid.label_counts`), for callers
-#: that still import it from this module.
-_counts = label_counts
 
 
 def _is_real(value) -> bool:
