@@ -26,6 +26,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from volreg.grid import label_counts
+
 __all__ = ["Finding", "ReviewLimits", "findings_summary", "judged_labels", "label_voxel_counts",
            "review_registration"]
 
@@ -51,11 +53,9 @@ class ReviewLimits:
         Given interior counts, labels with fewer interior voxels (all face neighbours in
         the label) than this fraction of their voxels are not judged either: they are
         sheets at most two voxels thick or scatters of specks, whose Dice and surface
-        distance a half-voxel resampling shift decides.  On the frog at 1 x 1 x 1.5 mm,
-        three labels of 121-252 voxels in 26-65 pieces have no interior voxel; resampled
-        through the true warp they score Dice 0.43-0.84 and mean surface distances of
-        2.1-14.8 mm.  The thinnest label judged there at 3 mm (3 % interior) scores Dice
-        0.72 and 3.3 mm through the true warp, within the limits.
+        distance a half-voxel resampling shift decides: resampled through the true warp,
+        labels without an interior voxel can break the Dice and distance limits, while
+        labels with a few percent of interior voxels stay within them.
     max_distance_voxels : float, default 2.0
     max_distance_mm : float, default 2.0
         A judged label's mean surface distance after the warp may be at most the larger
@@ -72,15 +72,14 @@ class ReviewLimits:
         How far a judged label's Dice may fall below its Dice before registration (the
         moving labels resampled onto the fixed grid unchanged).  A registration should
         not leave a label worse than doing nothing; 0.05 leaves room for the difference
-        between nearest-neighbour resampling (before) and per-label interpolation (after),
-        0.017 of mean Dice on the frog demo.  On small labels between grids of other
-        resolutions the two readings differ by more (balls of 160 voxels at 1 mm read from
-        2 mm: 0.79 and 0.72 through the identity), so where a label's drop exceeds the limit
-        its Dice before is read again by per-label interpolation and the lower reading counts.
+        between nearest-neighbour resampling (before) and per-label interpolation (after).
+        On small labels between grids of other resolutions the two readings differ by more,
+        so where a label's drop exceeds the limit its Dice before is read again by per-label
+        interpolation and the lower reading counts.
     min_mean_dice : float, default 0.6
-        The mean Dice after the warp over the judged labels.  Registrations of the frog
-        demo pair reach 0.91-0.95 (the pair unregistered: 0.63-0.76); a mean below 0.6
-        means the images were not brought together at all.
+        The mean Dice after the warp over the judged labels.  Registrations of the demo
+        pair score far above it, and even the pair unregistered scores above it: a mean
+        below 0.6 means the images were not brought together at all.
     max_rotation_deg : float, default 60.0
         The linear part's rotation angle.  Scans of one anatomy differ in pose by up to
         about 45 degrees; a larger angle (often 90 or 180) usually comes from an
@@ -291,18 +290,9 @@ def label_voxel_counts(array: np.ndarray) -> tuple[dict[int, int], dict[int, int
         for lo, hi in ((0, -2), (2, None)):
             shifted = tuple(slice(lo, hi) if k == axis else inner[k] for k in range(a.ndim))
             interior_core &= core == a[shifted]
-    voxels = _counts(a)
-    inside = _counts(core[interior_core])
+    voxels = label_counts(a)
+    inside = label_counts(core[interior_core])
     return voxels, {v: inside.get(v, 0) for v in voxels}
-
-
-def _counts(values: np.ndarray) -> dict[int, int]:
-    """Count of each non-zero value of an integer array."""
-    if values.size and values.min() >= 0 and values.max() < 2**24:
-        c = np.bincount(values.ravel().astype(np.int64))
-        return {int(v): int(c[v]) for v in np.flatnonzero(c) if v != 0}
-    labels, c = np.unique(values, return_counts=True)
-    return {int(v): int(n) for v, n in zip(labels, c) if v != 0}
 
 
 def judged_labels(labels: Iterable[int], *, label_voxels: Mapping[int, int],
@@ -430,68 +420,90 @@ def review_registration(
     judged = judged_labels(scores_after, label_voxels=label_voxels, label_interior=label_interior,
                            cut_labels=cut_labels, limits=limits)
     findings: list[Finding] = []
-
-    # The linear part.
     if linear is not None:
-        if not isinstance(linear, Mapping) or "rotation_deg" not in linear or "scales" not in linear:
-            raise ValueError("Expected `linear` as LinearMap.describe() output (with 'rotation_deg' and 'scales') "
-                             f"or None, got {linear!r}.")
-        angle = float(linear["rotation_deg"])
-        if angle > limits.max_rotation_deg:
-            findings.append(Finding(
-                None, "rotation_deg", angle, limits.max_rotation_deg,
-                f"the linear part rotates the images by {_number(angle, limits.max_rotation_deg, 1)} deg "
-                f"(limit {limits.max_rotation_deg:.1f} deg), likely a wrong orientation header or a wrong pairing "
-                "of images; check both images' headers, or try `[linear] kind = \"rigid\"` (or \"none\" for "
-                "images already aligned)."))
-        scales = [float(s) for s in linear["scales"]]
-        low, high = min(scales), max(scales)
-        for value, limit, side in ((low, limits.min_scale, "below"), (high, limits.max_scale, "above")):
-            if (value < limit) if side == "below" else (value > limit):
-                findings.append(Finding(
-                    None, "scale", value, limit,
-                    f"the linear part scales the images by {_number(value, limit, 2)} along one axis "
-                    f"({side} the limit {limit:.2f}), likely a wrong voxel spacing in a header or a wrong pairing "
-                    "of images; check both images' spacings, or try `[linear] kind = \"rigid\"`."))
-
-    # The kernel warp, left out.
+        findings += _linear_findings(linear, limits)
     if kernel_warp is not None and kernel_warp.get("kept") == "linear":
-        by_linear, by_warp = float(kernel_warp["dice_linear"]), float(kernel_warp["dice_warp"])
-        findings.append(Finding(
-            None, "kernel_warp_dice_drop", by_linear - by_warp, float(kernel_warp.get("margin", 0.0)),
-            f"the kernel warp lowered the labels' pooled Dice from {by_linear:.3f} (the linear part alone) to "
-            f"{by_warp:.3f}, so the result is the linear part alone; labels only a few voxels across at the "
-            f"largest voxel spacing of the two grids ({float(voxel_mm):.3g} mm, which sets the features' scale) cannot "
-            "drive a warp" + (f", and labels {cut_labels[:10]} are cut by an image edge or absent from one "
-                              "volume" if cut_labels else "")
-            + ": check the labels' size against that spacing and what each image covers, or use the result as a "
-            "linear one."))
-
-    # Folding.
+        findings.append(_kernel_warp_left_out(kernel_warp, float(voxel_mm), cut_labels))
     if folded_fraction > limits.max_folded_fraction:
         findings.append(Finding(
             None, "folded_fraction", float(folded_fraction), limits.max_folded_fraction,
             f"the warp folds (det d tau/dx <= 0) at {100 * folded_fraction:.2g} % of the fixed labels' voxels "
             f"(limit {100 * limits.max_folded_fraction:.2g} %); try a larger `[warp] lambda_fold` or `min_width`."))
-
-    # Overlap and distance of the judged labels.
     after = {v: _check_scores("scores_after", scores_after, v, ("dice", "mean_surface_distance_mm")) for v in judged}
-    if not judged and any(int(v) != 0 for v in scores_after):
+    findings += _overall_findings(judged, after, scores_after, limits)
+    findings += _label_findings(judged, after, scores_before, dice_before_interpolated,
+                                limits.max_distance(float(voxel_mm)), limits)
+    return findings
+
+
+def _linear_findings(linear: Mapping, limits: ReviewLimits) -> list[Finding]:
+    """Findings on the linear part (:meth:`~volreg.warp.linear.LinearMap.describe`): its rotation
+    angle, then its smallest and largest scales."""
+    if not isinstance(linear, Mapping) or "rotation_deg" not in linear or "scales" not in linear:
+        raise ValueError("Expected `linear` as LinearMap.describe() output (with 'rotation_deg' and 'scales') "
+                         f"or None, got {linear!r}.")
+    findings = []
+    angle = float(linear["rotation_deg"])
+    if angle > limits.max_rotation_deg:
         findings.append(Finding(
-            None, "judged_labels", 0.0, 1.0,
-            f"no label could be judged on Dice or boundary distance (each is under {limits.min_voxels} voxels in "
-            "the fixed volume, a thin sheet, cut by an image edge, or absent from the moving volume), so the "
-            "result was not checked; look at report.png."))
-    if judged:
-        mean_dice = sum(float(after[v]["dice"]) for v in judged) / len(judged)
-        if mean_dice < limits.min_mean_dice:
+            None, "rotation_deg", angle, limits.max_rotation_deg,
+            f"the linear part rotates the images by {_number(angle, limits.max_rotation_deg, 1)} deg "
+            f"(limit {limits.max_rotation_deg:.1f} deg), likely a wrong orientation header or a wrong pairing "
+            "of images; check both images' headers, or try `[linear] kind = \"rigid\"` (or \"none\" for "
+            "images already aligned)."))
+    scales = [float(s) for s in linear["scales"]]
+    low, high = min(scales), max(scales)
+    for value, limit, side in ((low, limits.min_scale, "below"), (high, limits.max_scale, "above")):
+        if (value < limit) if side == "below" else (value > limit):
             findings.append(Finding(
-                None, "mean_dice", mean_dice, limits.min_mean_dice,
-                f"the mean Dice after registration is {_number(mean_dice, limits.min_mean_dice, 2)} over "
-                f"{len(judged)} judged labels (limit {limits.min_mean_dice:.2f}): the images were not brought "
-                "together; check that they show the same anatomy with the same label values, or try "
-                "`[linear] kind = \"rigid\"`.", tuple(judged)))
-    max_distance = limits.max_distance(float(voxel_mm))
+                None, "scale", value, limit,
+                f"the linear part scales the images by {_number(value, limit, 2)} along one axis "
+                f"({side} the limit {limit:.2f}), likely a wrong voxel spacing in a header or a wrong pairing "
+                "of images; check both images' spacings, or try `[linear] kind = \"rigid\"`."))
+    return findings
+
+
+def _kernel_warp_left_out(kernel_warp: Mapping, voxel_mm: float, cut_labels: list[int]) -> Finding:
+    """The finding that the kernel warp was left out because it lowered the labels' pooled Dice."""
+    by_linear, by_warp = float(kernel_warp["dice_linear"]), float(kernel_warp["dice_warp"])
+    return Finding(
+        None, "kernel_warp_dice_drop", by_linear - by_warp, float(kernel_warp.get("margin", 0.0)),
+        f"the kernel warp lowered the labels' pooled Dice from {by_linear:.3f} (the linear part alone) to "
+        f"{by_warp:.3f}, so the result is the linear part alone; labels only a few voxels across at the "
+        f"largest voxel spacing of the two grids ({voxel_mm:.3g} mm, which sets the features' scale) cannot "
+        "drive a warp" + (f", and labels {cut_labels[:10]} are cut by an image edge or absent from one "
+                          "volume" if cut_labels else "")
+        + ": check the labels' size against that spacing and what each image covers, or use the result as a "
+        "linear one.")
+
+
+def _overall_findings(judged: list[int], after: Mapping[int, Mapping], scores_after: Mapping[int, Mapping],
+                      limits: ReviewLimits) -> list[Finding]:
+    """Findings on the judged labels as a whole: none could be judged, or their mean Dice is too low."""
+    if not judged:
+        if any(int(v) != 0 for v in scores_after):
+            return [Finding(
+                None, "judged_labels", 0.0, 1.0,
+                f"no label could be judged on Dice or boundary distance (each is under {limits.min_voxels} voxels "
+                "in the fixed volume, a thin sheet, cut by an image edge, or absent from the moving volume), so "
+                "the result was not checked; look at report.png.")]
+        return []
+    mean_dice = sum(float(after[v]["dice"]) for v in judged) / len(judged)
+    if mean_dice < limits.min_mean_dice:
+        return [Finding(
+            None, "mean_dice", mean_dice, limits.min_mean_dice,
+            f"the mean Dice after registration is {_number(mean_dice, limits.min_mean_dice, 2)} over "
+            f"{len(judged)} judged labels (limit {limits.min_mean_dice:.2f}): the images were not brought "
+            "together; check that they show the same anatomy with the same label values, or try "
+            "`[linear] kind = \"rigid\"`.", tuple(judged))]
+    return []
+
+
+def _label_findings(judged: list[int], after: Mapping[int, Mapping], scores_before: Mapping[int, Mapping],
+                    dice_before_interpolated: Mapping[int, float] | None, max_distance: float,
+                    limits: ReviewLimits) -> list[Finding]:
+    """Findings of the per-label rules, in order: mean surface distance above ``max_distance`` (mm),
+    Dice below ``limits.min_dice``, Dice drop above ``limits.max_dice_drop``."""
     distance, low_dice, drop = [], [], []
     for v in judged:
         d = float(after[v]["mean_surface_distance_mm"])
@@ -507,6 +519,7 @@ def review_registration(
             if dice_before - dice_after > limits.max_dice_drop:
                 drop.append((v, dice_before - dice_after, limits.max_dice_drop,
                              dict(before=f"{dice_before:.2f}", after=f"{dice_after:.2f}")))
+    findings: list[Finding] = []
     for rule, failures in ((_DISTANCE, distance), (_DICE, low_dice), (_DROP, drop)):
         findings += _per_label(rule, failures, limits)
     return findings

@@ -425,6 +425,53 @@ def _inside(path: Path, folder: Path) -> Path | None:
         return None
 
 
+def _discard_staging(staging: Path, created: list[Path]) -> None:
+    """Remove a staging folder, and then the folders its run ``created`` (innermost first, while empty)."""
+    _remove_tree(staging)
+    _staging_open.discard(staging)
+    _remove_directories(created)
+
+
+def _staged(final: Path) -> tuple[OutputFolder, Path]:
+    """A new staging sibling of ``final`` holding hard links to ``final``'s contents, and the record
+    of a run writing there: ``(folder, staging)``."""
+    created = make_directory(final.parent)
+    staging = _stage_path(final, "new")
+    try:
+        staging.mkdir()
+        _staging_open.add(staging)
+        if final.is_dir():
+            _link_tree(final, staging)
+    except OSError as exc:
+        _discard_staging(staging, created)
+        raise VolregIOError(f"Output directory `{final}` could not be prepared: {exc.strerror}.") from exc
+    return OutputFolder(staging, created, final=final), staging
+
+
+def _prepare(
+    final: Path, outer: OutputFolder | None, force: bool, require_empty: bool
+) -> tuple[OutputFolder, Path | None]:
+    """Check output folder ``final`` and make the record of a run writing to it: ``(folder, staging)``.
+
+    Inside the folder of an outer staged run the run writes into that run's staging folder (and is
+    swapped in with it); where ``final`` can be replaced as a whole, into a staging sibling of its
+    own (``staging``); elsewhere into ``final`` itself (``staging`` is None in both other cases).
+    """
+    relative = None if outer is None or outer.path == outer.final else _inside(final, outer.final)
+    where = final if relative is None else outer.path / relative
+    if where.exists() and not where.is_dir():
+        raise UsageError(f"Output directory `{final}` exists and is not a directory; expected a directory for -o.")
+    if relative is None:
+        recover_folder(final)
+    if require_empty and where.is_dir() and any(where.iterdir()) and not force:
+        raise UsageError(f"Output directory `{final}` exists and is not empty; pass --force to write into it.")
+    if relative is not None:
+        return OutputFolder(where, make_directory(where), final=final), None
+    if _replaceable(final):
+        return _staged(final)
+    return OutputFolder(final, make_directory(final)), None
+
+
 @contextmanager
 def output_folder(
     path: str | os.PathLike[str], force: bool = False, *, require_empty: bool = True
@@ -481,52 +528,22 @@ def output_folder(
     """
     final = Path(path)
     outer = _open_folder.get()
-    relative = None if outer is None or outer.path == outer.final else _inside(final, outer.final)
-    # inside an outer staged run: write into its staging folder, swapped in with it
-    where = final if relative is None else outer.path / relative
-    if where.exists() and not where.is_dir():
-        raise UsageError(f"Output directory `{final}` exists and is not a directory; expected a directory for -o.")
-    if relative is None:
-        recover_folder(final)
-    if require_empty and where.is_dir() and any(where.iterdir()) and not force:
-        raise UsageError(f"Output directory `{final}` exists and is not empty; pass --force to write into it.")
-    if relative is not None:
-        folder = OutputFolder(where, make_directory(where), final=final)
-        staging = held = None
-    elif _replaceable(final):
-        created = make_directory(final.parent)
-        staging = _stage_path(final, "new")
-        # Held from the staging folder's creation until the cleanup below guards it: an interrupt
-        # in between would leave the folder behind.  One that came meanwhile is raised in the try.
-        held = SignalsHeld()
-        held.__enter__()
-        try:
-            staging.mkdir()
-            _staging_open.add(staging)
-            if final.is_dir():
-                _link_tree(final, staging)
-        except BaseException as exc:
-            _remove_tree(staging)
-            _staging_open.discard(staging)
-            _remove_directories(created)
-            held.__exit__(None, None, None)
-            if isinstance(exc, OSError):
-                raise VolregIOError(f"Output directory `{final}` could not be prepared: {exc.strerror}.") from exc
-            raise
-        folder = OutputFolder(staging, created, final=final)
-    else:
-        folder = OutputFolder(final, make_directory(final))
-        staging = held = None
+    # Held from the staging folder's creation until the cleanup below guards it: an interrupt in
+    # between would leave the folder behind.  One that came meanwhile is raised in the try.
+    held = SignalsHeld()
+    held.__enter__()
+    try:
+        folder, staging = _prepare(final, outer, force, require_empty)
+    except BaseException:
+        held.__exit__(None, None, None)
+        raise
     token = _open_folder.set(folder)
     try:
-        if held is not None:
-            held.__exit__(None, None, None)
+        held.__exit__(None, None, None)
         yield folder
     except BaseException:
         if staging is not None:
-            _remove_tree(staging)
-            _staging_open.discard(staging)
-            _remove_directories(folder.created)
+            _discard_staging(staging, folder.created)
             if final.is_dir() and any(final.iterdir()):
                 _kept.append(final)
         else:
@@ -538,9 +555,7 @@ def output_folder(
         try:
             _swap_in(staging, final)
         except BaseException:
-            _remove_tree(staging)  # where the swap had not begun: the run's outputs go with it
-            _staging_open.discard(staging)
-            _remove_directories(folder.created)
+            _discard_staging(staging, folder.created)  # where the swap had not begun: the run's outputs go with it
             raise
     elif outer is not None:
         outer._adopt(folder)

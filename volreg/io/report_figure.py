@@ -1,9 +1,9 @@
 """PNG figures of one registration: labels, warped labels and the deformed grid; error maps.
 
 The registration's report figure (:func:`write_report_figure`) is drawn straight into an
-RGB array and encoded by Pillow: a registration writes one with every run, and drawn with
-matplotlib it took 0.35 s, and importing matplotlib 0.25 s more, on the 100-label parcellation
-(Pillow: 0.08 s), while the whole command takes about 8 s.  The consistency test's error maps
+RGB array and encoded by Pillow: a registration writes one with every run, and drawing it
+with matplotlib (and importing matplotlib) would take a noticeable share of the command's
+time.  The consistency test's error maps
 (:func:`write_error_figure`), which need a colour bar, are drawn with matplotlib's Agg
 canvas (no pyplot, no GUI backend), imported only then.  Both are written atomically like
 every other output of :mod:`volreg.io`.
@@ -15,7 +15,7 @@ import os
 from collections.abc import Sequence
 from functools import lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -95,8 +95,10 @@ def _bbox_centre(labels: np.ndarray) -> tuple[int, ...]:
     return tuple(centre)
 
 
-# (plane name, fixed axis, in-plane axes (horizontal, vertical)) in ITK index order i, j, k.
-_PLANES_3D = (("axial", 2, (0, 1)), ("coronal", 1, (0, 2)), ("sagittal", 0, (1, 2)))
+#: A plane of the figure: its name, the axis its slices are taken across (None for a 2-D image)
+#: and its in-plane axes (horizontal, vertical), in ITK index order i, j, k.
+_Plane = tuple[str, int | None, tuple[int, int]]
+_PLANES_3D: tuple[_Plane, ...] = (("axial", 2, (0, 1)), ("coronal", 1, (0, 2)), ("sagittal", 0, (1, 2)))
 _AXIS_NAMES = "ijk"
 
 
@@ -236,6 +238,129 @@ def _spacing(name: str, value: Sequence[float] | npt.ArrayLike, ndim: int) -> np
     return sp
 
 
+class _ReportInputs(NamedTuple):
+    """The checked inputs of :func:`write_report_figure`."""
+
+    fix: np.ndarray  #: fixed labels, (X, Y[, Z])
+    mov: np.ndarray  #: moving labels, (X', Y'[, Z'])
+    war: np.ndarray  #: warped moving labels, (X, Y[, Z])
+    disp: np.ndarray  #: displacement, (X, Y[, Z], D), in fixed-grid voxels or turned into them by ``to_voxels``
+    to_voxels: np.ndarray | None  #: (D, D) float, or None
+    fsp: np.ndarray  #: fixed voxel sizes, (D,) mm
+    msp: np.ndarray  #: moving voxel sizes, (D,) mm
+
+
+def _report_inputs(fixed, moving, warped, displacement, fixed_spacing, moving_spacing, title,
+                   to_voxels) -> _ReportInputs:
+    """Check the arrays, spacings and title of :func:`write_report_figure` (in that order) and
+    return them as arrays; raise :class:`VolregIOError` naming the first that does not fit."""
+    fix = _labels_array("fixed", fixed, "(X, Y, Z)")
+    ndim = fix.ndim
+    dims = "(X, Y, Z)" if ndim == 3 else "(X, Y)"
+    mov = _labels_array("moving", moving, "(X', Y', Z')")
+    if mov.ndim != ndim:
+        primes = "(X', Y', Z')" if ndim == 3 else "(X', Y')"
+        raise VolregIOError(
+            f"Expected `moving` of shape {primes} ({ndim}-D like `fixed`), got {_shape_str(mov.shape)}."
+        )
+    war = _labels_array("warped", warped, dims)
+    if war.shape != fix.shape:
+        raise VolregIOError(
+            f"Expected `warped` of shape {dims} = {_shape_str(fix.shape)}, got {_shape_str(war.shape)}."
+        )
+    disp = np.asarray(displacement)
+    want = fix.shape + (ndim,)
+    disp_dims = dims[:-1] + f", {ndim})"
+    if disp.shape != want:
+        raise VolregIOError(
+            f"Expected `displacement` of shape {disp_dims} = {_shape_str(want)}, got {_shape_str(disp.shape)}."
+        )
+    if disp.dtype.kind not in "fiu":
+        raise VolregIOError(f"Expected `displacement` of real dtype (voxels), got {disp.dtype}.")
+    if to_voxels is not None:
+        to_voxels = np.asarray(to_voxels, dtype=float)
+        if to_voxels.shape != (ndim, ndim) or not np.all(np.isfinite(to_voxels)):
+            raise VolregIOError(f"Expected `to_voxels` of shape ({ndim}, {ndim}), finite, got shape {to_voxels.shape}.")
+    fsp = _spacing("fixed_spacing", fixed_spacing, ndim)
+    msp = _spacing("moving_spacing", moving_spacing, ndim)
+    if title is not None and not isinstance(title, str):
+        raise VolregIOError(f"Expected `title` to be a string or None, got {type(title).__name__}.")
+    return _ReportInputs(fix, mov, war, disp, to_voxels, fsp, msp)
+
+
+# Layout of the report figure, in pixels at 100 dots per inch: the margins left and right of the
+# panels, the gap between columns, the margin below the last row and the gap between rows.
+_LEFT, _RIGHT, _GAP_W = 49, 7, 16
+_BOTTOM, _GAP_H = 15, 40
+
+
+def _row_heights(inputs: _ReportInputs, planes: tuple[_Plane, ...], panel_w: float) -> list[int]:
+    """Each row's height (px): the taller of its fixed and moving panels (physical height over
+    width, kept within 0.3 to 2) at width ``panel_w`` px."""
+    fix, mov, fsp, msp = inputs.fix, inputs.mov, inputs.fsp, inputs.msp
+    row_h = []
+    for _, _, (ah, av) in planes:
+        ratio = max(
+            fix.shape[av] * fsp[av] / (fix.shape[ah] * fsp[ah]),
+            mov.shape[av] * msp[av] / (mov.shape[ah] * msp[ah]),
+        )
+        row_h.append(int(round(panel_w * float(np.clip(ratio, 0.3, 2.0)))))
+    return row_h
+
+
+def _row_panels(inputs: _ReportInputs, plane: _Plane, fc: tuple[int, ...], mc: tuple[int, ...],
+                box: tuple[float, float]) -> tuple[list, list[str | None]]:
+    """The four panels of one plane's row (Pillow images fitted into ``box = (w, h)`` px), through
+    the fixed centre ``fc`` (the moving panel: ``mc``), and the note under each (or None)."""
+    from PIL import Image
+
+    _, axis, (ah, av) = plane
+    fix_aspect = float(inputs.fsp[av] / inputs.fsp[ah])
+    mov_aspect = float(inputs.msp[av] / inputs.msp[ah])
+    fix_sl = _take(inputs.fix, axis, fc[axis] if axis is not None else 0)
+    mov_sl = _take(inputs.mov, axis, mc[axis] if axis is not None else 0)
+    war_sl = _take(inputs.war, axis, fc[axis] if axis is not None else 0)
+    disp_sl = _take(inputs.disp, axis, fc[axis] if axis is not None else 0).astype(float, copy=False)
+    if inputs.to_voxels is not None:
+        disp_sl = disp_sl @ inputs.to_voxels
+    disp_sl = disp_sl[..., [ah, av]]
+    fix_size, mov_size = _fit(fix_sl.shape, fix_aspect, box), _fit(mov_sl.shape, mov_aspect, box)
+    grid, step = _grid_panel(fix_sl, disp_sl, fix_size)
+    panels = [
+        Image.fromarray(_labels_panel(fix_sl, fix_size), "RGB"),
+        Image.fromarray(_labels_panel(mov_sl, mov_size), "RGB"),
+        Image.fromarray(_labels_panel(war_sl, fix_size, contours=fix_sl), "RGB"),
+        grid,
+    ]
+    notes = [None, None if axis is None else f"moving {_AXIS_NAMES[axis]}={mc[axis]}", None,
+             f"grid every {step} voxels ({_AXIS_NAMES[ah]} to the right, {_AXIS_NAMES[av]} up)"]
+    return panels, notes
+
+
+def _paste_row(canvas, draw, panels: list, notes: list[str | None], y0: int, panel_w: float, *,
+               column_titles: bool, row_title: str) -> None:
+    """Paste one row's panels at height ``y0`` px, centred in their columns and framed, with the
+    notes under them, the column titles above them (``column_titles``) and ``row_title`` rotated
+    at their left."""
+    from PIL import Image, ImageDraw
+
+    for col, (panel, note) in enumerate(zip(panels, notes)):
+        x0 = int(round(_LEFT + col * (panel_w + _GAP_W) + (panel_w - panel.width) / 2))
+        canvas.paste(panel, (x0, y0))
+        draw.rectangle((x0 - 1, y0 - 1, x0 + panel.width, y0 + panel.height), outline=(0, 0, 0))
+        centre = x0 + panel.width / 2
+        if column_titles:
+            _text(draw, (centre, y0 - 6), _COLUMNS[col], 15, "mb")
+        if note is not None:
+            _text(draw, (centre, y0 + panel.height + 3), note, 12, "mt")
+        if col == 0:
+            size = draw.textbbox((0, 0), row_title, font=_font(15))
+            label = Image.new("RGB", (size[2] + 2, size[3] + 2), (255, 255, 255))
+            _text(ImageDraw.Draw(label), (1, 1), row_title, 15, "la")
+            label = label.rotate(90, expand=True)
+            canvas.paste(label, (max(0, x0 - 6 - label.width), int(y0 + (panel.height - label.height) / 2)))
+
+
 def write_report_figure(
     path: str | os.PathLike[str],
     fixed: npt.ArrayLike,
@@ -299,58 +424,18 @@ def write_report_figure(
     p = Path(path)
     if not p.name.lower().endswith(".png") or p.name.lower() == ".png":
         raise VolregIOError(f"Expected `path` ending in `.png` (a PNG file name), got `{p}`.")
-    fix = _labels_array("fixed", fixed, "(X, Y, Z)")
-    ndim = fix.ndim
-    dims = "(X, Y, Z)" if ndim == 3 else "(X, Y)"
-    mov = _labels_array("moving", moving, "(X', Y', Z')")
-    if mov.ndim != ndim:
-        primes = "(X', Y', Z')" if ndim == 3 else "(X', Y')"
-        raise VolregIOError(
-            f"Expected `moving` of shape {primes} ({ndim}-D like `fixed`), got {_shape_str(mov.shape)}."
-        )
-    war = _labels_array("warped", warped, dims)
-    if war.shape != fix.shape:
-        raise VolregIOError(
-            f"Expected `warped` of shape {dims} = {_shape_str(fix.shape)}, got {_shape_str(war.shape)}."
-        )
-    disp = np.asarray(displacement)
-    want = fix.shape + (ndim,)
-    disp_dims = dims[:-1] + f", {ndim})"
-    if disp.shape != want:
-        raise VolregIOError(
-            f"Expected `displacement` of shape {disp_dims} = {_shape_str(want)}, got {_shape_str(disp.shape)}."
-        )
-    if disp.dtype.kind not in "fiu":
-        raise VolregIOError(f"Expected `displacement` of real dtype (voxels), got {disp.dtype}.")
-    if to_voxels is not None:
-        to_voxels = np.asarray(to_voxels, dtype=float)
-        if to_voxels.shape != (ndim, ndim) or not np.all(np.isfinite(to_voxels)):
-            raise VolregIOError(f"Expected `to_voxels` of shape ({ndim}, {ndim}), finite, got shape {to_voxels.shape}.")
-    fsp = _spacing("fixed_spacing", fixed_spacing, ndim)
-    msp = _spacing("moving_spacing", moving_spacing, ndim)
-    if title is not None and not isinstance(title, str):
-        raise VolregIOError(f"Expected `title` to be a string or None, got {type(title).__name__}.")
-
-    fc = _bbox_centre(fix)
-    mc = _bbox_centre(mov)
-    if ndim == 3:
-        planes: tuple[tuple[str, int | None, tuple[int, int]], ...] = _PLANES_3D
+    inputs = _report_inputs(fixed, moving, warped, displacement, fixed_spacing, moving_spacing, title, to_voxels)
+    fc = _bbox_centre(inputs.fix)
+    mc = _bbox_centre(inputs.mov)
+    if inputs.fix.ndim == 3:
+        planes: tuple[_Plane, ...] = _PLANES_3D
     else:
         planes = (("slice", None, (0, 1)),)
 
-    # Layout, in pixels at 100 dots per inch: each row's height follows the taller of its fixed
-    # and moving panels (physical h / w); panels are fitted into their boxes, top-aligned.
-    left, right, gap_w = 49, 7, 16
-    panel_w = (_WIDTH_PX - left - right - 3 * gap_w) / 4
-    row_h = []
-    for _, _, (ah, av) in planes:
-        ratio = max(
-            fix.shape[av] * fsp[av] / (fix.shape[ah] * fsp[ah]),
-            mov.shape[av] * msp[av] / (mov.shape[ah] * msp[ah]),
-        )
-        row_h.append(int(round(panel_w * float(np.clip(ratio, 0.3, 2.0)))))
-    top, bottom, gap_h = (95 if title else 45), 15, 40
-    height = top + bottom + sum(row_h) + gap_h * (len(planes) - 1)
+    panel_w = (_WIDTH_PX - _LEFT - _RIGHT - 3 * _GAP_W) / 4
+    row_h = _row_heights(inputs, planes, panel_w)
+    top = 95 if title else 45
+    height = top + _BOTTOM + sum(row_h) + _GAP_H * (len(planes) - 1)
 
     from PIL import Image, ImageDraw
 
@@ -359,44 +444,12 @@ def write_report_figure(
     if title:
         _text(draw, (_WIDTH_PX / 2, 15), title, 19, "mt")
     y0 = top
-    for row, (name, axis, (ah, av)) in enumerate(planes):
-        fix_aspect = float(fsp[av] / fsp[ah])
-        mov_aspect = float(msp[av] / msp[ah])
+    for row, plane in enumerate(planes):
+        name, axis, _ = plane
+        panels, notes = _row_panels(inputs, plane, fc, mc, (panel_w, float(row_h[row])))
         where = "" if axis is None else f" {_AXIS_NAMES[axis]}={fc[axis]}"
-        fix_sl = _take(fix, axis, fc[axis] if axis is not None else 0)
-        mov_sl = _take(mov, axis, mc[axis] if axis is not None else 0)
-        war_sl = _take(war, axis, fc[axis] if axis is not None else 0)
-        disp_sl = _take(disp, axis, fc[axis] if axis is not None else 0).astype(float, copy=False)
-        if to_voxels is not None:
-            disp_sl = disp_sl @ to_voxels
-        disp_sl = disp_sl[..., [ah, av]]
-        box = (panel_w, float(row_h[row]))
-        fix_size, mov_size = _fit(fix_sl.shape, fix_aspect, box), _fit(mov_sl.shape, mov_aspect, box)
-        grid, step = _grid_panel(fix_sl, disp_sl, fix_size)
-        panels = [
-            Image.fromarray(_labels_panel(fix_sl, fix_size), "RGB"),
-            Image.fromarray(_labels_panel(mov_sl, mov_size), "RGB"),
-            Image.fromarray(_labels_panel(war_sl, fix_size, contours=fix_sl), "RGB"),
-            grid,
-        ]
-        notes = [None, None if axis is None else f"moving {_AXIS_NAMES[axis]}={mc[axis]}", None,
-                 f"grid every {step} voxels ({_AXIS_NAMES[ah]} to the right, {_AXIS_NAMES[av]} up)"]
-        for col, (panel, note) in enumerate(zip(panels, notes)):
-            x0 = int(round(left + col * (panel_w + gap_w) + (panel_w - panel.width) / 2))
-            canvas.paste(panel, (x0, y0))
-            draw.rectangle((x0 - 1, y0 - 1, x0 + panel.width, y0 + panel.height), outline=(0, 0, 0))
-            centre = x0 + panel.width / 2
-            if row == 0:
-                _text(draw, (centre, y0 - 6), _COLUMNS[col], 15, "mb")
-            if note is not None:
-                _text(draw, (centre, y0 + panel.height + 3), note, 12, "mt")
-            if col == 0:
-                size = draw.textbbox((0, 0), f"{name}{where}", font=_font(15))
-                label = Image.new("RGB", (size[2] + 2, size[3] + 2), (255, 255, 255))
-                _text(ImageDraw.Draw(label), (1, 1), f"{name}{where}", 15, "la")
-                label = label.rotate(90, expand=True)
-                canvas.paste(label, (max(0, x0 - 6 - label.width), int(y0 + (panel.height - label.height) / 2)))
-        y0 += row_h[row] + gap_h
+        _paste_row(canvas, draw, panels, notes, y0, panel_w, column_titles=row == 0, row_title=f"{name}{where}")
+        y0 += row_h[row] + _GAP_H
 
     with atomic_output(p, force=force) as tmp:
         try:
