@@ -4,8 +4,8 @@ The locational cost (3)-(6) has one feature pair per label, and each label's
 feature is evaluated only at the samples near its surface: with hundreds of
 labels, a few dozen points each.  Evaluated one by one, such a feature costs far
 more in Python calls and in starting and joining parallel loops than in
-arithmetic (500 labels: 28,000 feature evaluations per objective call, 1,000
-calls of ``evaluate``, 0.12 s).  :class:`FeatureBatch` concatenates the kernel
+arithmetic (hundreds of labels: tens of thousands of feature evaluations per
+objective call).  :class:`FeatureBatch` concatenates the kernel
 grids of implicit surfaces and the spline coefficients of voxel distance maps
 once, and evaluates every feature at its segment of one array of points in one
 compiled loop per kind, parallel over the features.  The values are those of the
@@ -28,7 +28,7 @@ from volreg.kernels.grid import max_runs
 __all__ = ["FeatureBatch"]
 
 #: Fewest queries per part of the implicit surfaces' sums (each query sums every level of its
-#: surface: about 3 microseconds on the parcellation).
+#: surface, so a part of this many outweighs the cost of handing it to a thread).
 _QUERIES = 64
 
 
@@ -74,8 +74,8 @@ class _Implicit:
         val = np.zeros((n, 1))
         grad = np.zeros((n, 1, dim)) if order >= 1 else np.zeros((0, 1, dim))
         hess = np.zeros((n, 1, dim, dim)) if order >= 2 else np.zeros((0, 1, dim, dim))
-        # Parts of equal numbers of points, not of features: one feature may hold most of them (the
-        # 100-label parcellation's white core, 42 % of the samples), and parts of whole features
+        # Parts of equal numbers of points, not of features: one feature may hold most of them (a
+        # parcellation's white core, under the many parcels), and parts of whole features
         # kept the second thread idle most of the time.
         run_parts(_segmented_sums, n, points, rstart, self.jobs, self.poff, self.soff, self.px,
                   self.py, self.pz, self.coef, self.start, self.lo, self.cell, self.dims, self.sigma, self.max_runs,
@@ -230,8 +230,8 @@ class FeatureBatch:
             if order >= 1:
                 out[1] = out[1] @ a / s
             if order >= 2:
-                # Not a compiled loop: 0.4 against 0.5 ms for 7,000 points, and 0.27 s less of a
-                # first run's compiling.
+                # Not a compiled loop: as fast at these sizes, and one loop less for a first run
+                # to compile.
                 out[2] = congruence(out[2], a) / s
         return tuple(out)
 

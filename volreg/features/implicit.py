@@ -56,9 +56,8 @@ SPACING_SAMPLE = 20000
 def _median_spacing(tree: cKDTree) -> float:
     """Median distance from each of the tree's points to its nearest other point, mm.
 
-    Over every k-th point where there are more than twice :data:`SPACING_SAMPLE` (a 1 mm
-    brain-size label's 482,000 vertices: 0.36 s of one core for all of them; the median of
-    a sample of 20,000 is within about 1 % of it).
+    Over every k-th point where there are more than twice :data:`SPACING_SAMPLE` (the
+    median of such a sample is close to that of all the points, at a fraction of the search).
     """
     data = tree.data
     step = max(len(data) // SPACING_SAMPLE, 1) if len(data) > 2 * SPACING_SAMPLE else 1
@@ -97,7 +96,7 @@ def thin_points(points: np.ndarray, spacing: float) -> np.ndarray:
         key = np.unique(cell, axis=0, return_inverse=True)[1].ravel()
     # Per cell, the nearest point (the lowest index among equals), as ``np.lexsort((dist, key))``
     # would choose it, without sorting the distances: a stable sort of the integer keys, then
-    # each cell's least distance (482k vertices: 0.05 s instead of 0.15 s).
+    # each cell's least distance.
     order = np.argsort(key, kind="stable")
     sorted_key = key[order]
     new_cell = np.ones(len(order), dtype=bool)
@@ -190,7 +189,7 @@ def _offsurface(points, normals, delta, tree) -> tuple[np.ndarray, np.ndarray]:
     for sign in (1.0, -1.0):
         p = points + sign * delta * normals
         # Only whether a surface point lies within 0.9 delta matters: the bounded search stops
-        # there (inf where none does), a third faster than the nearest point's exact distance.
+        # there (inf where none does), sooner than the nearest point's exact distance.
         dist, _ = tree.query(p, 1, distance_upper_bound=0.9 * delta, workers=query_workers())
         ok = dist >= 0.9 * delta
         pts.append(p[ok])
@@ -379,15 +378,14 @@ class ImplicitSurface:
             x = np.concatenate([sp_pts, off_pts])
             y = np.concatenate([np.zeros(len(sp_pts)), off_val])
             # The training points cell by cell: coordinate descent then updates the fitted values
-            # of near neighbours one after the other, in cache (the 1 mm phantom's grey shell,
-            # 480k vertices: 15 % faster, f within 0.04 mm of the fit in the order given).
+            # of near neighbours one after the other, in cache.
             perm = spatial_order(x, width)
             if perm is not None:
                 x, y = x[perm], y[perm]
             grid = CellGrid.build(x, width)
             residual = y - self.evaluate(x, order=0)[0]
             # Coordinate descent only walks the rows, and reads the kernel values in single precision:
-            # the sweeps read half the bytes (the sums stay double), and f moves by less than 1e-5 mm.
+            # the sweeps read half the bytes (the sums stay double, so the fit stays that of doubles).
             kmat = kernel_matrix(x, grid, width, sort=False, dtype=np.float32)
             beta = np.zeros(len(x))
             kbeta = np.zeros(len(x))
