@@ -17,11 +17,9 @@ share the same helper pool.
 
 **One BLAS thread.**  The OpenBLAS libraries that numpy and scipy bundle keep worker threads
 of their own, which busy-wait for a while after each call (L-BFGS-B's vector operations
-between two objective evaluations are such calls).  On a 2-core machine they took the cores
-from the loops' threads: on the 3 mm frog registration 332 of 3914 calls of one kernel sum
-took about 7 ms each instead of tens of microseconds, and the whole registration took 8.3 s
-instead of 4.1 s with BLAS held to one thread.  volreg's own BLAS work is small vector
-operations, which gain nothing from threads.
+between two objective evaluations are such calls).  On a machine of few cores they take the
+cores from the loops' threads, and a kernel sum that meets them waits for them.  volreg's own
+BLAS work is small vector operations, which gain nothing from threads.
 
 The number of threads is numba's (``NUMBA_NUM_THREADS``, by default the machine's cores;
 ``numba.set_num_threads`` lowers it for the calling thread).

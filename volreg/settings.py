@@ -189,9 +189,8 @@ class SurfaceSettings:
     implicit_weight : float
         Weight in the locational cost of each label's pair of kernel implicit surfaces (paper
         Section 4, fitted to the boundary meshes); 0 = not fitted.  0 by default: with the voxel
-        distance maps alone the whole command was 3-38 % faster and its endpoint error lower or
-        the same on eight of nine label pairs (the full-resolution frog's p95 rose from 0.50 to
-        0.58 mm; BENCHMARKS.md, "Voxel distance maps alone").
+        distance maps alone the whole command is faster, and its endpoint error lower or the
+        same on most label pairs (docs/method.md, "Measured and not kept").
     distance_weight : float
         Weight in the locational cost of each label's pair of voxel signed-distance maps
         (:class:`~volreg.features.distance_maps.VoxelDistance`: the paper's signed distance

@@ -68,7 +68,7 @@ class GaussianBumps:
         """``u(points)``, (N, D) mm."""
         points = np.asarray(points, float)
         # |x - p_k|^2 axis by axis: the sum in the order of ``(diff ** 2).sum(-1)``, without the
-        # (N, K, D) temporaries (3.4x faster on 300k points, the same bits)
+        # (N, K, D) temporaries (faster, and the same bits)
         d2 = np.zeros((points.shape[0], self.centres.shape[0]))
         for a in range(points.shape[1]):
             d = points[:, a, None] - self.centres[None, :, a]

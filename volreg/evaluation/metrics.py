@@ -30,11 +30,10 @@ def _boundary(mask: np.ndarray) -> np.ndarray:
 
 
 #: Below this fraction of the window's voxels on the two boundaries, nearest boundary voxels are
-#: found by k-d trees instead of distance transforms of the whole window. Label scores before
-#: and after a registration, trees against transforms, the same figures: the 32 M voxel frog's
-#: 25 labels 1.4 s against 14.1 s, the 1 mm phantom's grey shell and core 0.9 s against 1.6 s,
-#: 100 parcels 0.3 s against 0.55 s. Transforms remain for boundaries that fill much of their
-#: window (a speckled label), where a tree of every voxel would cost more.
+#: found by k-d trees instead of distance transforms of the whole window: the same figures, and
+#: a tree costs what its boundary voxels cost where a transform costs the whole window.
+#: Transforms remain for boundaries that fill much of their window (a speckled label), where a
+#: tree of every voxel would cost more.
 _TREE_FRACTION = 0.5
 
 
@@ -51,11 +50,9 @@ def _boundary_distances(ba: np.ndarray, bb: np.ndarray, spacing: np.ndarray,
     from scipy.spatial import cKDTree
 
     # A voxel on both boundaries is at distance 0 from the other: only the rest are searched.
-    # After a registration that is most of them (the 1 mm phantom's grey shell: 88 % of its
-    # 323,000 boundary voxels, 38 % before; both labels' scores 0.73 -> 0.42 s after, 0.87 ->
-    # 0.74 s before).  The distances come grouped, zeros first: their mean and percentiles are
-    # those of every voxel.  Sliding-midpoint trees: built in half the time of balanced ones
-    # (310,000 boundary voxels: 0.04 s against 0.07-0.09 s), and the nearest distances are exact either way.
+    # After a good registration that is most of them.  The distances come grouped, zeros first:
+    # their mean and percentiles are those of every voxel.  Sliding-midpoint trees: built sooner
+    # than balanced ones, and the nearest distances are exact either way.
     only_a, only_b = ba & ~bb, bb & ~ba
     both = np.zeros(int(np.count_nonzero(ba)) - int(np.count_nonzero(only_a)))
     pa, pb = np.argwhere(ba) * spacing, np.argwhere(bb) * spacing

@@ -94,8 +94,7 @@ def _bspline3_at(coef, i0, i1, i2, order, p, f, g, h, index, weight):  # pragma:
     _axis(i2, nz, iz, wz, dz, sz)
     # Separably, axis by axis (z, then y, then x): the 64 coefficients are read once and each
     # derivative is a sum over the x weights of sums over y of sums over z, 3 x 64 + 6 x 16 + 10 x 4
-    # products instead of up to 10 x 64 (order 2 at 1 M random points: 0.21 s instead of 0.28 s),
-    # and less code to compile (the loops that call it: 1.27 s instead of 1.53 s).
+    # products instead of up to 10 x 64, and less code to compile.
     v = 0.0
     gx = 0.0
     gy = 0.0
@@ -164,8 +163,8 @@ def _bspline3_segments(part, parts, coef, coff, shapes, rstart, index, order, f,
     ``index`` (N, 3): value ``f`` (N,), and for ``order`` >= 1 the gradient ``g`` (N, 3)
     and for ``order`` >= 2 the Hessian ``h`` (N, 3, 3), per index unit.  The rows in
     parallel, ``part_range(N, part, parts)`` of them per part, whichever volumes they fall
-    in.  One volume is one segment (:meth:`VoxelDistance.evaluate`): with a loop of its own for
-    that case, the two took 1.39-1.50 s of a first run's compiling, this one alone 1.17-1.25 s.
+    in.  One volume is one segment (:meth:`VoxelDistance.evaluate`): no loop of its own for
+    that case, so a first run compiles one loop instead of two.
     """
     first, stop = part_range(rstart[rstart.shape[0] - 1], part, parts)
     stencil = np.empty((3, 4), np.int64)
@@ -211,8 +210,7 @@ def _clipped_sdf_band(part, parts, mask, band, offsets, lengths, clip, out):  # 
 _POINTS = 1024
 
 #: Masks from this many voxels on get :func:`euclidean_distance`'s own separable passes: below
-#: it scipy's transform is as fast (14k voxels: 0.37 ms either way; 110k: 4.5 against 1.0 ms;
-#: the 3 mm frog's body, 870k: 69 against 10 ms).
+#: it scipy's transform is as fast.
 SEPARABLE_CELLS = 1 << 15
 
 
@@ -275,9 +273,8 @@ def euclidean_distance(mask: np.ndarray, spacing) -> np.ndarray:
 
     The values of ``scipy.ndimage.distance_transform_edt(mask, sampling=spacing)`` (exact,
     to rounding).  Masks of :data:`SEPARABLE_CELLS` voxels or more are computed by three
-    separable 1-D passes of squared distances, lines in parallel: on the full-resolution
-    frog's 500 x 500 x 161 mask 1.1 s on two threads against 8.1 s for scipy (one thread), the
-    same values.  Smaller ones go to scipy, which is as fast there.
+    separable 1-D passes of squared distances, lines in parallel (scipy's transform runs on
+    one thread), the same values.  Smaller ones go to scipy, which is as fast there.
 
     Parameters
     ----------
@@ -312,8 +309,8 @@ def clipped_signed_distance(mask: np.ndarray, spacing: np.ndarray, clip: float, 
     Equal to ``np.clip(signed_distance_map(mask, spacing), -clip, clip)`` (the same Euclidean
     distances between voxel centres), but each voxel looks only at the voxels within
     ``clip`` mm of it, and only voxels within that reach of the boundary look at all:
-    on a thin label spread over a large box (the frog's skeleton: 1.6 % of 27 M
-    voxels) this is about 20x faster than two full distance transforms.
+    on a thin label spread over a large box (a skeleton in a whole-body volume) this is
+    much less work than two full distance transforms.
 
     With ``midway``, distances are measured to the boundary half-way between the voxel
     centres of the two kinds (where marching cubes puts the surface) instead of to the
@@ -498,7 +495,7 @@ class VoxelDistance:
         # A cubic B-spline whose coefficients are the samples themselves blurs them by its
         # own kernel, of variance 1/3 voxel^2 per axis: where the asked-for blur is at least
         # that, the Gaussian makes up the rest and no prefilter is needed (the prefilter and
-        # a full Gaussian took 1 s of the 3 s of the frog's skeleton at full resolution).
+        # a full Gaussian were most of the cost of a thin label in a large volume).
         sigma = smoothing / spacing  # voxels, per axis
         if np.all(sigma**2 >= 1 / 3):
             coef = ndimage.gaussian_filter(sdf, np.sqrt(sigma**2 - 1 / 3), mode="nearest")

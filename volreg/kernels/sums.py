@@ -337,8 +337,7 @@ def kernel_matrix(rows: np.ndarray, cols: np.ndarray | CellGrid, sigma: float, *
     index_dtype = np.int32 if max(nnz, len(grid.points)) < 2**31 - 1 else np.int64
     indices = np.empty(nnz, dtype=index_dtype)
     # The values written in single precision: one compiled loop for both types, and for the
-    # implicit surfaces' coordinate descent (float32) half the fresh pages and no copy (the 1 mm
-    # phantom's grey shell: 40 M entries at its finest level, whose float64 copy took 0.35 s).
+    # implicit surfaces' coordinate descent (float32) half the fresh pages and no copy.
     data = np.empty(nnz, dtype=np.float32)
     run_parts(_grid_pairs, _query_parts(rows), *args, indptr, indices, data, True)
     if np.dtype(dtype) == np.float64:
