@@ -69,10 +69,8 @@ LOOPS = (
 #: reaches the distance maps' loops (the linear stage, the voxel distance maps, the B-spline
 #: reader) before a helper started with it could have compiled them, so it compiles those itself
 #: while the helper compiles the warp fit's and the outputs' loops in the order they are needed,
-#: and then the earlier ones from the last back, until the two meet (:func:`helper_order`).  A
-#: first ``register`` of the 3 mm frog took 2.9-3.3 s longer than a warm one starting here, 4.8-5.1 s
-#: starting at ``_clipped_sdf_band`` or ``_bspline3_segments``, 3.3-4.5 s at ``_grid_pairs``
-#: (alternating runs, two or three each).
+#: and then the earlier ones from the last back, until the two meet (:func:`helper_order`).  Of
+#: the starting points tried, this one left a first run least behind a warm one.
 HELPER_FROM = next(i for i, (_, name, _) in enumerate(LOOPS) if name == "_cell_sort")
 
 _WORD = re.compile(r"(ro:)?(bool|int32|int64|float32|float64)(?:\[([1-4])\])?")
@@ -133,10 +131,8 @@ def helper_order(cold: list[int]) -> list[int]:
 
 
 #: The kernel sums and their neighbour searches, which call the same compiled functions (cell
-#: ranges, gathers, the kernel): :func:`shares_of` keeps them on one helper.  The twelve loops on
-#: an empty cache, two helpers (alternating runs): these four on one and the other eight on the
-#: other ended at 5.9-6.3 s; the two kernel sums alone on one 7.0-7.1 s; every other loop of
-#: :func:`helper_order` 7.6-7.9 s.
+#: ranges, gathers, the kernel): :func:`shares_of` keeps them on one helper, where compiling them
+#: shares that work; split across two helpers each would compile the callees again.
 SHARED_CALLEES = ("_grid_pairs", "_blocked_sum_vector", "_query_blocks", "_cell_sort")
 
 

@@ -45,7 +45,8 @@ PRELOAD = ("numpy", "scipy.ndimage", "scipy.optimize", "scipy.sparse", "numba", 
            "volreg.progress", "volreg.outputs.registration")
 
 #: pyvista (and VTK) are loaded too, in the same way, except for these commands when no argument
-#: names a VTK file (:data:`VTK_SUFFIXES`): they do not use it, and it takes about 0.25 s.
+#: names a VTK file (:data:`VTK_SUFFIXES`): they do not use it, and importing it is a noticeable
+#: part of a short command's start.
 WITHOUT_PYVISTA = ("register", "consistency", "tune")
 
 #: File suffixes that volreg reads or writes through pyvista and VTK (meshes, point sets, ``.vti``).
