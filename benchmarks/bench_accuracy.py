@@ -68,6 +68,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import re
 import shlex
 import shutil
 import sys
@@ -369,9 +370,15 @@ def volreg_options(method: str) -> tuple[str, ...]:
     return VOLREG_METHODS[method]
 
 
+def folder_name(method: str) -> str:
+    """``method`` as one folder name (a protocol file's path has separators)."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", method)
+
+
 def run_method(method: str, pair: Pair, fixed, moving, out: Path, args) -> dict:
     """One timed run of ``method`` on ``pair`` in ``out`` (removed after scoring, its log kept beside
     it): wall seconds, peak RSS and the scores, or ``failed``."""
+    shutil.rmtree(out, ignore_errors=True)  # a run stopped before its cleanup
     out.mkdir(parents=True)
     log = out.parent / f"{out.name}.log"
     if is_volreg(method):
@@ -528,7 +535,7 @@ def main() -> None:
             if is_volreg(method):  # untimed: numba compiles what its cache lacks
                 pair = smallest[2][0]
                 warm = run_method(method, pair, smallest[1], read_labels(str(pair.moving_path)),
-                                  work / "runs" / f"warmup-{method}", args)
+                                  work / "runs" / f"warmup-{folder_name(method)}", args)
                 print(f"Untimed warm-up of `{method}` on {pair.name}: "
                       f"{warm.get('failed') or format(warm['seconds'], '.1f') + ' s'}.", flush=True)
         print("\n| pair | amplitude mm | posed | method | EPE mean / p95 (mm) | Dice (truth's) | folded | wall s |")
@@ -538,7 +545,7 @@ def main() -> None:
                 moving = read_labels(str(pair.moving_path))
                 for method in methods:
                     res = run_method(method, pair, fixed, moving,
-                                     work / "runs" / f"{cls}-s{pair.seed}-{method}", args)
+                                     work / "runs" / f"{cls}-s{pair.seed}-{folder_name(method)}", args)
                     row = {"pair": pair.name, "class": cls, "seed": pair.seed, "amplitude": pair.amplitude,
                            "posed": pair.posed, "method": method, "truth_dice": pair.info["truth_dice"],
                            "identity_epe_mean": pair.info["identity_epe_mean"], **res}
