@@ -74,6 +74,8 @@ MODULE_TIERS = {
     "test_surface_cli.py": "integration",
     "test_surface_inputs.py": "unit",
     "test_surfaces.py": "unit",
+    "test_template.py": "system",
+    "test_template_shape.py": "unit",
     "test_threads.py": "integration",
     "test_tune.py": "integration",
     "test_warp.py": "unit",

@@ -35,6 +35,8 @@ _API = {
     "register_cohort": "volreg.cohort",
     "read_manifest": "volreg.cohort",
     "CohortSummary": "volreg.cohort",
+    "build_template": "volreg.template",
+    "TemplateResult": "volreg.template",
     "LabelRegistration": "volreg.pipeline.labels",
     "RegistrationResult": "volreg.warp.fit",
     # data and files

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 __all__ = [
     "SchedulerUnavailable",
+    "TemplateError",
     "VolregError",
     "VolregIOError",
     "GeometryError",
@@ -58,6 +59,10 @@ class UsageError(VolregError, ValueError):
 
 class SchedulerUnavailable(VolregError, RuntimeError):
     """No Dask scheduler answered at the address given for a cohort (nothing was registered)."""
+
+
+class TemplateError(VolregError, RuntimeError):
+    """A cohort template cannot be built (fewer than two subjects registered to it in an iteration)."""
 
 
 class CohortInterrupted(KeyboardInterrupt):  # an interrupt, not an error: outside __all__'s errors

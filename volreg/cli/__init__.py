@@ -1,7 +1,7 @@
 """The ``volreg`` command line: parse, call the library, print.
 
 One module per command (``surface``, ``register``, ``apply``, ``protocols``, ``demo``,
-``consistency``, ``tune``, ``register-surfaces``, ``morph``, ``transfer``, ``batch``),
+``consistency``, ``tune``, ``register-surfaces``, ``morph``, ``transfer``, ``batch``, ``template``),
 each with ``add_parser(commands)`` and ``run(args)``; ``volreg --help`` lists them.
 
 Exit status is 0 on success and 2 for any invalid input (a file that cannot
@@ -24,7 +24,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from volreg import __version__
-from volreg.cli import apply, batch, consistency, demo, morph, protocols, register, register_surfaces, surface, transfer, tune
+from volreg.cli import (apply, batch, consistency, demo, morph, protocols, register, register_surfaces, surface, template,
+                        transfer, tune)
 from volreg.cli._common import EXPECTED_ERRORS, PROG, UsageError, _warn
 from volreg.errors import VolregWarning
 
@@ -32,7 +33,8 @@ __all__ = ["main", "run", "build_parser", "UsageError"]
 
 #: The commands, in the order ``volreg --help`` lists them: each module's ``add_parser(commands)``
 #: adds its subparser, whose ``run(args)`` carries the command out.
-COMMANDS = (surface, register, apply, protocols, demo, consistency, tune, register_surfaces, morph, transfer, batch)
+COMMANDS = (surface, register, apply, protocols, demo, consistency, tune, register_surfaces, morph, transfer, batch,
+            template)
 
 
 #: What every command but ``protocols`` loads, loaded before the command runs with SIGINT and
@@ -47,7 +49,7 @@ PRELOAD = ("numpy", "scipy.ndimage", "scipy.optimize", "scipy.sparse", "numba", 
 #: pyvista (and VTK) are loaded too, in the same way, except for these commands when no argument
 #: names a VTK file (:data:`VTK_SUFFIXES`): they do not use it, and importing it is a noticeable
 #: part of a short command's start.
-WITHOUT_PYVISTA = ("register", "consistency", "tune")
+WITHOUT_PYVISTA = ("register", "consistency", "tune", "template")
 
 #: File suffixes that volreg reads or writes through pyvista and VTK (meshes, point sets, ``.vti``).
 VTK_SUFFIXES = (".vti", ".vtk", ".vtp", ".ply", ".stl", ".obj")
@@ -57,7 +59,7 @@ VTK_SUFFIXES = (".vti", ".vtk", ".vtp", ".ply", ".stl", ".obj")
 #: alongside the command (:mod:`volreg.precompile`); for ``batch``, one per local worker while the
 #: cluster starts, its tasks waiting for them (not beside a remote ``--scheduler``, whose workers
 #: have caches of their own).
-COMPILE_AHEAD = ("register", "consistency", "tune", "demo", "batch")
+COMPILE_AHEAD = ("register", "consistency", "tune", "demo", "batch", "template")
 
 
 def _hold_signals():
@@ -85,7 +87,7 @@ def _preload(command: str, words: Sequence[str] = ()) -> None:
     vtk_file = any(str(w).lower().endswith(VTK_SUFFIXES) for w in words)
     for name in PRELOAD + (() if command in WITHOUT_PYVISTA and not vtk_file else ("pyvista",)):
         importlib.import_module(name)
-    if command == "batch":
+    if command in ("batch", "template"):
         try:
             importlib.import_module("dask.distributed")
         except ImportError:
@@ -235,7 +237,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             from volreg import precompile as _precompile
 
             workers = getattr(args, "workers", None) or 2
-            helpers = _precompile.start(min(workers, os.cpu_count() or 1) if args.command == "batch" else 1)
+            cohort = args.command in ("batch", "template")
+            helpers = _precompile.start(min(workers, os.cpu_count() or 1) if cohort else 1)
             args.compile_helpers = helpers
         _preload(args.command, sys.argv[1:] if argv is None else list(argv))
         from volreg.io._atomic import kept_results

@@ -1,0 +1,235 @@
+"""The numerics of a cohort template of label maps: pure functions on arrays.
+
+A template is built by :func:`volreg.template.build_template`; this module holds its steps:
+
+- the subjects' mean linear pose (:func:`mean_linear_map`, a log-Euclidean mean of their affine
+  maps from a provisional reference), so that the template's position and size are the cohort's
+  own, not the reference's;
+- the template grid that holds every aligned subject (:func:`template_grid`);
+- per-label vote counts, the template labels as their arg max with the background
+  (:func:`vote`), and each label's probability sharpness (:func:`sharpness`);
+- the shape update: the mean of the subjects' pull-back displacements ``u_bar`` over the
+  template grid says where, on average, the subjects' points lie relative to the template's; the
+  template is moved by ``phi(x) = x + u_bar(x)``, its probabilities resampled at ``phi^-1(y)``
+  (:func:`invert_displacement`, :func:`move_counts`);
+- the subjects' distances to the template and the outliers among them (:func:`rank_subjects`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import linalg, ndimage
+
+from volreg.grid import Grid
+from volreg.linear_map import LinearMap
+
+__all__ = [
+    "invert_displacement",
+    "mean_linear_map",
+    "move_counts",
+    "rank_subjects",
+    "sharpness",
+    "template_grid",
+    "vote",
+]
+
+
+def _homogeneous(m: LinearMap) -> np.ndarray:
+    d = m.dim
+    h = np.eye(d + 1)
+    h[:d, :d] = m.matrix
+    h[:d, d] = m.translation
+    return h
+
+
+def mean_linear_map(maps: list[LinearMap]) -> LinearMap:
+    """The log-Euclidean mean ``exp(mean_i log H_i)`` of affine maps in homogeneous form.
+
+    Parameters
+    ----------
+    maps : list of LinearMap
+        Maps of one dimension D (x -> A x + b, LPS mm), each with a positive determinant.
+
+    Returns
+    -------
+    LinearMap
+        The mean map; the identity for maps that are all the identity, and ``exp(log H)`` = H
+        for one map.
+
+    Raises
+    ------
+    ValueError
+        No map, or a map that mirrors (non-positive determinant: no real logarithm).
+    """
+    if not maps:
+        raise ValueError("Expected at least one linear map, got none.")
+    logs = []
+    for m in maps:
+        if np.linalg.det(m.matrix) <= 0:
+            raise ValueError(f"Expected maps with a positive determinant, got {np.linalg.det(m.matrix):.3g}.")
+        logs.append(np.real(linalg.logm(_homogeneous(m))))
+    h = np.real(linalg.expm(np.mean(logs, axis=0)))
+    d = maps[0].dim
+    return LinearMap(h[:d, :d], h[:d, d])
+
+
+def template_grid(boxes: list[tuple[np.ndarray, np.ndarray]], spacing: float, margin: float) -> Grid:
+    """An axis-aligned grid of isotropic ``spacing`` holding every box plus ``margin``.
+
+    Parameters
+    ----------
+    boxes : list of ((D,), (D,)) float arrays, mm
+        Lower and upper corners in template coordinates (LPS).
+    spacing : float, mm
+        Positive.
+    margin : float, mm
+        Added on every side.
+
+    Returns
+    -------
+    Grid
+        Identity direction; voxel centres from the union's lower corner minus ``margin``.
+    """
+    lo = np.min([b[0] for b in boxes], axis=0) - margin
+    hi = np.max([b[1] for b in boxes], axis=0) + margin
+    shape = tuple(int(n) for n in np.ceil((hi - lo) / spacing) + 1)
+    return Grid(shape, lo, np.full(len(lo), float(spacing)), np.eye(len(lo)))
+
+
+def vote(counts: np.ndarray, subjects: int, labels: np.ndarray) -> np.ndarray:
+    """The template labels: at each voxel the label with most votes, the background's votes being
+    the subjects that gave no label there; ties go to the background, then to the lower label.
+
+    Parameters
+    ----------
+    counts : (L, *shape) array
+        Votes (or probabilities times ``subjects``) per label of ``labels``.
+    subjects : int
+        The number of subjects.
+    labels : (L,) int array
+        The label values.
+
+    Returns
+    -------
+    (*shape) array of the labels' dtype (at least uint8)
+    """
+    counts = np.asarray(counts, float)
+    background = subjects - counts.sum(axis=0)
+    best = counts.argmax(axis=0)
+    top = np.take_along_axis(counts, best[None], axis=0)[0]
+    dtype = np.result_type(np.min_scalar_type(int(np.max(labels, initial=0))), np.uint8)
+    out = np.asarray(labels, dtype)[best]
+    out[top <= background] = 0
+    return out
+
+
+def sharpness(counts: np.ndarray, subjects: int, template: np.ndarray, labels: np.ndarray) -> dict[int, float]:
+    """Each label's mean probability over the template voxels it holds (1: every subject agrees).
+
+    Parameters
+    ----------
+    counts : (L, *shape) array
+    subjects : int
+    template : (*shape) int array
+        :func:`vote` of ``counts``.
+    labels : (L,) int array
+
+    Returns
+    -------
+    dict of int to float
+        Labels absent from ``template`` are left out.
+    """
+    out = {}
+    for k, v in enumerate(labels):
+        inside = template == v
+        if inside.any():
+            out[int(v)] = float(np.asarray(counts[k], float)[inside].mean() / subjects)
+    return out
+
+
+def _sample_field(field: np.ndarray, grid: Grid, points: np.ndarray) -> np.ndarray:
+    """Trilinear (bilinear) samples of a (*shape, C) field at world points (N, D); the nearest
+    edge value outside."""
+    index = grid.world_to_index(points).T
+    return np.stack([ndimage.map_coordinates(field[..., c], index, order=1, mode="nearest")
+                     for c in range(field.shape[-1])], axis=-1)
+
+
+def invert_displacement(u: np.ndarray, grid: Grid, *, iterations: int = 30, tol: float = 1e-3) -> np.ndarray:
+    """The displacement ``v`` of the inverse map: ``y + v(y) = phi^-1(y)`` for ``phi(x) = x + u(x)``.
+
+    Fixed-point iteration ``v <- -u(y + v)`` (converges where ``|grad u| < 1``, as for an
+    average of invertible warps).
+
+    Parameters
+    ----------
+    u : (*shape, D) float array, mm
+        On ``grid``.
+    grid : Grid
+    iterations : int
+        At most this many steps.
+    tol : float, mm
+        Stop once no voxel's ``v`` moves by more than this.
+
+    Returns
+    -------
+    (*shape, D) float array, mm
+    """
+    y = grid.grid_points().reshape(-1, grid.ndim)
+    flat_u = u.reshape(-1, grid.ndim)
+    v = -flat_u.copy()
+    for _ in range(iterations):
+        new = -_sample_field(u, grid, y + v)
+        step = np.abs(new - v).max(initial=0.0)
+        v = new
+        if step < tol:
+            break
+    return v.reshape(u.shape)
+
+
+def move_counts(counts: np.ndarray, grid: Grid, inverse: np.ndarray) -> np.ndarray:
+    """The vote counts moved by ``phi``: at each voxel ``y`` the counts read (linearly) at
+    ``phi^-1(y) = y + inverse(y)``.
+
+    Parameters
+    ----------
+    counts : (L, *shape) array
+    grid : Grid
+    inverse : (*shape, D) float array, mm
+        :func:`invert_displacement` of the mean displacement.
+
+    Returns
+    -------
+    (L, *shape) float32 array
+    """
+    points = grid.grid_points().reshape(-1, grid.ndim) + inverse.reshape(-1, grid.ndim)
+    index = grid.world_to_index(points).T
+    out = np.empty(counts.shape, np.float32)
+    for k in range(len(counts)):
+        out[k] = ndimage.map_coordinates(np.asarray(counts[k], np.float32), index, order=1,
+                                         mode="constant", cval=0.0).reshape(grid.shape)
+    return out
+
+
+def rank_subjects(distances: dict[str, float], *, spread: float = 3.0) -> tuple[list[str], list[str]]:
+    """Subjects ordered by their distance to the template (nearest first), and the outliers: those
+    farther than the median by more than ``spread`` robust standard deviations (1.4826 x the
+    median absolute deviation, at least 1 % of the median).
+
+    Parameters
+    ----------
+    distances : dict of str to float, mm
+        Each subject's mean distance to the template.
+    spread : float
+
+    Returns
+    -------
+    ranked, outliers : list of str
+    """
+    ranked = sorted(distances, key=lambda s: (distances[s], s))
+    if not ranked:
+        return [], []
+    values = np.array([distances[s] for s in ranked])
+    median = float(np.median(values))
+    scale = max(1.4826 * float(np.median(np.abs(values - median))), 0.01 * median, 1e-9)
+    return ranked, [s for s in ranked if distances[s] > median + spread * scale]
