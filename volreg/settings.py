@@ -257,7 +257,7 @@ class SurfaceSettings:
 
         2 voxels and 4 mm: on the label pairs of ``bench_speed.py`` and ``bench_pose.py`` (grids of
         1-3 mm) 3 voxels and 2 voxels each did worse where the clip came out further from 4-6 mm
-        (BENCHMARKS.md, "Voxel distance maps alone").
+        (docs/method.md, the voxel signed-distance maps).
         """
         return max(self.distance_clip * unit, self.min_distance_clip)
 
