@@ -11,7 +11,7 @@ The warp volume is padded 15 mm (24 % of the diameter) instead of the default 10
 distances further from the surface carry more of the shape around each point and pin the
 sliding along it (default pad: 0.67 / 1.02 / 0.91 / 0.91 %).  The samples are twice as coarse
 (``sample_scale = 2``) to pay for the larger volume.  On smoother shapes the 1 % is not reached
-(bare ellipsoid 2.4-2.8 %, 4 bumps 1.4-1.7 % with these settings; BENCHMARKS.md).
+(bare ellipsoid 2.4-2.8 %, 4 bumps 1.4-1.7 % with these settings).
 """
 
 import numpy as np

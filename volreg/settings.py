@@ -34,10 +34,8 @@ class WarpSettings:
     pad : float, mm, optional
         Padding of the warp volume X around the source surfaces; default 10 % of
         the source diameter.  A wider pad puts signed distances further from the
-        surface into the cost (11), which carry more of the shape around each point:
-        on a blob with eight bumps under a known warp, 15 mm (24 % of the diameter,
-        with ``sample_scale = 2``) took the worst of four endpoint errors from 1.02 to
-        0.90 % of the diameter; on an ellipsoid it did not help (BENCHMARKS.md).
+        surface into the cost (11), which carry more of the shape around each point and
+        pin sliding along a bumpy surface; on a smooth one it does not help.
         Resolved by :meth:`resolved`.
     min_width : float, mm, optional
         Finest kernel width; default 1/16 of the source diameter (:meth:`resolved`).

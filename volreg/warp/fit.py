@@ -365,8 +365,8 @@ def _level_schedule(diameter: float, settings: WarpSettings) -> tuple[list[float
     # Samples of the locational cost: the finest level's boxes at every level (the paper
     # samples each level at its own boxes, which leaves a coarse level a few dozen points
     # to estimate an integral over X), or `spacing` where that is finer, but no finer than
-    # a quarter of the level's kernel width: on the frog demo the coarser levels gained
-    # nothing from denser samples (BENCHMARKS.md).
+    # a quarter of the level's kernel width: a coarse level's smooth warp has nothing finer
+    # for denser samples to find.
     return widths, [max(spacing, min(width / 4, min_width)) for width in widths]
 
 
