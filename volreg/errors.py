@@ -104,18 +104,18 @@ def excerpt(value: object, limit: int = EXCERPT_CHARS, *, quote: bool = True) ->
 _QUOTED = re.compile(r"'[^']*'|\"[^\"]*\"")
 
 
-def exception_text(exc: BaseException, limit: int = EXCERPT_CHARS) -> str:
+def exception_text(exc: BaseException | str, limit: int = EXCERPT_CHARS) -> str:
     """The first line of a library's exception, as a message may carry it.
 
     Parsers quote what they failed on (``could not convert string to float: '...'``, a
     ``KeyError`` of a value read from a file): each quoted part is cut to an :func:`excerpt` of
     ``limit`` characters, and characters that are not printable are escaped.  Without any text,
-    the exception's type's name.
+    the exception's type's name.  ``exc`` may also be such a text (a library's message line).
     """
     text = str(exc).strip()
     line = text.splitlines()[0].strip() if text else ""
     if not line:
-        return type(exc).__name__
+        return type(exc).__name__ if isinstance(exc, BaseException) else ""
     parts, start = [], 0
     for found in _QUOTED.finditer(line):
         parts.append("".join(_printable(line[start:found.start()], escape_backslash=False)))

@@ -29,7 +29,7 @@ import nibabel as nib
 import numpy as np
 import SimpleITK as sitk
 
-from volreg.errors import GeometryError, VolregIOError, VolregWarning
+from volreg.errors import GeometryError, VolregIOError, VolregWarning, exception_text
 from volreg.grid import Grid, LabelVolume, as_grid
 from volreg.io._atomic import atomic_output
 from volreg.io._guards import check_image_data_files, check_readable, check_vti_size
@@ -95,7 +95,7 @@ def _sitk_reason(exc: BaseException) -> str:
         return "its axes are not orthogonal (a sheared affine; ITK supports only orthonormal directions)"
     if "Bad direction, determinant is 0" in reason:
         return "its direction matrix is singular (determinant 0); expected independent axis directions"
-    return reason.rstrip(".")
+    return exception_text(reason).rstrip(".")  # what ITK quotes of the file, cut short
 
 
 @contextlib.contextmanager
