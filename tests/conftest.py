@@ -65,6 +65,7 @@ MODULE_TIERS = {
     "test_register_pose.py": "system",
     "test_reliability.py": "integration",
     "test_reliability_files.py": "integration",
+    "test_reliability_links.py": "integration",
     "test_reliability_pairs.py": "integration",
     "test_reliability_values.py": "integration",
     "test_report_figure.py": "unit",
