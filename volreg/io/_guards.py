@@ -27,8 +27,8 @@ import numpy as np
 
 from volreg.errors import VolregIOError, exception_text, excerpt
 
-__all__ = ["max_image_bytes", "external_data_allowed", "resolves_inside", "check_readable", "check_memory", "check_image_data_files",
-           "check_mesh_sizes", "check_gifti_sizes", "check_vti_size", "check_npz"]
+__all__ = ["max_image_bytes", "external_data_allowed", "resolves_inside", "check_readable", "check_memory",
+           "check_image_data_files", "check_mesh_sizes", "check_gifti_sizes", "check_vti_size", "declared_vti", "check_npz"]
 
 #: Environment variable that allows data files outside a header's folder.
 ALLOW_EXTERNAL = "VOLREG_ALLOW_EXTERNAL_DATA"
@@ -581,6 +581,28 @@ def check_vti_size(path: Path, what: str) -> None:
     need = voxels // ratio
     if need > size:
         _declared_too_much(path, what, described, need, size)
+
+
+_VTK_XML_TYPES = {b"int8": 1, b"uint8": 1, b"int16": 2, b"uint16": 2, b"int32": 4, b"uint32": 4, b"int64": 8,
+                  b"uint64": 8, b"float32": 4, b"float64": 8}
+
+
+def declared_vti(path: Path) -> tuple[tuple[int, int, int], int, int]:
+    """What a ``.vti`` file's header declares: the points along each axis, the components of its
+    first point array and the bytes of one of them (1 where the header does not say).
+
+    Reads the start of the file only (:func:`check_vti_size` has refused what it cannot hold).
+    """
+    head = _read_head(path)
+    _, _, dims = _xml_counts(head)
+    array = re.search(rb"<PointData\b[^>]*>\s*<DataArray\b([^>]*)>", head)
+    itemsize, components = 1, 1
+    if array is not None:
+        kind = re.search(rb'\btype\s*=\s*"([^"]*)"', array.group(1))
+        count = re.search(rb'\bNumberOfComponents\s*=\s*"(\d+)"', array.group(1))
+        itemsize = _VTK_XML_TYPES.get(kind.group(1).lower(), 1) if kind else 1
+        components = max(int(count.group(1)), 1) if count else 1
+    return (dims or (0, 0, 0)), components, itemsize
 
 
 _GIFTI_TYPES = {"NIFTI_TYPE_UINT8": 1, "NIFTI_TYPE_INT8": 1, "NIFTI_TYPE_INT16": 2, "NIFTI_TYPE_UINT16": 2,
