@@ -37,7 +37,7 @@ from volreg.io.protocol import load_protocol
 from volreg.io.summary import file_sha256
 from volreg.outputs.consistency import CONSISTENCY_OUTPUTS, write_consistency_test
 from volreg.outputs.registration import REGISTRATION_OUTPUTS, write_registration
-from volreg.pipeline.checks import check_pair
+from volreg.pipeline.checks import check_pair, check_pair_headers
 from volreg.progress import ProgressBars
 
 __all__ = ["COLUMNS", "CohortSummary", "pair_folders", "pair_result_done", "plan_pairs", "read_manifest",
@@ -214,6 +214,7 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
     out, fpath, mpath = Path(outdir), Path(fixed), Path(moving)
     row = {"fixed_id": fixed_id, "moving_id": moving_id, "outdir": str(out)}
     try:
+        check_pair_headers(fpath, mpath)  # before any voxel is decompressed
         a, b = read_labels(fpath), read_labels(mpath)  # validates both; a clear error for a missing file
         sha = (file_sha256(fpath), file_sha256(mpath))
         proto = load_protocol(protocol)
