@@ -66,6 +66,7 @@ MODULE_TIERS = {
     "test_reliability.py": "integration",
     "test_reliability_files.py": "integration",
     "test_reliability_links.py": "integration",
+    "test_reliability_memory.py": "integration",
     "test_reliability_messages.py": "integration",
     "test_reliability_pairs.py": "integration",
     "test_reliability_values.py": "integration",
