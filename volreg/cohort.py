@@ -30,14 +30,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from volreg.errors import CohortInterrupted, SchedulerUnavailable, UsageError, VolregError
+from volreg.errors import CohortInterrupted, SchedulerUnavailable, UsageError, VolregError, exception_text, excerpt
 from volreg.io import atomic_output, read_labels, write_json, write_text
 from volreg.io._atomic import make_directory
 from volreg.io.protocol import load_protocol
 from volreg.io.summary import file_sha256
 from volreg.outputs.consistency import CONSISTENCY_OUTPUTS, write_consistency_test
 from volreg.outputs.registration import REGISTRATION_OUTPUTS, write_registration
-from volreg.pipeline.checks import check_pair
+from volreg.pipeline.checks import check_pair, check_pair_headers
 from volreg.progress import ProgressBars
 
 __all__ = ["COLUMNS", "CohortSummary", "pair_folders", "pair_result_done", "plan_pairs", "read_manifest",
@@ -81,29 +81,29 @@ def read_manifest(path: Path) -> list[tuple[str, Path]]:
     except OSError as exc:
         raise UsageError(f"MANIFEST `{path}` cannot be read: {exc.strerror or exc}.") from None
     except (UnicodeDecodeError, csv.Error) as exc:
-        raise UsageError(f"MANIFEST `{path}` is not a CSV file: {exc}.") from None
+        raise UsageError(f"MANIFEST `{path}` is not a CSV file: {exception_text(exc)}.") from None
     if not rows or not {"id", "path"} <= set(rows[0]):
-        read = f" (read: {','.join(str(c) for c in rows[0] if c is not None)})" if rows else ""
+        read = f" (read: {excerpt(','.join(str(c) for c in rows[0] if c is not None), quote=False)})" if rows else ""
         raise UsageError(f"MANIFEST `{path}` needs a header with the columns id,path{read} and at least one row; "
                          "expected exactly those names, without spaces around them.")
     subjects, seen = [], set()
     for i, row in zip(lines, rows):
         sid, p = (row.get("id") or "").strip(), (row.get("path") or "").strip()
         if not sid or not p:
-            raise UsageError(f"MANIFEST `{path}` line {i}: expected an id and a path, got {row}.")
+            raise UsageError(f"MANIFEST `{path}` line {i}: expected an id and a path, got {excerpt(row)}.")
         if None in row:
             raise UsageError(f"MANIFEST `{path}` line {i}: {len(row) - 1 + len(row[None])} fields where the header "
                              f"names {len(row) - 1}; expected one value per column (quote a path holding a comma).")
         if sid in seen:
-            raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` is listed twice; expected unique ids.")
+            raise UsageError(f"MANIFEST `{path}` line {i}: id `{excerpt(sid, quote=False)}` is listed twice; expected unique ids.")
         if any(c in sid for c in "/\\") or any(c < " " or c == "\x7f" for c in sid):
-            raise UsageError(f"MANIFEST `{path}` line {i}: id {sid!r} must not contain path separators or control "
+            raise UsageError(f"MANIFEST `{path}` line {i}: id {excerpt(sid)} must not contain path separators or control "
                              "characters; expected a name for its results' folder.")
         if sid in (".", ".."):
             raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` names a special folder; expected a name for its "
                              "results' folder.")
         if "\x00" in p:
-            raise UsageError(f"MANIFEST `{path}` line {i}: path {p!r} holds a NUL byte; expected a file path.")
+            raise UsageError(f"MANIFEST `{path}` line {i}: path {excerpt(p)} holds a NUL byte; expected a file path.")
         seen.add(sid)
         q = Path(p)
         subjects.append((sid, q if q.is_absolute() else path.parent / q))
@@ -214,6 +214,7 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
     out, fpath, mpath = Path(outdir), Path(fixed), Path(moving)
     row = {"fixed_id": fixed_id, "moving_id": moving_id, "outdir": str(out)}
     try:
+        check_pair_headers(fpath, mpath)  # before any voxel is decompressed
         a, b = read_labels(fpath), read_labels(mpath)  # validates both; a clear error for a missing file
         sha = (file_sha256(fpath), file_sha256(mpath))
         proto = load_protocol(protocol)

@@ -9,7 +9,12 @@ catches those keeps working.  Anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import re
+
 __all__ = [
+    "EXCERPT_CHARS",
+    "excerpt",
+    "exception_text",
     "SchedulerUnavailable",
     "TemplateError",
     "VolregError",
@@ -22,6 +27,104 @@ __all__ = [
     "UsageError",
     "VolregWarning",
 ]
+
+
+#: The most characters of a file's content that a message quotes (:func:`excerpt`).
+EXCERPT_CHARS = 40
+
+#: Where an excerpt leaves characters out.
+_ELISION = "..."
+
+
+def _printable(text: str, escape_backslash: bool) -> list[str]:
+    """``text`` as pieces that print on one line: each character that is not printable (a line
+    break, a control character, a bidirectional override) as its Python escape."""
+    pieces = []
+    for c in text:
+        if c == "\\" and escape_backslash:
+            pieces.append("\\\\")
+        elif c.isprintable():
+            pieces.append(c)
+        else:
+            pieces.append(repr(c)[1:-1])  # \n, \x00, \u202e
+    return pieces
+
+
+def _shortened(pieces: list[str], limit: int) -> str:
+    """The pieces joined, or, where they are longer than ``limit`` characters, their start and end
+    with :data:`_ELISION` between, ``limit`` characters in all."""
+    if sum(len(p) for p in pieces) <= limit:
+        return "".join(pieces)
+    keep = max(limit - len(_ELISION), 2)
+    head, tail, used = [], [], 0
+    for p in pieces:  # the start: half of what is kept, whole pieces only (an escape is not cut)
+        if used + len(p) > (keep + 1) // 2:
+            break
+        head.append(p)
+        used += len(p)
+    room = keep - used
+    for p in reversed(pieces[len(head):]):
+        if len(p) > room:
+            break
+        tail.append(p)
+        room -= len(p)
+    return "".join(head) + _ELISION + "".join(reversed(tail))
+
+
+def excerpt(value: object, limit: int = EXCERPT_CHARS, *, quote: bool = True) -> str:
+    """How a message quotes something read from a user's file: short, on one line, printable.
+
+    A message names files and says what was expected; of a file's content it shows at most this
+    excerpt, so that a file that is not what it claims to be (a key, a list of paths, or another
+    file reached through a link) is not copied onto the terminal or into a log.
+
+    Parameters
+    ----------
+    value : object
+        A string read from a file (a field, a line, a key), or a value parsed from one (its
+        ``repr`` is quoted).
+    limit : int
+        The most characters shown (escapes included, quotes not); a longer text keeps its start
+        and end, with ``...`` between.
+    quote : bool
+        Put a string in single quotes, as ``repr`` does (``'ten'``); without, it stands as it is
+        (for a text the message already sets off, e.g. in backticks).
+
+    Returns
+    -------
+    str
+        Characters that are not printable (line breaks, control characters, bidirectional
+        overrides) are escaped as Python escapes them (``\\n``, ``\\x00``, ``\\u202e``).
+    """
+    if isinstance(value, str):
+        shown = _shortened(_printable(value, escape_backslash=quote), limit)
+        return f"'{shown}'" if quote else shown
+    return _shortened(_printable(repr(value), escape_backslash=False), limit)
+
+
+_QUOTED = re.compile(r"'[^']*'|\"[^\"]*\"")
+
+
+def exception_text(exc: BaseException | str, limit: int = EXCERPT_CHARS) -> str:
+    """The first line of a library's exception, as a message may carry it.
+
+    Parsers quote what they failed on (``could not convert string to float: '...'``, a
+    ``KeyError`` of a value read from a file): each quoted part is cut to an :func:`excerpt` of
+    ``limit`` characters, and characters that are not printable are escaped.  Without any text,
+    the exception's type's name.  ``exc`` may also be such a text (a library's message line).
+    """
+    text = str(exc).strip()
+    line = text.splitlines()[0].strip() if text else ""
+    if not line:
+        return type(exc).__name__ if isinstance(exc, BaseException) else ""
+    parts, start = [], 0
+    for found in _QUOTED.finditer(line):
+        parts.append("".join(_printable(line[start:found.start()], escape_backslash=False)))
+        inner = found.group(0)
+        parts.append(inner[0] + _shortened(_printable(inner[1:-1], escape_backslash=False), limit) + inner[-1])
+        start = found.end()
+    parts.append("".join(_printable(line[start:], escape_backslash=False)))
+    return "".join(parts)
 
 
 class VolregError(Exception):

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
-from volreg.errors import ProtocolError
+from volreg.errors import ProtocolError, excerpt
 
 __all__ = ["LINEAR_KINDS", "LinearSettings", "OutputSettings", "Protocol", "ReviewSettings", "SurfaceSettings", "WarpSettings", "replace_settings", "settings_from_mapping"]
 
@@ -281,7 +281,7 @@ class LinearSettings:
 
     def __post_init__(self) -> None:
         if self.kind not in LINEAR_KINDS:
-            raise ValueError(f"Expected `kind` in {LINEAR_KINDS}, got {self.kind!r}.")
+            raise ValueError(f"Expected `kind` in {LINEAR_KINDS}, got {excerpt(self.kind)}.")
 
 
 @dataclass(frozen=True)
@@ -301,7 +301,7 @@ class ReviewSettings:
 
     def __post_init__(self) -> None:
         if not isinstance(self.strict, bool):
-            raise ValueError(f"Expected `strict` true or false, got {self.strict!r}.")
+            raise ValueError(f"Expected `strict` true or false, got {excerpt(self.strict)}.")
 
 
 @dataclass(frozen=True)
@@ -323,7 +323,7 @@ class OutputSettings:
 
     def __post_init__(self) -> None:
         if not isinstance(self.itk_h5, bool):
-            raise ValueError(f"Expected `itk_h5` true or false, got {self.itk_h5!r}.")
+            raise ValueError(f"Expected `itk_h5` true or false, got {excerpt(self.itk_h5)}.")
 
 
 @dataclass(frozen=True)
@@ -351,14 +351,14 @@ def settings_from_mapping(cls, values: Mapping[str, Any], where: str):
     kwargs = {}
     for key, value in values.items():
         if key not in fields:
-            raise ProtocolError(f"Unknown setting `{where}.{key}`; expected one of: {', '.join(sorted(fields))}.")
+            raise ProtocolError(f"Unknown setting `{where}.{excerpt(key, quote=False)}`; expected one of: {', '.join(sorted(fields))}.")
         want = fields[key].type if isinstance(fields[key].type, str) else fields[key].type.__name__
         if want == "bool":
             ok = isinstance(value, bool)
         elif "int" in want and "float" not in want:
             ok = isinstance(value, int) and not isinstance(value, bool)
             if ok and not -(2**63) <= value < 2**63:  # TOML integers are 64-bit; Python's reader takes any
-                raise ProtocolError(f"Expected `{where}.{key}` to be an integer of at most 64 bits, got {value!r}.")
+                raise ProtocolError(f"Expected `{where}.{key}` to be an integer of at most 64 bits, got {excerpt(value)}.")
         elif "float" in want:
             ok = isinstance(value, (int, float)) and not isinstance(value, bool)
             try:
@@ -369,7 +369,7 @@ def settings_from_mapping(cls, values: Mapping[str, Any], where: str):
         else:
             ok = isinstance(value, str)
         if not ok:
-            raise ProtocolError(f"Expected `{where}.{key}` to be {want.replace(' | None', '')}, got {value!r}.")
+            raise ProtocolError(f"Expected `{where}.{key}` to be {want.replace(' | None', '')}, got {excerpt(value)}.")
         kwargs[key] = value
     try:
         return cls(**kwargs)

@@ -231,6 +231,8 @@ def _run_image(args: argparse.Namespace) -> int:
 
     from volreg.grid import Grid
     from volreg.io import read_grid, read_image, read_labels, write_labels, write_scalar
+    from volreg.io.footprint import check_job_memory, image_footprint
+    from volreg.pipeline.checks import apply_peak_bytes
     from volreg.io.fields import axis_order_of, read_displacement, read_itk_composite, read_itk_linear
     from volreg.progress import ProgressBars
     from volreg.warp.field import displacement_on_grid, linear_displacement_on_grid
@@ -239,6 +241,13 @@ def _run_image(args: argparse.Namespace) -> int:
 
     interpolation = args.interpolation or "label"
     start = time.perf_counter()
+    # the job's size from the headers, before any voxel is decompressed
+    declared_reference = image_footprint(args.reference)
+    declared = image_footprint(args.image, "Label image" if interpolation in ("label", "gaussian") else "Image")
+    name = args.warp.name.lower()
+    field = image_footprint(args.warp, "Displacement field") if name.endswith((".nii", ".nii.gz")) else None
+    largest = max((declared, declared_reference, field), key=lambda f: 0 if f is None else f.voxels)
+    check_job_memory("apply", apply_peak_bytes(declared, declared_reference, field), largest)
     reference = read_grid(args.reference)
     as_labels = interpolation in ("label", "nearest", "gaussian")
     if interpolation == "nearest":  # labels, or intensities (NaN, fractions) read as they are
@@ -255,7 +264,6 @@ def _run_image(args: argparse.Namespace) -> int:
         raise UsageError(f"INPUT `{args.image}` is {source.ndim}-D but --reference `{args.reference}` is "
                          f"{reference.ndim}-D; expected an image of the warp's moving space, as many axes as the reference.")
     at = reference.grid_points()  # (X, Y, Z, 3) mm
-    name = args.warp.name.lower()
     with ProgressBars(quiet=args.quiet) as progress:
         if name.endswith(".npz"):
             warp = KernelWarp.load(args.warp)

@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
     from volreg.io import read_labels
     from volreg.io.protocol import load_protocol
     from volreg.progress import ProgressBars
-    from volreg.pipeline.checks import check_pair
+    from volreg.pipeline.checks import check_pair, check_pair_headers
 
     start = time.perf_counter()
     if (args.forward is None) != (args.backward is None):
@@ -121,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
     saved = args.forward is not None
     if saved and (args.protocol is not None or args.drive_labels is not None):
         raise UsageError("--protocol and --drive-labels apply only when registering; drop them with --forward/--backward.")
+    check_pair_headers(args.a, args.b)  # before any voxel is decompressed
     a = read_labels(args.a)
     b = read_labels(args.b)
     protocol = None if saved else load_protocol(args.protocol or "default")

@@ -60,12 +60,13 @@ def run(args: argparse.Namespace) -> int:
     from volreg.io.protocol import load_protocol
     from volreg.progress import ProgressBars
     from volreg.outputs.registration import write_registration
-    from volreg.pipeline.checks import check_pair
+    from volreg.pipeline.checks import check_pair, check_pair_headers
     from volreg.settings import LinearSettings
 
     protocol = load_protocol(args.protocol)
     if args.linear is not None:
         protocol = dataclasses.replace(protocol, linear=LinearSettings(kind=args.linear))
+    check_pair_headers(args.fixed, args.moving)  # before any voxel is decompressed
     fixed = read_labels(args.fixed)
     moving = read_labels(args.moving)
     check_pair(fixed, moving, args.fixed, args.moving, linear=protocol.linear.kind)

@@ -78,10 +78,22 @@ def _select_labels(volume: LabelVolume, image: Path, requested: list[int] | None
     return labels
 
 
+def _read_volume(image: Path) -> LabelVolume:
+    """The label volume ``image``, once its header shows that the job fits in memory (nothing is
+    decompressed before: :func:`volreg.pipeline.checks.surface_peak_bytes`)."""
+    from volreg.io import read_labels
+    from volreg.io.footprint import check_job_memory, image_footprint
+    from volreg.pipeline.checks import surface_peak_bytes
+
+    declared = image_footprint(image, "Label image")
+    check_job_memory("surface", surface_peak_bytes(declared), declared)
+    return read_labels(image)
+
+
 def run(args: argparse.Namespace) -> int:
     """``volreg surface``: meshes, implicit surfaces and their signed distances for each label."""
     from volreg.features.label_surfaces import implicit_on_grid, implicit_surfaces, label_surfaces
-    from volreg.io import read_labels, write_json, write_mesh, write_scalar
+    from volreg.io import write_json, write_mesh, write_scalar
     from volreg.io._atomic import output_folder
     from volreg.io.gifti import GiftiSurfaceMeta, write_gifti
     from volreg.progress import ProgressBars
@@ -89,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     # GIFTI POINTSETs of label meshes: in the world of the label volume, which NIfTI calls scanner RAS (code 1).
     scanner_ras = GiftiSurfaceMeta(dataspace=1, xformspace=1)
     start = time.perf_counter()
-    volume = read_labels(args.image)
+    volume = _read_volume(args.image)
     labels = _select_labels(volume, args.image, args.labels, args.skip_small)
     if args.gifti and volume.ndim != 3:
         raise UsageError(f"--gifti: `{args.image}` is a {volume.ndim}-D image, whose outlines are line segments; "

@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     from volreg.io import read_labels, write_text
     from volreg.io._atomic import output_folder
     from volreg.io.protocol import load_protocol, protocol_to_toml
-    from volreg.pipeline.checks import check_pair
+    from volreg.pipeline.checks import check_pair, check_pair_headers
     from volreg.settings import replace_settings
 
     start = time.perf_counter()
@@ -106,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
             replace_settings(protocol, values)
         except ProtocolError as exc:
             raise UsageError(f"--grid: {exc}") from None
+    check_pair_headers(args.a, args.b)  # before any voxel is decompressed
     a = read_labels(args.a)
     b = read_labels(args.b)
     check_pair(a, b, args.a, args.b, linear=protocol.linear.kind)

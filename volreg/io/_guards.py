@@ -5,8 +5,10 @@ read the data, follow data-file names wherever they lead, and report a missing d
 bad header (printing their own text to stderr).  The functions here read the header text
 themselves, cheaply, and refuse in one line naming the file:
 
-- a data file named by a MetaImage or NRRD header that lies outside the header's folder (an
-  absolute path, or one that climbs out with ``..``), unless ``VOLREG_ALLOW_EXTERNAL_DATA=1``;
+- a data file named by a MetaImage, NRRD or GIFTI header that lies outside the header's folder
+  (an absolute path, one that climbs out with ``..``, or one that a symbolic link, of the file or
+  of a folder on its way, leads out of the header's resolved folder), unless
+  ``VOLREG_ALLOW_EXTERNAL_DATA=1``;
 - a data file that is missing, unreadable or shorter than the header declares;
 - a header declaring more data than the file can hold (allowing for compression at the best
   ratio its codec can reach) or more than :func:`max_image_bytes` in memory.
@@ -23,10 +25,10 @@ from zlib import error as zlib_error
 
 import numpy as np
 
-from volreg.errors import VolregIOError
+from volreg.errors import VolregIOError, exception_text, excerpt
 
-__all__ = ["max_image_bytes", "external_data_allowed", "check_readable", "check_memory", "check_image_data_files",
-           "check_mesh_sizes", "check_gifti_sizes", "check_vti_size", "check_npz"]
+__all__ = ["max_image_bytes", "external_data_allowed", "resolves_inside", "check_readable", "check_memory",
+           "check_image_data_files", "check_mesh_sizes", "check_gifti_sizes", "check_vti_size", "declared_vti", "check_npz"]
 
 #: Environment variable that allows data files outside a header's folder.
 ALLOW_EXTERNAL = "VOLREG_ALLOW_EXTERNAL_DATA"
@@ -130,8 +132,26 @@ def _ints(text: str) -> list[int] | None:
         return None
 
 
+def resolves_inside(target: Path, folder: Path) -> bool:
+    """Whether ``target``, every symbolic link on its way followed, lies inside ``folder`` (itself resolved).
+
+    Both are resolved with :func:`os.path.realpath`, which follows links the way the system
+    does when it opens the file (a ``..`` after a link climbs from the link's target); a target
+    that does not exist is resolved as far as it goes.
+    """
+    real_folder = os.path.realpath(folder)
+    real_target = os.path.realpath(target)
+    return os.path.commonpath([real_folder, real_target]) == real_folder
+
+
 def _data_file_location(header: Path, name: str, what: str) -> Path:
-    """The data file ``name`` of ``header``: refused outside the header's folder unless allowed."""
+    """The data file ``name`` of ``header``: refused outside the header's folder unless allowed.
+
+    Outside is judged twice: on the name as written (an absolute path, or one that climbs out
+    with ``..``), and on where it leads once every symbolic link is followed
+    (:func:`resolves_inside`): a data file, or a folder on its way, that is a link to a file
+    elsewhere is outside too, though its name lies in the folder.
+    """
     folder = header.parent
     target = Path(name)
     outside = ""
@@ -142,10 +162,13 @@ def _data_file_location(header: Path, name: str, what: str) -> Path:
         if rel == ".." or rel.startswith(".." + os.sep) or rel.startswith("../"):
             outside = "a path that climbs out of the header's folder"
         target = folder / name
+    if not outside and not resolves_inside(target, folder):
+        outside = (f"which a symbolic link leads to `{excerpt(os.path.realpath(target), 80, quote=False)}`, outside the "
+                   f"header's folder `{excerpt(os.path.realpath(folder), 80, quote=False)}`")
     if outside and not external_data_allowed():
         raise VolregIOError(
-            f"{what} `{header}` names data file `{name}`, {outside}; expected a data file in the header's folder "
-            f"(set {ALLOW_EXTERNAL}=1 to read data files elsewhere)."
+            f"{what} `{header}` names data file `{excerpt(name, 80, quote=False)}`, {outside}; expected a data file in "
+            f"the header's folder (set {ALLOW_EXTERNAL}=1 to read data files elsewhere)."
         )
     return target
 
@@ -381,7 +404,8 @@ def _ply(path: Path, head: bytes, size: int, what: str) -> None:
         if words[:1] == ["element"] and len(words) >= 3:
             count = _ints(words[2])
             if count is None or count[0] < 0:
-                raise VolregIOError(f"Mesh `{path}` declares element {words[1]} with count {words[2]!r}; expected a count.")
+                raise VolregIOError(f"Mesh `{path}` declares element {excerpt(words[1], quote=False)} with count "
+                                    f"{excerpt(words[2])}; expected a count.")
             elements.append([words[1], count[0], 0])
         elif words[:1] == ["property"] and elements:
             if words[1:2] == ["list"] and len(words) >= 3:
@@ -559,11 +583,63 @@ def check_vti_size(path: Path, what: str) -> None:
         _declared_too_much(path, what, described, need, size)
 
 
+_VTK_XML_TYPES = {b"int8": 1, b"uint8": 1, b"int16": 2, b"uint16": 2, b"int32": 4, b"uint32": 4, b"int64": 8,
+                  b"uint64": 8, b"float32": 4, b"float64": 8}
+
+
+def declared_vti(path: Path) -> tuple[tuple[int, int, int], int, int]:
+    """What a ``.vti`` file's header declares: the points along each axis, the components of its
+    first point array and the bytes of one of them (1 where the header does not say).
+
+    Reads the start of the file only (:func:`check_vti_size` has refused what it cannot hold).
+    """
+    head = _read_head(path)
+    _, _, dims = _xml_counts(head)
+    array = re.search(rb"<PointData\b[^>]*>\s*<DataArray\b([^>]*)>", head)
+    itemsize, components = 1, 1
+    if array is not None:
+        kind = re.search(rb'\btype\s*=\s*"([^"]*)"', array.group(1))
+        count = re.search(rb'\bNumberOfComponents\s*=\s*"(\d+)"', array.group(1))
+        itemsize = _VTK_XML_TYPES.get(kind.group(1).lower(), 1) if kind else 1
+        components = max(int(count.group(1)), 1) if count else 1
+    return (dims or (0, 0, 0)), components, itemsize
+
+
 _GIFTI_TYPES = {"NIFTI_TYPE_UINT8": 1, "NIFTI_TYPE_INT8": 1, "NIFTI_TYPE_INT16": 2, "NIFTI_TYPE_UINT16": 2,
                 "NIFTI_TYPE_INT32": 4, "NIFTI_TYPE_UINT32": 4, "NIFTI_TYPE_FLOAT32": 4, "NIFTI_TYPE_INT64": 8,
                 "NIFTI_TYPE_UINT64": 8, "NIFTI_TYPE_FLOAT64": 8}
-_GIFTI_ARRAY = re.compile(rb"<DataArray\b([^>]*)>", re.IGNORECASE)
-_GIFTI_ATTR = re.compile(rb'(\w+)\s*=\s*"([^"]*)"')
+#: GIFTI's encodings under each of the names nibabel takes for them (in lower case).
+_GIFTI_ENCODINGS = {
+    **dict.fromkeys(("ascii", "gifti_encoding_ascii"), "ascii"),
+    **dict.fromkeys(("b64bin", "gifti_encoding_b64bin", "base64binary"), "base64"),
+    **dict.fromkeys(("b64gz", "gifti_encoding_b64gz", "gzipbase64binary"), "gzip"),
+    **dict.fromkeys(("external", "gifti_encoding_extbin", "externalfilebinary"), "external"),
+}
+
+
+def _gifti_arrays(text: bytes) -> list[dict[str, str]]:
+    """The attributes of each ``<DataArray>`` of a GIFTI file (names in lower case), as nibabel reads them.
+
+    Parsed by expat, nibabel's own parser, so that what is checked is what nibabel will act on:
+    attributes in single quotes, character references (``&#46;&#46;/``) and entities are read
+    alike.  A file that is not well-formed gives the arrays before the fault (nibabel then fails
+    there too, but may have read those arrays' data).
+    """
+    from xml.parsers import expat
+
+    arrays: list[dict[str, str]] = []
+
+    def start(name: str, attrs: dict[str, str]) -> None:
+        if name.lower() == "dataarray":
+            arrays.append({k.lower(): v for k, v in attrs.items()})
+
+    parser = expat.ParserCreate()
+    parser.StartElementHandler = start
+    try:
+        parser.Parse(text, True)
+    except expat.ExpatError:
+        pass  # nibabel reports it
+    return arrays
 
 
 def check_gifti_sizes(path: Path, what: str) -> None:
@@ -581,8 +657,12 @@ def check_gifti_sizes(path: Path, what: str) -> None:
         text = fh.read()  # GIFTI is XML read whole by nibabel anyway; this is the file's own size
     need = memory = 0
     parts = []
-    for match in _GIFTI_ARRAY.finditer(text):
-        attrs = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in _GIFTI_ATTR.findall(match.group(1))}
+    for attrs in _gifti_arrays(text):
+        encoding = _GIFTI_ENCODINGS.get(attrs.get("encoding", "").strip().lower(), "ascii")
+        source = None
+        if encoding == "external":
+            # before anything else about the array: nibabel reads the file wherever the name leads
+            source = _data_file_location(path, attrs.get("externalfilename", ""), what)
         dims = [int(attrs[k]) for k in ("dim0", "dim1", "dim2") if k in attrs and attrs[k].strip().lstrip("-").isdigit()]
         if not dims:
             continue
@@ -592,16 +672,14 @@ def check_gifti_sizes(path: Path, what: str) -> None:
         nbytes = int(np.prod(dims, dtype=object)) * item
         memory += nbytes
         parts.append(" x ".join(map(str, dims)))
-        encoding = attrs.get("encoding", "").lower()
-        if encoding == "externalfilebinary":
-            name = attrs.get("externalfilename", "")
-            source = _data_file_location(path, name, what)
-            have = _check_data_file(path, source, what) - int(attrs.get("externalfileoffset", "0") or 0)
+        if encoding == "external":
+            offset = _ints(attrs.get("externalfileoffset", "") or "0") or [0]
+            have = _check_data_file(path, source, what) - offset[0]
             if have < nbytes:
                 _declared_too_much(path, what, f"a data array of {parts[-1]}", nbytes, max(have, 0), source)
-        elif encoding == "gzipbase64binary":
+        elif encoding == "gzip":
             need += nbytes // DEFLATE_RATIO
-        elif encoding == "base64binary":
+        elif encoding == "base64":
             need += nbytes
         else:  # ASCII: a digit and a separator per value
             need += 2 * (nbytes // item)
@@ -669,7 +747,7 @@ def check_npz(fh, path: Path | str, what: str) -> None:
                 except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib_error) as exc:
                     raise VolregIOError(
                         f"{what} `{path}` member `{member}` has no valid .npy header: "
-                        f"{' '.join(str(exc).split()) or type(exc).__name__}."
+                        f"{exception_text(exc)}."
                     ) from None
                 if dtype.hasobject:
                     continue  # refused by the reader (no pickle)

@@ -42,7 +42,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from volreg.grid import Grid, GridLike, LabelVolume, as_grid
-from volreg.errors import VolregIOError
+from volreg.errors import VolregIOError, exception_text, excerpt
 from volreg.io._atomic import atomic_output
 from volreg.io._guards import check_image_data_files, check_readable
 from volreg.io.images import (_check_header_fields, _check_input, _check_nifti, _itk_quiet, _nifti_float_voxels,
@@ -536,7 +536,8 @@ def _parse_itk_text(path: Path, text: str, dim: int | None) -> LinearMap | None:
         return None
     d, d2 = int(match.group(3)), int(match.group(4))
     if d != d2 or d not in (2, 3):
-        raise VolregIOError(f"Linear transform `{path}` is a {kind}; expected a 2-D or 3-D transform (_2_2 or _3_3).")
+        raise VolregIOError(f"Linear transform `{path}` is a {excerpt(kind, quote=False)}; expected a 2-D or 3-D transform "
+                             "(_2_2 or _3_3).")
     try:
         params = np.array([float(v) for v in fields[0].get("Parameters", [])])
         fixed = np.array([float(v) for v in fields[0].get("FixedParameters", [])])
@@ -593,7 +594,7 @@ def read_itk_linear(path: str | os.PathLike[str], *, dim: int | None = None) -> 
         try:
             text = p.read_text(encoding="ascii")
         except (OSError, UnicodeDecodeError) as exc:
-            raise VolregIOError(f"Linear transform `{p}` is not a readable text transform file: {exc}.") from None
+            raise VolregIOError(f"Linear transform `{p}` is not a readable text transform file: {exception_text(exc)}.") from None
         linear = _parse_itk_text(p, text, dim)
         if linear is not None:
             return linear

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from volreg.errors import VolregIOError
+from volreg.errors import VolregIOError, exception_text
 from volreg.io._atomic import atomic_output
 from volreg.io._guards import check_gifti_sizes
 
@@ -143,7 +143,7 @@ def load_gifti(p: Path, what: str):
     try:
         img = nib.load(str(p))
     except Exception as exc:  # nibabel raises assorted types for bad files
-        raise VolregIOError(f"{what} `{p}` is not a readable GIFTI file: {str(exc).strip().splitlines()[0]}.") from exc
+        raise VolregIOError(f"{what} `{p}` is not a readable GIFTI file: {exception_text(exc)}.") from exc
     if not isinstance(img, nib.gifti.GiftiImage):
         raise VolregIOError(f"{what} `{p}` is a {type(img).__name__}; expected a GIFTI file.")
     return img

@@ -23,7 +23,7 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 
-from volreg.errors import VolregIOError, VolregWarning
+from volreg.errors import VolregIOError, VolregWarning, exception_text, excerpt
 from volreg.io._guards import max_image_bytes
 
 # qform and sform affines may differ by float32 rounding; more than this (mm,
@@ -39,10 +39,9 @@ ORIGIN_LIMIT_MM = 1e6
 
 
 def _first_line(exc: BaseException) -> str:
-    """The first line of an exception's text (its type's name where it has none)."""
-    text = str(exc).strip()
-    line = text.splitlines()[0].strip() if text else ""
-    return line or type(exc).__name__
+    """The first line of an exception's text (its type's name where it has none), what it quotes
+    cut short (:func:`~volreg.errors.exception_text`)."""
+    return exception_text(exc)
 
 
 @contextlib.contextmanager
@@ -190,9 +189,10 @@ def _check_metaimage_header(path: Path, what: str) -> None:
         fields[key] = value.strip()
     if "NDims" not in fields:
         return  # MetaIO reports a header without one
+    shown = {key: excerpt(value, quote=False) for key, value in fields.items()}  # what messages quote
     ndims = _numbers(fields["NDims"])
     if ndims is None or len(ndims) != 1 or ndims[0] != int(ndims[0]) or not 1 <= ndims[0] <= 16:
-        raise VolregIOError(f"{what} `{path}` has NDims = {fields['NDims']}; expected the number of axes (1 to 16).")
+        raise VolregIOError(f"{what} `{path}` has NDims = {shown['NDims']}; expected the number of axes (1 to 16).")
     n = int(ndims[0])
 
     def values(key: str, count: int, expected: str) -> list[float] | None:
@@ -200,30 +200,30 @@ def _check_metaimage_header(path: Path, what: str) -> None:
             return None
         found = _numbers(fields[key])
         if found is None or len(found) < count or not all(np.isfinite(found[:count])):
-            raise VolregIOError(f"{what} `{path}` has {key} = {fields[key]}; expected {count} {expected}.")
+            raise VolregIOError(f"{what} `{path}` has {key} = {shown[key]}; expected {count} {expected}.")
         return found[:count]
 
     sizes = values("DimSize", n, "whole numbers of at least 1")
     if sizes is not None and any(v < 1 or v != int(v) for v in sizes):
-        raise VolregIOError(f"{what} `{path}` has DimSize = {fields['DimSize']}; expected {n} whole numbers of at least 1.")
+        raise VolregIOError(f"{what} `{path}` has DimSize = {shown['DimSize']}; expected {n} whole numbers of at least 1.")
     key = "ElementSpacing" if "ElementSpacing" in fields else "ElementSize"  # MetaIO's fallback
     spacing = values(key, n, "positive finite numbers (voxel spacings in mm)")
     if spacing is not None:
         if any(v < 0 for v in spacing):
             raise VolregIOError(
-                f"{what} `{path}` has negative spacing ({key} = {fields[key]}); expected positive voxel spacings (a "
+                f"{what} `{path}` has negative spacing ({key} = {shown[key]}); expected positive voxel spacings (a "
                 "flipped axis belongs in the direction matrix)."
             )
         if any(v == 0 for v in spacing):
             raise VolregIOError(
-                f"{what} `{path}` has {key} = {fields[key]}; expected positive voxel spacings (a zero spacing puts "
+                f"{what} `{path}` has {key} = {shown[key]}; expected positive voxel spacings (a zero spacing puts "
                 "an axis's voxels at one point)."
             )
-        _implausible_spacing(path, what, f"{key} = {fields[key]}", spacing, sizes)
+        _implausible_spacing(path, what, f"{key} = {shown[key]}", spacing, sizes)
     for key in ("Offset", "Origin", "Position"):  # synonyms in MetaIO
         origin = values(key, n, "finite numbers (the origin in mm)")
         if origin is not None:
-            _implausible_origin(path, what, f"{key} = {fields[key]}, an origin of", origin)
+            _implausible_origin(path, what, f"{key} = {shown[key]}, an origin of", origin)
     for key in ("TransformMatrix", "Rotation", "Orientation"):  # synonyms in MetaIO
         values(key, n * n, "finite numbers (the direction matrix)")
 
@@ -256,14 +256,14 @@ def _check_nrrd_header(path: Path, what: str) -> None:
         spacings = _numbers(fields["spacings"])
         if spacings is not None and any(v < 0 for v in spacings):
             raise VolregIOError(
-                f"{what} `{path}` has negative spacing (spacings = {fields['spacings']}); expected positive "
-                "voxel spacings (a flipped axis belongs in the direction matrix)."
+                f"{what} `{path}` has negative spacing (spacings = {excerpt(fields['spacings'], quote=False)}); "
+                "expected positive voxel spacings (a flipped axis belongs in the direction matrix)."
             )
     sizes = _numbers(fields.get("sizes", "")) or []
     dimension = None
     if "space directions" in fields:
-        text = fields["space directions"]
-        vectors = [m.group(1) for m in _NRRD_VECTOR.finditer(text)]
+        text = excerpt(fields["space directions"], quote=False)  # as messages quote it
+        vectors = [m.group(1) for m in _NRRD_VECTOR.finditer(fields["space directions"])]
         spatial = [(i, [_numbers(c) for c in v.split(",")]) for i, v in enumerate(vectors) if v is not None]
         parsed = [(i, [c[0] if c and len(c) == 1 else float("nan") for c in v]) for i, v in spatial]
         dimension = len(parsed[0][1]) if parsed else None
@@ -276,8 +276,8 @@ def _check_nrrd_header(path: Path, what: str) -> None:
         axis_sizes = [sizes[i] if i < len(sizes) else 2 for i, _ in parsed]
         _implausible_spacing(path, what, f"space directions: {text}", lengths, axis_sizes)
     if "space origin" in fields:
-        text = fields["space origin"]
-        found = re.fullmatch(r"\(([^)]*)\)", text)
+        text = excerpt(fields["space origin"], quote=False)  # as messages quote it
+        found = re.fullmatch(r"\(([^)]*)\)", fields["space origin"])
         parts = [_numbers(c) for c in found.group(1).split(",")] if found else []
         origin = [c[0] if c and len(c) == 1 else float("nan") for c in parts]
         if not origin or not all(np.isfinite(origin)) or (dimension is not None and len(origin) != dimension):

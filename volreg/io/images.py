@@ -29,16 +29,16 @@ import nibabel as nib
 import numpy as np
 import SimpleITK as sitk
 
-from volreg.errors import GeometryError, VolregIOError, VolregWarning
+from volreg.errors import GeometryError, VolregIOError, VolregWarning, exception_text
 from volreg.grid import Grid, LabelVolume, as_grid
 from volreg.io._atomic import atomic_output
-from volreg.io._guards import check_image_data_files, check_readable, check_vti_size
+from volreg.io._guards import check_image_data_files, check_readable, check_vti_size, declared_vti
 from volreg.io.header_checks import ORIGIN_LIMIT_MM, SPACING_RANGE_MM  # noqa: F401 - the readers' limits
 from volreg.io.header_checks import (_check_header_fields, _check_nifti, _check_nifti_geometry, _check_nifti_shape,
                                      _check_size, _first_line, _implausible_origin, _implausible_spacing,
                                      _nibabel_quiet)
 
-__all__ = ["read_labels", "write_labels", "write_scalar", "read_image", "read_grid"]
+__all__ = ["read_labels", "write_labels", "write_scalar", "read_image", "read_grid", "image_header"]
 
 #: Suffixes the readers accept (lower case).
 READ_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".vti")
@@ -95,7 +95,7 @@ def _sitk_reason(exc: BaseException) -> str:
         return "its axes are not orthogonal (a sheared affine; ITK supports only orthonormal directions)"
     if "Bad direction, determinant is 0" in reason:
         return "its direction matrix is singular (determinant 0); expected independent axis directions"
-    return reason.rstrip(".")
+    return exception_text(reason).rstrip(".")  # what ITK quotes of the file, cut short
 
 
 @contextlib.contextmanager
@@ -198,6 +198,71 @@ def _single_slice_as_2d(shape: tuple[int, ...], origin: np.ndarray, spacing: np.
     return shape[:2], origin[:2].copy(), spacing[:2].copy(), direction[:2, :2].copy()
 
 
+def _header_reader(p: Path, suffix: str, what: str, *, voxels: bool) -> tuple[sitk.ImageFileReader,
+                                                                              nib.Nifti1Image | None, np.dtype]:
+    """Check a NIfTI, NRRD or MetaImage file and read its header with SimpleITK, no voxels.
+
+    Returns SimpleITK's reader (its image information read), the lazily loaded nibabel image of
+    a NIfTI file (None for others) and the dtype of one component of a voxel.  Every check that
+    needs only the header is made, the declared size against :func:`max_image_bytes` among them;
+    with ``voxels`` a NIfTI file's data are checked for truncation too (which decompresses them).
+    """
+    nimg = _check_nifti(p, suffix, what, voxels=voxels) if suffix in (".nii", ".nii.gz") else None
+    if suffix in (".mha", ".mhd", ".nrrd", ".nhdr"):
+        _check_header_fields(p, suffix, what)
+        check_image_data_files(p, suffix, what)
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(p))
+    try:
+        with _itk_quiet():
+            reader.ReadImageInformation()
+            pixel = _pixel_dtype(reader)
+            _check_size(p, reader.GetSize(), pixel.itemsize * reader.GetNumberOfComponents(), what)
+            # Before the voxels are read; the spatial axes only (a 4-D image's fourth is time).
+            _implausible_spacing(p, what, "", reader.GetSpacing()[:3], reader.GetSize()[:3])
+            _implausible_origin(p, what, "an origin of", reader.GetOrigin()[:3])
+    except RuntimeError as exc:
+        raise VolregIOError(f"{what} `{p}` could not be read as an image: {_sitk_reason(exc)}.") from exc
+    return reader, nimg, pixel
+
+
+def image_header(path: str | os.PathLike[str], what: str = "Image") -> tuple[tuple[int, ...], int, int]:
+    """What an image file declares it holds, from its header alone: no voxel is read or decompressed.
+
+    Parameters
+    ----------
+    path : path-like
+        As for :func:`read_image` (a scalar or a vector image).
+    what : str
+        What the file is, for messages (``"Label image"``).
+
+    Returns
+    -------
+    size : tuple of ints
+        Voxels along every axis, in ITK index order (extra axes of size 1 included).
+    components : int
+        Values per voxel (1 for a scalar image, D for a displacement field).
+    itemsize : int
+        Bytes of one value as the file stores it, and as the readers hold it.
+
+    Raises
+    ------
+    VolregIOError
+        As the readers do, for everything the header shows (a missing or unrecognised file, a data
+        file outside the header's folder, a declared size beyond :func:`max_image_bytes`, ...).
+    """
+    p = Path(path)
+    suffix = _check_input(p, what)
+    if suffix == ".vti":
+        check_vti_size(p, what)
+        return declared_vti(p)
+    with warnings.catch_warnings():
+        # a header read ahead of the voxels: the reader that reads them gives its warnings once
+        warnings.simplefilter("ignore", VolregWarning)
+        reader, _, pixel = _header_reader(p, suffix, what, voxels=False)
+    return tuple(int(n) for n in reader.GetSize()), int(reader.GetNumberOfComponents()), int(pixel.itemsize)
+
+
 def _read_sitk(
     path: str | os.PathLike[str], what: str, *, voxels: bool = True
 ) -> tuple[np.ndarray | tuple[int, ...], np.ndarray, np.ndarray, np.ndarray]:
@@ -219,21 +284,9 @@ def _read_sitk(
         _implausible_spacing(p, what, "", spacing, array.shape)
         _implausible_origin(p, what, "an origin of", origin)
         return (array if voxels else array.shape), origin, spacing, direction
-    nimg = _check_nifti(p, suffix, what, voxels=voxels) if suffix in (".nii", ".nii.gz") else None
-    if suffix in (".mha", ".mhd", ".nrrd", ".nhdr"):
-        _check_header_fields(p, suffix, what)
-        check_image_data_files(p, suffix, what)
-
-    reader = sitk.ImageFileReader()
-    reader.SetFileName(str(p))
+    reader, nimg, pixel = _header_reader(p, suffix, what, voxels=voxels)
     try:
         with _itk_quiet():
-            reader.ReadImageInformation()
-            pixel = _pixel_dtype(reader)
-            _check_size(p, reader.GetSize(), pixel.itemsize * reader.GetNumberOfComponents(), what)
-            # Before the voxels are read; the spatial axes only (a 4-D image's fourth is time).
-            _implausible_spacing(p, what, "", reader.GetSpacing()[:3], reader.GetSize()[:3])
-            _implausible_origin(p, what, "an origin of", reader.GetOrigin()[:3])
             img = reader.Execute() if voxels else None
     except RuntimeError as exc:
         raise VolregIOError(f"{what} `{p}` could not be read as an image: {_sitk_reason(exc)}.") from exc

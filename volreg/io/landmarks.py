@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from volreg.errors import VolregIOError
+from volreg.errors import VolregIOError, exception_text, excerpt
 
 __all__ = ["read_landmarks"]
 
@@ -33,7 +33,7 @@ def _frame(value: str, path: Path) -> bool:
         return True
     if v in ("LPS", "1"):
         return False
-    raise VolregIOError(f"Landmark file `{path}` has coordinate system {value!r}; expected LPS or RAS.")
+    raise VolregIOError(f"Landmark file `{path}` has coordinate system {excerpt(value)}; expected LPS or RAS.")
 
 
 def _fcsv_frame(line: str, path: Path) -> bool:
@@ -73,7 +73,7 @@ def _units_mm(value: object, path: Path) -> float:
     """Millimetres per unit of a markup's ``coordinateUnits``."""
     key = str(value).strip().lower()
     if key not in _UNITS_MM:
-        raise VolregIOError(f"Landmark file `{path}` has coordinateUnits {value!r}; expected one of mm, um, cm, m.")
+        raise VolregIOError(f"Landmark file `{path}` has coordinateUnits {excerpt(value)}; expected one of mm, um, cm, m.")
     return _UNITS_MM[key]
 
 
@@ -102,13 +102,17 @@ def _read_mrk_json(path: Path, text: str) -> np.ndarray:
             if not isinstance(cp, dict) or "position" not in cp:
                 raise VolregIOError(f"Landmark file `{path}` control point {len(points) + 1} is not an object with a "
                                     f"`position`; {expected}.")
-            p = np.asarray(cp["position"], dtype=float) * scale
+            try:
+                p = np.asarray(cp["position"], dtype=float) * scale
+            except (TypeError, ValueError):  # words or nested lists: numpy's message would quote them whole
+                p = np.zeros(0)
             if p.shape != (3,):
                 raise VolregIOError(f"Landmark file `{path}` control point {len(points) + 1} has position "
-                                    f"{cp['position']!r}; expected three coordinates.")
+                                    f"{excerpt(cp['position'])}; expected three coordinates.")
             if not np.all(np.isfinite(p)):  # a row of NaN would read as never placed
                 raise VolregIOError(f"Landmark file `{path}` control point {len(points) + 1} is placed (positionStatus "
-                                    f"{cp.get('positionStatus', 'defined')!r}) but has position {cp['position']!r}; "
+                                    f"{excerpt(cp.get('positionStatus', 'defined'))}) but has position "
+                                    f"{excerpt(cp['position'])}; "
                                     "expected finite coordinates, or positionStatus \"undefined\" for a point not placed.")
             points.append(p * _FLIP if ras else p)
     return np.array(points).reshape(-1, 3)
@@ -120,7 +124,7 @@ def _read_csv(path: Path, text: str) -> np.ndarray:
         return np.zeros((0, 3))
     header = [c.strip().lower() for c in rows[0]]
     if not {"x", "y", "z"} <= set(header):
-        raise VolregIOError(f"Landmark file `{path}` has header {rows[0]}; expected a header row naming x,y,z (LPS mm).")
+        raise VolregIOError(f"Landmark file `{path}` has header {excerpt(rows[0])}; expected a header row naming x,y,z (LPS mm).")
     cols = [header.index(c) for c in ("x", "y", "z")]
     points = []
     for number, r in enumerate(rows[1:], start=2):
@@ -136,7 +140,7 @@ def _number(text: str, path: Path, where: str) -> float:
     try:
         return float(text)
     except ValueError:
-        raise VolregIOError(f"Landmark file `{path}` {where} holds {text.strip()!r}; expected a number (mm).") from None
+        raise VolregIOError(f"Landmark file `{path}` {where} holds {excerpt(text.strip())}; expected a number (mm).") from None
 
 
 def read_landmarks(path: str | os.PathLike[str], *, keep_unplaced: bool = False) -> np.ndarray:
@@ -175,7 +179,7 @@ def read_landmarks(path: str | os.PathLike[str], *, keep_unplaced: bool = False)
     except (ValueError, IndexError, KeyError, TypeError, UnicodeDecodeError) as exc:
         if isinstance(exc, VolregIOError):
             raise
-        raise VolregIOError(f"Landmark file `{p}` could not be parsed: {exc}.") from None
+        raise VolregIOError(f"Landmark file `{p}` could not be parsed: {exception_text(exc)}.") from None
     unplaced = np.zeros(len(points), dtype=bool)
     if name.endswith(".json"):
         unplaced = np.all(np.isnan(points), axis=1)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from volreg._lazy import LazyModule
-from volreg.errors import VolregIOError, VolregWarning
+from volreg.errors import VolregIOError, VolregWarning, exception_text
 from volreg.io._atomic import atomic_output
 from volreg.io._guards import check_mesh_sizes
 from volreg.io.gifti import GiftiSurfaceMeta, is_gifti, read_gifti_data, read_gifti_surface, write_gifti
@@ -81,10 +81,10 @@ def read_pyvista(p: Path, what: str):
             with quiet_vtk():
                 mesh = pv.read(p)
         except Exception as exc:  # pyvista/VTK raise assorted types for bad files
-            raise VolregIOError(f"{what} `{p}` could not be read: {str(exc).strip().splitlines()[0]}") from exc
+            raise VolregIOError(f"{what} `{p}` could not be read: {exception_text(exc)}") from exc
     problems = [w for w in caught if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning))]
     if problems:
-        raise VolregIOError(f"{what} `{p}` could not be read: {str(problems[0].message).strip().splitlines()[0]}")
+        raise VolregIOError(f"{what} `{p}` could not be read: {exception_text(problems[0].message)}")
     return mesh
 
 def _mesh_suffix(path: Path, what: str) -> str:

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from volreg.errors import VolregIOError
+from volreg.errors import VolregIOError, exception_text
 from volreg.io._atomic import atomic_output
 from volreg.io.gifti import load_gifti
 from volreg.io.landmarks import _fcsv_frame, _frame, _units_mm, read_landmarks
@@ -174,7 +174,7 @@ def _read_gifti(p: Path) -> PointSetFile:
     try:
         arrays = [a for a in img.darrays if a.intent == nib.nifti1.intent_codes["NIFTI_INTENT_POINTSET"]]
     except Exception as exc:  # nibabel raises assorted types for bad files
-        raise VolregIOError(f"Mesh `{p}` is not a readable GIFTI surface: {str(exc).strip().splitlines()[0]}.") from exc
+        raise VolregIOError(f"Mesh `{p}` is not a readable GIFTI surface: {exception_text(exc)}.") from exc
     if len(arrays) != 1:
         raise VolregIOError(f"Mesh `{p}` has {len(arrays)} POINTSET data arrays; expected one (a GIFTI surface, .surf.gii).")
     data = np.asarray(arrays[0].data, dtype=float)

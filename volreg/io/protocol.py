@@ -33,7 +33,7 @@ from volreg.settings import (
     WarpSettings,
     settings_from_mapping,
 )
-from volreg.errors import ProtocolError
+from volreg.errors import ProtocolError, exception_text, excerpt
 
 __all__ = ["PROTOCOL_DIR", "load_protocol", "protocol_to_toml"]
 
@@ -84,26 +84,26 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
     try:
         data = tomllib.loads(raw)
     except tomllib.TOMLDecodeError as exc:
-        raise ProtocolError(f"Protocol `{path}` is not valid TOML: {exc}.") from None
+        raise ProtocolError(f"Protocol `{path}` is not valid TOML: {exception_text(exc)}.") from None
     loose = sorted(k for k, v in data.items() if not isinstance(v, Mapping))
     if loose:
         owners = [s for s, cls in _SECTION_CLASSES.items()
                   if (loose[0] in ("name", "description") if cls is None else
                       loose[0] in {f.name for f in dataclasses.fields(cls)})]
         where = f"under [{owners[0]}]" if owners else "under a section"
-        raise ProtocolError(f"Setting `{loose[0]}` in `{path}` lies outside any section; expected it {where} "
+        raise ProtocolError(f"Setting `{excerpt(loose[0], quote=False)}` in `{path}` lies outside any section; expected it {where} "
                             "(a [section] line above it).")
     unknown = set(data) - {"protocol", *_SECTIONS}
     if unknown:
-        raise ProtocolError(f"Unknown section [{sorted(unknown)[0]}] in `{path}`; "
+        raise ProtocolError(f"Unknown section [{excerpt(sorted(unknown)[0], quote=False)}] in `{path}`; "
                             f"expected [protocol], {', '.join(f'[{s}]' for s in _SECTIONS)}.")
     head = data.get("protocol", {})
     if not isinstance(head, Mapping) or set(head) - {"name", "description"}:
         extra = sorted(set(head) - {"name", "description"}) if isinstance(head, Mapping) else ["?"]
-        raise ProtocolError(f"Unknown setting `protocol.{extra[0]}` in `{path}`; expected name, description.")
+        raise ProtocolError(f"Unknown setting `protocol.{excerpt(extra[0], quote=False)}` in `{path}`; expected name, description.")
     for key in ("name", "description"):
         if key in head and not isinstance(head[key], str):
-            raise ProtocolError(f"Expected `protocol.{key}` to be a string (in quotes), got {head[key]!r} (in `{path}`).")
+            raise ProtocolError(f"Expected `protocol.{key}` to be a string (in quotes), got {excerpt(head[key])} (in `{path}`).")
     try:
         return Protocol(
             name=str(head.get("name", path.stem)),

@@ -22,7 +22,7 @@ import pyvista as pv
 from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow
 from vtkmodules.vtkIOXML import vtkXMLImageDataReader
 
-from volreg.errors import VolregIOError
+from volreg.errors import VolregIOError, excerpt
 
 __all__ = ["read_vti"]
 
@@ -77,23 +77,23 @@ def _scalar_array(image: pv.ImageData, path: Path, what: str) -> np.ndarray:
     names = list(image.point_data.keys())
     if not names:
         cells = list(image.cell_data.keys())
-        extra = f" (it has cell data {cells}; expected values at the points)" if cells else ""
+        extra = f" (it has cell data {excerpt(cells)}; expected values at the points)" if cells else ""
         raise VolregIOError(f"{what} `{path}` holds no point data array{extra}.")
     active = image.point_data.active_scalars_name
     if active is None:
         if len(names) > 1:
             raise VolregIOError(
-                f"{what} `{path}` holds point arrays {names} and none is marked active; expected one label array."
+                f"{what} `{path}` holds point arrays {excerpt(names)} and none is marked active; expected one label array."
             )
         active = names[0]
     values = np.asarray(image.point_data[active])
     if values.ndim != 1:
         raise VolregIOError(
-            f"{what} `{path}`: point array {active!r} has {values.shape[1]} components per voxel; "
+            f"{what} `{path}`: point array {excerpt(active)} has {values.shape[1]} components per voxel; "
             "expected a scalar image."
         )
     if values.dtype.kind not in "iubf":
-        raise VolregIOError(f"{what} `{path}`: point array {active!r} has {values.dtype} values; expected numbers.")
+        raise VolregIOError(f"{what} `{path}`: point array {excerpt(active)} has {values.dtype} values; expected numbers.")
     return values
 
 
@@ -114,7 +114,7 @@ def _check_header_numbers(path: Path, what: str) -> None:
         except ValueError:
             values = [float("nan")]
         if not all(math.isfinite(v) for v in values):
-            raise VolregIOError(f"{what} `{path}` has {name}=\"{found.group(1)}\"; expected finite numbers.")
+            raise VolregIOError(f"{what} `{path}` has {name}=\"{excerpt(found.group(1), quote=False)}\"; expected finite numbers.")
 
 
 # Bytes read at a time while looking for the ``<Piece>`` elements of a file with inline data.

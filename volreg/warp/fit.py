@@ -38,7 +38,7 @@ import scipy.optimize
 import scipy.sparse as sp
 import scipy.sparse.linalg
 from scipy.spatial import cKDTree
-from volreg._memory import available_bytes
+from volreg._memory import memory_limit
 from volreg._threads import single_blas
 from volreg.kernels import CellGrid, SharedPatternCSR, check_points, kernel_gradient_matrices, kernel_matrix, kernel_sum
 from volreg.kernels.grid import column_bounds
@@ -321,16 +321,16 @@ def check_sample_memory(points: np.ndarray, settings: WarpSettings, step: float)
     ------
     ProtocolError
         Naming the settings (``min_width``, ``fraction``, ``sample_spacing``, ``pad``) and
-        the estimate, when it exceeds the memory available now.
+        the estimate, when it exceeds the memory available now (or ``VOLREG_MAX_MEMORY_GB``).
     """
     n = estimated_samples(points, settings, step)
-    available = available_bytes()
+    available, known_as = memory_limit()
     if available is None or n * BYTES_PER_SAMPLE <= available:
         return
     raise ProtocolError(
         f"The warp settings min_width {settings.min_width:g} mm, fraction {settings.fraction:g}, sample_spacing "
         f"{step:g} mm and pad {settings.pad:g} mm would sample about {n:.2g} points at the finest level "
-        f"(about {n * BYTES_PER_SAMPLE / 1024**3:.3g} GB) and {available / 1024**3:.3g} GB is available; expected a "
+        f"(about {n * BYTES_PER_SAMPLE / 1024**3:.3g} GB) and {available / 1024**3:.3g} GB is {known_as}; expected a "
         f"larger `min_width`, `fraction` or `sample_spacing`, or a smaller `pad` (the objects are "
         f"{np.round(np.ptp(points, axis=0), 1).tolist()} mm across)."
     )

@@ -40,6 +40,7 @@ from typing import Any, Callable, Union
 
 import numpy as np
 
+from volreg.errors import exception_text, excerpt
 from volreg.kernels import CellGrid, check_points, kernel_sum, put_rows, spatial_order, take_rows
 from volreg.linear_map import LinearMap
 
@@ -607,8 +608,7 @@ class KernelWarp(_PointMap):
 
 
 def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text.rstrip(".")
+    return exception_text(exc).rstrip(".")
 
 
 class _FormatError(Exception):
@@ -644,7 +644,7 @@ def _parse(arrays: Mapping[str, np.ndarray]) -> KernelWarp:
         raise _FormatError("no `format` entry (not written by KernelWarp.save)")
     fmt = _get_string(arrays, "format")
     if fmt != FORMAT:
-        raise _FormatError(f"`format` is {fmt!r}, expected {FORMAT!r}")
+        raise _FormatError(f"`format` is {excerpt(fmt)}, expected {FORMAT!r}")
     version = _get_int(arrays, "format_version")
     if not 1 <= version <= FORMAT_VERSION:
         raise _FormatError(f"format_version {version} is not supported (this volreg reads 1 to {FORMAT_VERSION})")
