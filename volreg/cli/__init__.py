@@ -25,8 +25,8 @@ from pathlib import Path
 
 from volreg import __version__
 from volreg.cli import apply, batch, consistency, demo, morph, protocols, register, register_surfaces, surface, transfer, tune
-from volreg.cli._common import EXPECTED_ERRORS, PROG, UsageError, _warn
-from volreg.errors import VolregWarning
+from volreg.cli._common import EXPECTED_ERRORS, PROG, _warn
+from volreg.errors import UsageError, VolregWarning
 
 __all__ = ["main", "run", "build_parser", "UsageError"]
 

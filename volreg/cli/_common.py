@@ -10,7 +10,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from volreg.errors import UsageError, VolregError
+from volreg.errors import VolregError
 
 if TYPE_CHECKING:  # the command modules import numpy and the pipeline only when a command runs
     from volreg.grid import LabelVolume
