@@ -494,6 +494,31 @@ def _write_label_surface_files(folder: OutputFolder, volume: LabelVolume, surfac
             progress("sample and write", i + 1, len(surfaces))
 
 
+def _surface_summary(volume: LabelVolume, image_path, records: list[dict], *, skipped: list[int], smoothing: float,
+                     min_width_voxels: float, skip_small: bool, seconds: float) -> dict:
+    """``surface.json``'s contents: the input and its grid, the parameters, one record per label."""
+    return {
+        "volreg_version": __version__,
+        "command": "surface",
+        "input": str(image_path),
+        "grid": {
+            "shape": [int(n) for n in volume.shape],
+            "origin_mm": volume.origin.tolist(),
+            "spacing_mm": volume.spacing.tolist(),
+            "direction": volume.direction.tolist(),
+            "frame": "LPS",
+        },
+        "parameters": {
+            "smoothing_voxels": smoothing,
+            "min_width_voxels": min_width_voxels,
+            "skip_small": bool(skip_small),
+        },
+        "labels": records,
+        "skipped": skipped,
+        "seconds": seconds,
+    }
+
+
 def write_label_surfaces(
     volume: LabelVolume,
     labels: Sequence[int],
@@ -572,26 +597,10 @@ def write_label_surfaces(
                                     progress=progress, warn=warn)
         implicit, records = _fit_implicit_surfaces(volume, surfaces, paths, min_width_voxels, progress)
         _write_label_surface_files(folder, volume, surfaces, implicit, paths, force, progress)
-        summary = {
-            "volreg_version": __version__,
-            "command": "surface",
-            "input": str(image_path),
-            "grid": {
-                "shape": [int(n) for n in volume.shape],
-                "origin_mm": volume.origin.tolist(),
-                "spacing_mm": volume.spacing.tolist(),
-                "direction": volume.direction.tolist(),
-                "frame": "LPS",
-            },
-            "parameters": {
-                "smoothing_voxels": smoothing,
-                "min_width_voxels": min_width_voxels,
-                "skip_small": bool(skip_small),
-            },
-            "labels": records,
-            "skipped": [int(v) for v in (requested or labels) if v not in surfaces],
-            "seconds": round(time.perf_counter() - start, 3),
-        }
+        skipped = [int(v) for v in (requested or labels) if v not in surfaces]
+        summary = _surface_summary(volume, image_path, records, skipped=skipped, smoothing=smoothing,
+                                   min_width_voxels=min_width_voxels, skip_small=skip_small,
+                                   seconds=round(time.perf_counter() - start, 3))
         io.write_json(summary, folder.path / summary_name, force=force)
         folder.record(folder.path / summary_name)
     return WrittenLabelSurfaces(labels=sorted(surfaces), summary=summary, files=len(folder.written))
