@@ -22,6 +22,7 @@ from volreg.errors import UsageError, VolregWarning
 from volreg.grid import Grid, world_box
 from volreg.io.fields import axis_order_of, read_displacement, read_itk_composite, read_itk_linear
 from volreg.io.pointsets import check_same_format, point_set_kind, read_point_set, write_point_set
+from volreg.linear_map import LinearMap
 from volreg.warp.field import displacement_on_grid, linear_displacement_on_grid
 from volreg.warp.model import KernelWarp
 from volreg.warp.points import DisplacementField, transform_normals, transform_points
@@ -46,7 +47,8 @@ def _issue(message: str) -> None:
     warnings.warn(message, VolregWarning, stacklevel=3)
 
 
-def read_point_map(path: str | os.PathLike[str], space: str, warn: Callable[[str], None] | None = None):
+def read_point_map(path: str | os.PathLike[str], space: str, warn: Callable[[str], None] | None = None) \
+        -> tuple[KernelWarp | LinearMap | DisplacementField, bool]:
     """The map that carries points out of ``space``, and whether to apply its inverse.
 
     Parameters
