@@ -34,6 +34,7 @@ MODULE_TIERS = {
     "test_apply_points.py": "integration",
     "test_batch.py": "system",
     "test_cli.py": "integration",
+    "test_cli_thin.py": "unit",
     "test_consistency.py": "integration",
     "test_crash.py": "system",
     "test_demo_data.py": "unit",

@@ -14,6 +14,7 @@ with its traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import os
 import signal
@@ -26,8 +27,8 @@ from pathlib import Path
 from volreg import __version__
 from volreg.cli import (apply, batch, consistency, demo, morph, protocols, register, register_surfaces, surface, template,
                         transfer, tune)
-from volreg.cli._common import EXPECTED_ERRORS, PROG, UsageError, _warn
-from volreg.errors import VolregWarning
+from volreg.cli._common import EXPECTED_ERRORS, PROG, _warn
+from volreg.errors import UsageError, VolregWarning
 
 __all__ = ["main", "run", "build_parser", "UsageError"]
 
@@ -197,6 +198,106 @@ def _open_closed_streams() -> None:
             setattr(sys, name, open(fd, mode, encoding="utf-8", closefd=False))  # noqa: SIM115 (lives with the process)
 
 
+def _parse(argv: Sequence[str] | None) -> argparse.Namespace | int:
+    """The parsed arguments, or the exit status where argparse ended the run (``--help`` and
+    ``--version``: 0; a usage error: 2, its message printed)."""
+    parser = build_parser()
+    try:
+        return parser.parse_args(None if argv is None else list(argv))
+    except SystemExit as exc:  # argparse exits for --help, --version and usage errors
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+
+
+def _start_helpers_and_preload(args: argparse.Namespace, words: Sequence[str], held) -> list:
+    """Start the compiling helpers the command wants (:data:`COMPILE_AHEAD`), then load what it uses
+    (:func:`_preload`), with SIGINT and SIGTERM held (``held``, from :func:`_hold_signals`); return
+    the helpers.  On any failure the helpers are stopped and the signals released."""
+    helpers: list = []
+    try:
+        # The helpers first: on a first run they compile while this process imports. One beside
+        # a command; for batch, one per local worker, which wait for them (see volreg.cli.batch).
+        if args.command in COMPILE_AHEAD and not getattr(args, "scheduler", None):
+            from volreg import precompile as _precompile
+
+            workers = getattr(args, "workers", None) or 2
+            cohort = args.command in ("batch", "template")
+            helpers = _precompile.start(min(workers, os.cpu_count() or 1) if cohort else 1)
+            args.compile_helpers = helpers
+        _preload(args.command, words)
+        # what the handlers use, loaded while the signals are held too
+        import volreg.io._atomic  # noqa: F401
+        import volreg.progress  # noqa: F401
+    except BaseException:
+        if helpers:
+            from volreg import precompile as _precompile
+
+            _precompile.stop(helpers)
+        _release_signals(held)
+        raise
+    return helpers
+
+
+@contextlib.contextmanager
+def _interrupts_unwind():
+    """SIGTERM (a scheduler or `kill` stopping the job) unwinds like Ctrl-C, so every command's
+    clean-up runs: outputs written so far are removed and temporary files deleted.  A
+    KeyboardInterrupt that a library could not pass on is kept (:func:`_unraisable_hook`).
+    Everything is restored on the way out."""
+    from volreg.io._atomic import kept_results
+    from volreg.progress import clear_interrupt
+
+    previous = _install_sigterm()
+    # SIGINT too, so that it is recorded when a library turns the KeyboardInterrupt into an error
+    # of its own (numba's dispatcher: "SystemError: ... returned a result with an exception set").
+    # (Not where SIGINT is ignored, as for a job started in the background by a shell.)
+    previous_int = signal.signal(signal.SIGINT, _raise_interrupt) \
+        if previous is not None and signal.getsignal(signal.SIGINT) not in (signal.SIG_IGN, None) else None
+    unraisable = sys.unraisablehook
+    if previous is not None:  # the main thread: signals are delivered here
+        clear_interrupt()
+        kept_results().clear()
+        _signalled.clear()
+        sys.unraisablehook = _unraisable_hook(unraisable)
+    try:
+        yield
+    finally:
+        sys.unraisablehook = unraisable  # also where an interrupt's report replaced it
+        if previous is not None:
+            clear_interrupt()
+            signal.signal(signal.SIGTERM, previous)
+            if previous_int is not None:
+                signal.signal(signal.SIGINT, previous_int)
+
+
+@contextlib.contextmanager
+def _one_line_warnings(command: str):
+    """Warnings shown as one line each on stderr (``volreg COMMAND: warning: ...``), volreg's always."""
+    show = warnings.showwarning
+
+    def one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+        _warn(command, " ".join(str(message).split()))
+
+    warnings.showwarning = one_line_warning
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", VolregWarning)  # shown (one line each) whatever the global filters say
+            yield
+    finally:
+        warnings.showwarning = show
+
+
+@contextlib.contextmanager
+def _helpers_stopped(helpers: list):
+    """Stop the compiling helpers on the way out (what they compiled stays cached)."""
+    try:
+        yield
+    finally:
+        if helpers:
+            from volreg import precompile as _precompile
+
+            _precompile.stop(helpers)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``volreg`` command line.
 
@@ -221,57 +322,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         its subclasses) is a bug and propagates with its traceback.
     """
     _open_closed_streams()
-    parser = build_parser()
-    try:
-        args = parser.parse_args(None if argv is None else list(argv))
-    except SystemExit as exc:  # argparse exits for --help, --version and usage errors
-        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    args = _parse(argv)
+    if isinstance(args, int):
+        return args
     # Imported once a command runs, so that --help, --version and usage errors stay quick; with
     # SIGINT and SIGTERM held until the handlers are in place (see PRELOAD).
     held = _hold_signals()
-    helpers: list = []
-    try:
-        # The helpers first: on a first run they compile while this process imports. One beside
-        # a command; for batch, one per local worker, which wait for them (see volreg.cli.batch).
-        if args.command in COMPILE_AHEAD and not getattr(args, "scheduler", None):
-            from volreg import precompile as _precompile
+    helpers = _start_helpers_and_preload(args, sys.argv[1:] if argv is None else list(argv), held)
+    with _interrupts_unwind(), _one_line_warnings(args.command), _helpers_stopped(helpers):
+        return _run_command(args, held)
 
-            workers = getattr(args, "workers", None) or 2
-            cohort = args.command in ("batch", "template")
-            helpers = _precompile.start(min(workers, os.cpu_count() or 1) if cohort else 1)
-            args.compile_helpers = helpers
-        _preload(args.command, sys.argv[1:] if argv is None else list(argv))
-        from volreg.io._atomic import kept_results
-        from volreg.progress import clear_interrupt
-    except BaseException:
-        if helpers:
-            _precompile.stop(helpers)
-        _release_signals(held)
-        raise
 
-    # SIGTERM (a scheduler or `kill` stopping the job) unwinds like Ctrl-C, so every command's
-    # clean-up runs: outputs written so far are removed and temporary files deleted.
-    previous = _install_sigterm()
-    # SIGINT too, so that it is recorded when a library turns the KeyboardInterrupt into an error
-    # of its own (numba's dispatcher: "SystemError: ... returned a result with an exception set").
-    # (Not where SIGINT is ignored, as for a job started in the background by a shell.)
-    previous_int = signal.signal(signal.SIGINT, _raise_interrupt) \
-        if previous is not None and signal.getsignal(signal.SIGINT) not in (signal.SIG_IGN, None) else None
-    unraisable = sys.unraisablehook
-    if previous is not None:  # the main thread: signals are delivered here
-        clear_interrupt()
-        kept_results().clear()
-        _signalled.clear()
-        sys.unraisablehook = _unraisable_hook(unraisable)
-    show = warnings.showwarning
-
-    def one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-        _warn(args.command, " ".join(str(message).split()))
-
-    warnings.showwarning = one_line_warning
-    filters = warnings.catch_warnings()
-    filters.__enter__()
-    warnings.simplefilter("always", VolregWarning)  # shown (one line each) whatever the global filters say
+def _run_command(args: argparse.Namespace, held) -> int:
+    """Release the signals ``held`` (one that came meanwhile is acted on now, inside the handlers), run
+    the parsed command and return its exit status, input errors and interrupts reported in one line."""
     try:
         _release_signals(held)
         output = getattr(args, "output", None)
@@ -298,39 +362,32 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:
         if _signalled:
             return _interrupted(args.command, _signalled[0])
-        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            where = f" writing `{exc.filename}`" if exc.filename is not None else ""
-            print(f"{PROG} {args.command}: error: {exc.strerror or 'no space left on device'}{where}; the outputs "
-                  "were removed; expected room for them on the output's device (free some, or write elsewhere).",
-                  file=sys.stderr)
-            return 1
-        if exc.errno not in (errno.ENAMETOOLONG, errno.ELOOP):
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.ENAMETOOLONG, errno.ELOOP):
             raise
-        # a path over the system's limits (NAME_MAX per component, PATH_MAX in all), wherever it is met
-        name = exc.filename if exc.filename is not None else "a path"
-        print(f"{PROG} {args.command}: error: `{name}`: {exc.strerror}; expected a path within the system's limits "
-              f"({os.pathconf('/', 'PC_NAME_MAX')} bytes per name, {os.pathconf('/', 'PC_PATH_MAX')} in all).",
-              file=sys.stderr)
-        return 2
+        return _os_error(args.command, exc)
     except KeyboardInterrupt as exc:
         return _interrupted(args.command, str(exc) or "SIGINT")
     except Exception:
         if _signalled:  # the interrupt, turned into another error on its way up (outputs already removed)
             return _interrupted(args.command, _signalled[0])
         raise
-    finally:
-        if helpers:
-            from volreg import precompile as _precompile
 
-            _precompile.stop(helpers)
-        filters.__exit__(None, None, None)
-        warnings.showwarning = show
-        sys.unraisablehook = unraisable  # also where an interrupt's report replaced it
-        if previous is not None:
-            clear_interrupt()
-            signal.signal(signal.SIGTERM, previous)
-            if previous_int is not None:
-                signal.signal(signal.SIGINT, previous_int)
+
+def _os_error(command: str, exc: OSError) -> int:
+    """Report in one line a full device (exit status 1) or a path over the system's limits (``ENAMETOOLONG``,
+    ``ELOOP``: 2)."""
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        where = f" writing `{exc.filename}`" if exc.filename is not None else ""
+        print(f"{PROG} {command}: error: {exc.strerror or 'no space left on device'}{where}; the outputs "
+              "were removed; expected room for them on the output's device (free some, or write elsewhere).",
+              file=sys.stderr)
+        return 1
+    # a path over the system's limits (NAME_MAX per component, PATH_MAX in all), wherever it is met
+    name = exc.filename if exc.filename is not None else "a path"
+    print(f"{PROG} {command}: error: `{name}`: {exc.strerror}; expected a path within the system's limits "
+          f"({os.pathconf('/', 'PC_NAME_MAX')} bytes per name, {os.pathconf('/', 'PC_PATH_MAX')} in all).",
+          file=sys.stderr)
+    return 2
 
 
 def run() -> None:

@@ -10,7 +10,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from volreg.errors import UsageError, VolregError
+from volreg.errors import VolregError
 
 if TYPE_CHECKING:  # the command modules import numpy and the pipeline only when a command runs
     from volreg.grid import LabelVolume
@@ -158,57 +158,14 @@ def _summary_line(command: str, report: dict, outdir: Path) -> str:
 
 
 def _load_landmarks(args, fixed: LabelVolume | None = None, moving: LabelVolume | None = None):
-    """The ``--landmarks`` pair, checked for equal counts and (given the volumes) to lie in their images."""
-    import numpy as np
-
+    """The ``--landmarks`` pair, checked for equal counts and (given the volumes) to lie in their images
+    (:func:`volreg.pipeline.landmark_pairs.check_landmark_pairs`); pairs left out are named in a warning."""
     from volreg.io.landmarks import read_landmarks
-    from volreg.grid import world_box
+    from volreg.pipeline.landmark_pairs import check_landmark_pairs
 
     if args.landmarks is None:
         return None
     a = read_landmarks(args.landmarks[0], keep_unplaced=True)
     b = read_landmarks(args.landmarks[1], keep_unplaced=True)
-    if len(a) != len(b):
-        raise UsageError(
-            f"--landmarks: `{args.landmarks[0]}` has {len(a)} points and `{args.landmarks[1]}` {len(b)}; "
-            "expected the same number, in corresponding order."
-        )
-    unplaced = np.isnan(a).any(axis=1) | np.isnan(b).any(axis=1)
-    if unplaced.any():
-        which = ", ".join(str(i + 1) for i in np.flatnonzero(unplaced)[:10])
-        if unplaced.all():
-            raise UsageError("--landmarks: no pair has both points placed (Slicer positionStatus \"undefined\"); "
-                             "expected at least one placed pair.")
-        _warn(args.command, f"--landmarks: left out {int(unplaced.sum())} pair(s) with a control point not placed "
-              f"(Slicer positionStatus \"undefined\"): {which}.")
-        a, b = a[~unplaced], b[~unplaced]
-    for points, volume, path, role in ((a, fixed, args.landmarks[0], "first"), (b, moving, args.landmarks[1], "second")):
-        if volume is None:
-            continue
-        if points.shape[1] != volume.ndim:
-            raise UsageError(f"--landmarks: `{path}` holds {points.shape[1]}-D points for a {volume.ndim}-D image.")
-        lo, hi = world_box(volume)
-        outside = np.flatnonzero(np.any((points < lo) | (points > hi), axis=1))
-        if outside.size:
-            i = int(outside[0])
-            raise UsageError(
-                f"--landmarks: point {i + 1} of `{path}` ({', '.join(f'{v:.1f}' for v in points[i])} mm) lies outside the "
-                f"{role} image's extent ({np.round(lo, 1).tolist()}..{np.round(hi, 1).tolist()} mm LPS); expected "
-                "points inside it (check the file's coordinate system: LPS or RAS)."
-            )
-    if len(a) > 1:
-        from scipy.spatial import cKDTree
-
-        # One fixed point cannot be sent to two places, nor pinned twice: the landmark start's
-        # kernel system would be singular.
-        tol, within = (0.1 * float(np.min(fixed.spacing)), "within a tenth of a voxel") if fixed is not None \
-            else (1e-3, "within 1 micrometre")
-        close = sorted(cKDTree(a).query_pairs(tol))
-        if close:
-            i, j = close[0]
-            raise UsageError(
-                f"--landmarks: points {i + 1} and {j + 1} of `{args.landmarks[0]}` coincide "
-                f"({', '.join(f'{v:.2f}' for v in a[i])} mm, {within}); expected distinct "
-                f"{'fixed' if fixed is not None else 'source'} landmarks (remove the repeated pair)."
-            )
-    return a, b
+    return check_landmark_pairs(a, b, (args.landmarks[0], args.landmarks[1]), fixed, moving,
+                                note=lambda message: _warn(args.command, message))

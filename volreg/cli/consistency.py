@@ -9,14 +9,9 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from volreg.cli._common import PROG, _fit_logger, _label_list, _sha256, _strict_status, _warn, output_path
 from volreg.errors import UsageError
-
-if TYPE_CHECKING:  # the pipeline is imported when the command runs
-    from volreg.grid import LabelVolume
-    from volreg.warp.model import KernelWarp
 
 __all__ = ["add_parser", "run"]
 
@@ -47,32 +42,6 @@ def add_parser(commands) -> None:
     consistency.add_argument("--quiet", action="store_true", help="no progress bars")
     consistency.add_argument("-v", "--verbose", action="store_true", help="log each stage and warp level to stderr")
     consistency.set_defaults(run=run)
-
-
-def _load_result(result: Path, grid: LabelVolume, option: str, grid_path: Path, role: str) -> KernelWarp:
-    """The warp of a saved ``volreg register`` OUTDIR whose fixed grid must be ``grid``."""
-    import numpy as np
-
-    from volreg.io.fields import axis_order_of, read_displacement
-    from volreg.warp.model import KernelWarp
-
-    model = result / "model.npz"
-    field = result / "warp.nii.gz"
-    for p in (model, field):
-        if not p.is_file():
-            raise UsageError(f"{option} `{result}` has no `{p.name}`; expected an OUTDIR written by `volreg register`.")
-    _, field_grid = read_displacement(field)
-    if axis_order_of(field_grid, grid, atol=1e-3) is None:  # a single-voxel axis is stored first (write_displacement)
-        raise UsageError(
-            f"{option} `{result}` was registered on a grid of shape {field_grid.shape} (origin "
-            f"{np.round(field_grid.origin, 3).tolist()} mm), not on the grid of {role} `{grid_path}` (shape "
-            f"{grid.shape}, origin {np.round(grid.origin, 3).tolist()} mm); expected the result of "
-            f"`volreg register {'A B' if role == 'A' else 'B A'}`."
-        )
-    warp = KernelWarp.load(model)
-    if warp.dim != grid.ndim:
-        raise UsageError(f"{option} `{model}` is a {warp.dim}-D warp but {role} `{grid_path}` is {grid.ndim}-D.")
-    return warp
 
 
 def _saved_inputs(result: Path) -> tuple[str | None, str | None]:
@@ -108,7 +77,7 @@ def _check_saved_inputs(args: argparse.Namespace, sha_a: str, sha_b: str) -> Non
 
 def run(args: argparse.Namespace) -> int:
     """``volreg consistency A B -o OUTDIR [--forward RESULT_AB --backward RESULT_BA]``."""
-    from volreg.outputs.consistency import write_consistency_test
+    from volreg.outputs.consistency import load_saved_warp, write_consistency_test
     from volreg.io import read_labels
     from volreg.io.protocol import load_protocol
     from volreg.progress import ProgressBars
@@ -127,8 +96,8 @@ def run(args: argparse.Namespace) -> int:
     protocol = None if saved else load_protocol(args.protocol or "default")
     forward = backward = directions = None
     if saved:
-        forward = _load_result(args.forward, a, "--forward", args.a, "A")
-        backward = _load_result(args.backward, b, "--backward", args.b, "B")
+        forward = load_saved_warp(args.forward, a, option="--forward", grid_path=args.a, role="A")
+        backward = load_saved_warp(args.backward, b, option="--backward", grid_path=args.b, role="B")
         if forward.dim != backward.dim:
             raise UsageError("--forward and --backward hold warps of different dimension.")
         directions = {"forward": {"outdir": str(args.forward)}, "backward": {"outdir": str(args.backward)}}

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from volreg.cli._common import PROG, output_path
-from volreg.cli._surfaces import _add_data_options, _data_meta, _is_label, _load_model, _read, _warn_findings
+from volreg.cli._surfaces import _add_data_options, _warn_findings
 from volreg.errors import UsageError
 
 __all__ = ["add_parser", "run"]
@@ -51,63 +51,23 @@ def _check_output(out: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``volreg transfer SOURCE TARGET --result OUTDIR [--array NAME] -o OUT``."""
-    import numpy as np
-
-    from volreg.evaluation.surface_review import (
-        GAPS_MEASURED,
-        diameter,
-        review_surface_distance,
-        review_surface_extents,
-        review_surface_translation,
-    )
-    from volreg.io import check_writable, write_mesh
-    from volreg.io.gifti import is_gifti, write_gifti_data
-    from volreg.morph import surface_gaps, transfer_values
+    """``volreg transfer SOURCE TARGET --result OUTDIR [--array NAME] -o OUT``
+    (:func:`volreg.outputs.surfaces.write_transferred_array`)."""
+    from volreg.evaluation.surface_review import GAPS_MEASURED
+    from volreg.io import check_writable
+    from volreg.outputs.surfaces import (load_surface_model, read_surface_with_data, select_vertex_array,
+                                         write_transferred_array)
 
     start = time.perf_counter()
-    source = _read(args.source, "SOURCE", args.source_data)
-    target = _read(args.target, "TARGET", args.target_data)
-    available = ", ".join(sorted(target.arrays)) or "none"
-    name = args.array
-    if name is None:
-        if len(target.arrays) != 1:
-            raise UsageError(f"--array is needed: TARGET `{args.target}` has {len(target.arrays)} per-vertex arrays "
-                             f"({available}); expected exactly one without --array.")
-        name = next(iter(target.arrays))
-    elif name not in target.arrays:
-        raise UsageError(f"--array `{name}` is not a per-vertex array of TARGET `{args.target}`; it has: {available}.")
-    data = np.asarray(target.arrays[name])
-    if data.dtype.kind not in "iubf":
-        raise UsageError(f"Per-vertex array `{name}` of TARGET `{args.target}` holds {data.dtype} values; expected "
-                         "numbers (scalars, vectors or integer labels).")
-    if data.dtype.kind == "f" and not np.all(np.isfinite(data)):
-        raise UsageError(f"Per-vertex array `{name}` of TARGET `{args.target}` holds "
-                         f"{int(np.count_nonzero(~np.isfinite(data)))} NaN/Inf values; expected finite per-vertex "
-                         "values (interpolation would spread them to their neighbours).")
+    source = read_surface_with_data(args.source, "SOURCE", args.source_data)
+    target = read_surface_with_data(args.target, "TARGET", args.target_data)
+    name = select_vertex_array(target, args.array, f"TARGET `{args.target}`")
     _check_output(args.output)
     check_writable([args.output], force=args.force)
-    warp = _load_model(args.result)
-    findings = review_surface_extents(source.vertices, target.vertices)
-    warped = warp(source.vertices)
-    gaps, measured = surface_gaps(warped, target.vertices, target.triangles)
-    findings += review_surface_distance(
-        gaps, diameter(target.vertices), measured=measured,
-        hint="Check that SOURCE and TARGET are the surfaces registered in --result, read in the same frame.")
-    findings += review_surface_translation(warp.linear.translation, diameter(source.vertices))
-    _warn_findings("transfer", findings)
-    label = _is_label(target, name)
-    method = "nearest" if label else args.method
-    values = transfer_values(warped, target.vertices, target.triangles, target.arrays[name], method=method)
-    if is_gifti(args.output):
-        structure = source.gifti.structure() if source.gifti is not None else None
-        write_gifti_data(values, args.output, meta=_data_meta(target, name), structure=structure, force=args.force)
-    else:
-        arrays = dict(source.arrays)
-        arrays[name] = values
-        write_mesh(source.vertices, source.triangles, args.output, point_data=arrays, force=args.force,
-                   allow_points=True)
-    print(f"{PROG} transfer: `{name}` ({method}) from {args.target} onto {len(values)} vertices of "
-          f"{args.source}, median {np.median(gaps):.3g} mm {GAPS_MEASURED[measured]} -> {args.output} "
+    warp = load_surface_model(args.result)
+    done = write_transferred_array(source, target, warp, name, args.output, method=args.method, force=args.force,
+                                   on_findings=lambda findings: _warn_findings("transfer", findings))
+    print(f"{PROG} transfer: `{name}` ({done.method}) from {args.target} onto {done.vertices} vertices of "
+          f"{args.source}, median {done.median_gap_mm:.3g} mm {GAPS_MEASURED[done.measured]} -> {args.output} "
           f"({time.perf_counter() - start:.1f} s)")
     return 0

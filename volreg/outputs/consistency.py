@@ -4,7 +4,8 @@
 and writes each direction's outputs (:func:`~volreg.outputs.registration.write_registration`) into
 ``outdir/forward`` and ``outdir/backward``; :func:`write_consistency_test` runs the consistency test
 (paper Section 5, :func:`~volreg.evaluation.consistency.consistency_test`) and writes its report,
-error map and figure, all or nothing, as ``volreg consistency`` does.
+error map and figure, all or nothing, as ``volreg consistency`` does; :func:`load_saved_warp`
+reads the warp of a saved direction, checked against the grid it must have been registered on.
 """
 
 from __future__ import annotations
@@ -19,10 +20,12 @@ from typing import Callable
 import numpy as np
 
 from volreg import __version__
+from volreg.errors import UsageError
 from volreg.evaluation.consistency import consistency_test
 from volreg.evaluation.report import RegistrationReport
 from volreg.grid import LabelVolume
 from volreg.io import write_json, write_scalar
+from volreg.io.fields import axis_order_of, read_displacement
 from volreg.io._atomic import output_folder
 from volreg.io.report_figure import write_error_figure
 from volreg.io.summary import json_safe, package_versions
@@ -30,8 +33,9 @@ from volreg.outputs.registration import register_and_write
 from volreg.pipeline.labels import LabelRegistration
 from volreg.pipeline.two_way import TwoWayRegistration, register_both_ways
 from volreg.settings import Protocol
+from volreg.warp.model import KernelWarp
 
-__all__ = ["CONSISTENCY_OUTPUTS", "WrittenBothWays", "write_both_ways", "write_consistency_test"]
+__all__ = ["CONSISTENCY_OUTPUTS", "WrittenBothWays", "load_saved_warp", "write_both_ways", "write_consistency_test"]
 
 ProgressCallback = Callable[[str, int, int], None]
 
@@ -200,3 +204,50 @@ def write_consistency_test(
         write_json(report, paths["consistency.json"], force=force)
         folder.record(paths["consistency.json"])
     return report
+
+
+def load_saved_warp(result: str | os.PathLike[str], grid: LabelVolume, *, option: str, grid_path: object,
+                    role: str) -> KernelWarp:
+    """The warp of a saved ``volreg register`` output folder, checked to be registered on ``grid``.
+
+    Parameters
+    ----------
+    result : path-like
+        The folder; its ``model.npz`` is read, and its ``warp.nii.gz`` tells the fixed grid.
+    grid : LabelVolume
+        The volume the result's fixed grid must be (A for the forward direction, B for the backward).
+    option : str
+        How messages name the result, e.g. ``"--forward"``.
+    grid_path : str or path-like
+        The file ``grid`` was read from, named in the messages.
+    role : {"A", "B"}
+        Which volume ``grid`` is.
+
+    Returns
+    -------
+    KernelWarp
+
+    Raises
+    ------
+    UsageError
+        A folder without ``model.npz`` or ``warp.nii.gz``, registered on another grid, or holding a
+        warp of another dimension.
+    """
+    result = Path(result)
+    model = result / "model.npz"
+    field_path = result / "warp.nii.gz"
+    for p in (model, field_path):
+        if not p.is_file():
+            raise UsageError(f"{option} `{result}` has no `{p.name}`; expected an OUTDIR written by `volreg register`.")
+    _, field_grid = read_displacement(field_path)
+    if axis_order_of(field_grid, grid, atol=1e-3) is None:  # a single-voxel axis is stored first (write_displacement)
+        raise UsageError(
+            f"{option} `{result}` was registered on a grid of shape {field_grid.shape} (origin "
+            f"{np.round(field_grid.origin, 3).tolist()} mm), not on the grid of {role} `{grid_path}` (shape "
+            f"{grid.shape}, origin {np.round(grid.origin, 3).tolist()} mm); expected the result of "
+            f"`volreg register {'A B' if role == 'A' else 'B A'}`."
+        )
+    warp = KernelWarp.load(model)
+    if warp.dim != grid.ndim:
+        raise UsageError(f"{option} `{model}` is a {warp.dim}-D warp but {role} `{grid_path}` is {grid.ndim}-D.")
+    return warp
