@@ -15,11 +15,15 @@ from volreg.errors import UsageError
 if TYPE_CHECKING:  # numpy and the pipeline are imported when the command runs
     import numpy as np
 
-__all__ = ["add_parser", "run"]
+__all__ = ["OUTPUT_PATTERNS", "add_parser", "run"]
 
 
 #: The most frames a morph writes (each is a mesh file and a PNG, and all are held for the GIF).
 MAX_FRAMES = 1000
+
+#: Every file `morph` may write, whatever its options (an earlier run's that this one does not write
+#: are removed with --force): frames as .vtk, .png and .surf.gii, their data arrays, the animation.
+OUTPUT_PATTERNS = ("frame_[0-9][0-9][0-9].vtk", "frame_[0-9][0-9][0-9].png", "frame_[0-9][0-9][0-9].*.gii", "morph.gif")
 
 
 def add_parser(commands) -> None:
@@ -114,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     if gifti:
         paths += [outdir / f"{n}.surf.gii" for n in names]
         paths += [outdir / file for files in data_names.values() for file in files.values()]
-    with output_folder(outdir, args.force) as folder:
+    with output_folder(outdir, args.force, outputs=OUTPUT_PATTERNS) as folder:
         folder.check_writable([p.name for p in paths], force=args.force)
         final, outdir = outdir, folder.path  # written into the run's staging folder, swapped in at the end
         registered = warp is None

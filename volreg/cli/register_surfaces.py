@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     outdir: Path = args.output
     names = OUTPUTS + ((GIFTI_OUTPUT,) if _wants_gifti(args, args.source) else ())
     limits = SurfaceReviewLimits()
-    with output_folder(outdir, args.force) as folder:
+    with output_folder(outdir, args.force, outputs=(*OUTPUTS, GIFTI_OUTPUT)) as folder:
         paths = folder.check_writable(names, force=args.force)  # in staging, swapped into outdir at the end
         findings = []  # surfaces of other sizes (units) were refused by _register
         with ProgressBars(quiet=args.quiet) as progress:

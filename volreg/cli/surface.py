@@ -17,8 +17,11 @@ from volreg.settings import SurfaceSettings
 if TYPE_CHECKING:  # the pipeline is imported when the command runs
     from volreg.grid import LabelVolume
 
-__all__ = ["add_parser", "run"]
+__all__ = ["OUTPUT_PATTERNS", "add_parser", "run"]
 
+#: Every file `surface` may write, whatever its labels (an earlier run's that this one does not
+#: write are removed with --force): each label's mesh, GIFTI surface and signed distance, the summary.
+OUTPUT_PATTERNS = ("label_*.vtk", "label_*.surf.gii", "sdf_*.nii.gz", "surface.json")
 
 _DEFAULTS = SurfaceSettings()
 
@@ -101,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     sdfs = {v: outdir / f"sdf_{v}.nii.gz" for v in labels}
     summary_path = outdir / "surface.json"
     # Existing outputs are refused one by one (check_writable), not the folder as a whole.
-    with output_folder(outdir, require_empty=False) as folder:
+    with output_folder(outdir, args.force, require_empty=False, outputs=OUTPUT_PATTERNS) as folder:
         # written into the run's staging folder, swapped into outdir at the end
         folder.check_writable([p.name for p in (*meshes.values(), *giftis.values(), *sdfs.values(), summary_path)],
                               force=args.force)
