@@ -504,3 +504,57 @@ def test_signals_are_held_while_a_result_is_moved_in(tmp_path, monkeypatch):
         signal.signal(signal.SIGTERM, previous)
     assert len(moved) == 3 and _contents(out) == {n: b"new" for n in ("a.txt", "b.txt", "c.txt")}
     assert _working_entries(out) == []
+
+
+# ----------------------------------------------------------------------------- batch ids and resumed pairs
+
+
+@pytest.mark.parametrize("sid", [".x", "y.volreg-old-999999999-0badc0de", "a.volreg-new-2-00000000", ".out.volreg-lock"])
+def test_a_batch_id_that_could_name_a_working_folder_is_refused(tmp_path, sid):
+    from volreg.cohort import read_manifest
+    from volreg.errors import UsageError
+
+    manifest = tmp_path / "m.csv"
+    manifest.write_text(f"id,path\nok,a.nii.gz\n{sid},b.nii.gz\n")
+    with pytest.raises(UsageError) as info:
+        read_manifest(manifest)
+    assert str(info.value) == (f"MANIFEST `{manifest}` line 3: id `{sid}` could name one of volreg's hidden working "
+                               "folders (it starts with '.' or holds '.volreg-'); expected an id without either.")
+
+
+@pytest.mark.parametrize("consistency", [False, True], ids=["register", "consistency"])
+def test_a_pair_missing_or_altering_an_output_is_not_done(inputs, tmp_path, consistency):
+    import json
+
+    from volreg.cohort import pair_outputs, run_pair
+
+    d, out = inputs, tmp_path / "pair"
+    args = ("a", str(d / "a.nii.gz"), "b", str(d / "b.nii.gz"), str(out), str(d / "p.toml"), consistency)
+    assert run_pair(*args)["status"] == "done"
+    names = pair_outputs(None, consistency)
+    recorded = json.loads((out / "batch_row.json").read_text())["outputs"]
+    assert sorted(recorded) == sorted(names) and all((out / n).is_file() for n in names)
+    assert run_pair(*args).get("skipped") is True
+    h5 = "forward/warp.h5" if consistency else "warp.h5"
+    (out / h5).unlink()
+    again = run_pair(*args)
+    assert again["status"] == "done" and not again.get("skipped") and (out / h5).is_file()
+    field = out / ("backward/inverse_warp.nii.gz" if consistency else "inverse_warp.nii.gz")
+    field.write_bytes(field.read_bytes()[:-10])  # truncated after it finished
+    again = run_pair(*args)
+    assert not again.get("skipped") and json.loads((out / "batch_row.json").read_text())["outputs"] != recorded
+
+
+def test_a_pair_done_without_the_outputs_its_protocol_leaves_out_is_skipped(inputs, tmp_path):
+    import json
+
+    from volreg.cohort import run_pair
+
+    d, out = inputs, tmp_path / "pair"
+    args = ("a", str(d / "a.nii.gz"), "b", str(d / "b.nii.gz"), str(out), str(d / "noh5.toml"))
+    assert run_pair(*args)["status"] == "done" and not (out / "warp.h5").exists()
+    assert run_pair(*args).get("skipped") is True
+    row = json.loads((out / "batch_row.json").read_text())
+    del row["outputs"]  # a row that records no checksums: every output there is enough
+    (out / "batch_row.json").write_text(json.dumps(row))
+    assert run_pair(*args).get("skipped") is True
