@@ -201,9 +201,29 @@ def test_a_failed_force_rerun_keeps_the_previous_result_whole_and_says_so(inputs
     assert status == (143 if failure == "SIGTERM" else 1), line
     assert line.startswith(f"volreg {command}: ")
     assert f"were removed (the previous result in `{out}` was kept)" in line, line
+    if failure == "disk full":  # naming the output where the user looks for it, not in the staging folder
+        assert f" writing `{out}{os.sep}" in line and ".volreg-" not in line, line
     assert _contents(real) == before
     assert _working_entries(real, tmp_path) == []
     assert out.is_symlink() == (mode == "in place")
+
+
+@pytest.mark.parametrize("mode", ["beside", "in place"])
+def test_a_failure_while_the_result_is_put_in_place_keeps_the_previous_one_and_says_so(tmp_path, monkeypatch, mode):
+    out, real = _outdir(tmp_path, mode)
+    (real / "a.txt").write_text("old")
+
+    def full(*args):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(real / "a.txt"))
+
+    monkeypatch.setattr(atomic, "_stale", full)  # the first step of putting the result in place
+    with pytest.raises(OSError):
+        with output_folder(out, force=True, outputs=["*.txt"]) as folder:
+            (folder.path / ".tmp-a.txt").write_text("new")  # replaced, as volreg's writers do (never in place)
+            os.replace(folder.path / ".tmp-a.txt", folder.path / "a.txt")
+            folder.record(folder.path / "a.txt")
+    assert _contents(real) == {"a.txt": b"old"} and kept_results() == [out]
+    assert _working_entries(real, tmp_path) == []
 
 
 @pytest.mark.parametrize("command", COMMANDS)
@@ -418,11 +438,11 @@ def _in_mount_namespace(script: str, tmp_path: Path):
     """Run ``script`` (bash) in a mount namespace of its own, where it may bind-mount; skip where that cannot be."""
     if shutil.which("unshare") is None:
         pytest.skip("no unshare(1)")
-    probe = subprocess.run(["unshare", "-rm", "true"], capture_output=True)
+    probe = subprocess.run(["unshare", "-rm", "true"], capture_output=True, check=False)
     if probe.returncode != 0:
         pytest.skip("no mount namespaces here")
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.run(["unshare", "-rm", "bash", "-c", script], capture_output=True, text=True, env=env,
+    return subprocess.run(["unshare", "-rm", "bash", "-c", script], capture_output=True, text=True, env=env, check=False,
                           cwd=tmp_path, timeout=300)
 
 

@@ -573,7 +573,11 @@ class _Run:
                 _swap_in(self.staging, final, self.may_replace)
             failed = False
         finally:
-            if failed:  # where the swap had not begun: the run's outputs go with it, and the folder keeps what it held
+            if failed:
+                # The swap had not begun where the staging folder is still there, and a failed swap
+                # beside the folder puts it back: the folder then keeps what it held.
+                if (self.staging.exists() or not self.in_place) and _holds_result(final):
+                    _kept.append(final)
                 _discard_staging(self.staging, [])
             self._release(failed)
 
@@ -584,6 +588,15 @@ class _Run:
             self.lock = None
         if failed:
             _remove_directories(self.folder.created)
+
+
+def _name_final(exc: BaseException, folder: OutputFolder) -> None:
+    """Make an OSError about a file in the staging folder name the file in the output folder instead
+    (its messages, a full disk's, name the output as the user named it)."""
+    if isinstance(exc, OSError) and exc.filename is not None:
+        relative = _inside(Path(os.fsdecode(exc.filename)), folder.path)
+        if relative is not None:
+            exc.filename = str(folder.final / relative)
 
 
 def _check_folder_writable(final: Path) -> None:
@@ -753,9 +766,14 @@ def output_folder(
     try:
         held.__exit__(None, None, None)
         yield run.folder
-    except BaseException:
+    except BaseException as exc:
+        _name_final(exc, run.folder)
         run.abandon()
         raise
     finally:
         _open_folder.reset(token)
-    run.complete()
+    try:
+        run.complete()
+    except OSError as exc:
+        _name_final(exc, run.folder)
+        raise
