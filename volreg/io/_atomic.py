@@ -7,6 +7,9 @@ interrupted or failed command never leaves a half-written output behind.
 whole result into a hidden sibling folder, which replaces the output folder
 only once every output is written, so the output folder holds either the
 previous complete result or the new complete one, whenever the run stops.
+A folder that cannot be renamed (a mount point, a symbolic link, the working
+directory) is written through a hidden folder inside it, whose files replace
+the previous ones once all are written; one run at a time holds a folder.
 """
 
 from __future__ import annotations
