@@ -55,6 +55,7 @@ MODULE_TIERS = {
     "test_linear_fit.py": "integration",
     "test_linear_model.py": "integration",
     "test_objective.py": "unit",
+    "test_output_folders.py": "integration",
     "test_outputs_library.py": "integration",
     "test_pipeline.py": "integration",
     "test_precompile.py": "system",

@@ -1,6 +1,7 @@
 """Kill commands at random moments: every output folder holds a complete result or none, and a rerun completes.
 
-``register``, ``register --force`` over an existing result, ``consistency`` and ``batch`` are
+``register``, ``register --force`` over an existing result (in a folder, and in a folder named
+through a symbolic link, which is written in place), ``consistency`` and ``batch`` are
 killed with SIGKILL and SIGTERM at moments drawn uniformly over a whole run's duration, on a
 tiny 2-D pair.  "Complete" means every output of the command is there and reads back.  The
 default run draws 1 moment per command and signal; ``VOLREG_CRASH_MOMENTS=20`` draws 20.
@@ -75,7 +76,7 @@ def _args(command: str, d: Path, out: Path) -> list[str]:
     if command == "batch":
         return ["batch", str(d / "manifest.csv"), "-o", str(out), "--protocol", str(d / "p.toml"), "--pairs",
                 "consecutive", "--workers", "1", "--quiet"]
-    force = ["--force"] if command == "register-force" else []
+    force = ["--force"] if command.startswith("register-force") else []
     name = "consistency" if command == "consistency" else "register"
     return [name, str(d / "a.nii.gz"), str(d / "b.nii.gz"), "-o", str(out), "--protocol", str(d / "p.toml"),
             "--quiet", *force]
@@ -109,21 +110,25 @@ def inputs(tmp_path_factory):
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
-@pytest.mark.parametrize("command", ["register", "register-force", "consistency", "batch"])
+@pytest.mark.parametrize("command", ["register", "register-force", "register-force-in-place", "consistency", "batch"])
 def test_killed_runs_leave_complete_results_and_a_rerun_completes(inputs, tmp_path, command, sig):
     rng = np.random.default_rng(abs(hash((command, int(sig)))) % 2**32)
     d = inputs
     # one whole run: its duration bounds the moments, and it is the previous result for --force
     out = tmp_path / "out"
+    if command == "register-force-in-place":  # a symbolic link cannot be swapped: written in place
+        (tmp_path / "real").mkdir()
+        out.symlink_to(tmp_path / "real", target_is_directory=True)
     t0 = time.perf_counter()
     rc, err = _run(_args(command, d, out), d)
     duration = time.perf_counter() - t0
     assert rc == 0, err
     assert _complete(command, out)
-    previous = (out / "report.json").read_text() if command == "register-force" else None
+    forced = command.startswith("register-force")
+    previous = (out / "report.json").read_text() if forced else None
     outcomes = {"killed": 0, "finished": 0}
     for k in range(MOMENTS):
-        target = out if command in ("register-force", "batch") else tmp_path / f"out{k}"
+        target = out if forced or command == "batch" else tmp_path / f"out{k}"
         moment = float(rng.uniform(0.0, duration))
         rc, err = _run(_args(command, d, target), d, kill_after=moment, sig=sig)
         outcomes["finished" if rc == 0 else "killed"] += 1
@@ -135,7 +140,7 @@ def test_killed_runs_leave_complete_results_and_a_rerun_completes(inputs, tmp_pa
             pass
         else:
             assert _complete(command, target), (command, moment, err)
-        if command == "register-force":
+        if forced:
             now = (target / "report.json").read_text()
             assert now == previous or json.loads(now)["mean_dice"]["after"] is not None
         # a rerun completes and leaves no hidden sibling behind
@@ -145,6 +150,7 @@ def test_killed_runs_leave_complete_results_and_a_rerun_completes(inputs, tmp_pa
         assert rc == 0, err
         assert _complete(command, target)
         assert not [p for p in target.parent.iterdir() if ".volreg-" in p.name]
+        assert not [p for p in target.iterdir() if ".volreg-" in p.name]
     assert sum(outcomes.values()) == MOMENTS
     print(f"{command} {sig.name}: {outcomes}")
 

@@ -748,9 +748,11 @@ def test_a_swap_killed_between_its_renames_is_recovered(tmp_path, left):
 def test_the_working_directory_is_written_in_place(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with output_folder(tmp_path, require_empty=False) as folder:
-        assert folder.path == tmp_path  # never renamed away under the user's shell
+        # never renamed away under the user's shell: staged inside it, moved in file by file
+        assert folder.path.parent == tmp_path and folder.path.name.startswith(".volreg-new-")
         (folder.path / "a.txt").write_text("x")
-    assert (tmp_path / "a.txt").read_text() == "x"
+        folder.record(folder.path / "a.txt")
+    assert (tmp_path / "a.txt").read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
 
 
 def test_an_interrupted_force_rerun_says_the_previous_result_was_kept(tmp_path, capsys, monkeypatch):

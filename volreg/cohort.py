@@ -36,11 +36,11 @@ from volreg.io._atomic import make_directory
 from volreg.io.protocol import load_protocol
 from volreg.io.summary import file_sha256
 from volreg.outputs.consistency import CONSISTENCY_OUTPUTS, write_consistency_test
-from volreg.outputs.registration import REGISTRATION_OUTPUTS, write_registration
+from volreg.outputs.registration import REGISTRATION_OUTPUTS, registration_outputs, write_registration
 from volreg.pipeline.checks import check_pair, check_pair_headers
 from volreg.progress import ProgressBars
 
-__all__ = ["COLUMNS", "CohortSummary", "pair_folders", "pair_result_done", "plan_pairs", "read_manifest",
+__all__ = ["COLUMNS", "CohortSummary", "pair_folders", "pair_outputs", "pair_result_done", "plan_pairs", "read_manifest",
            "register_cohort", "run_pair", "settings_fingerprint", "write_cohort_plot", "write_cohort_table"]
 
 #: The columns of ``batch.csv``.
@@ -102,6 +102,11 @@ def read_manifest(path: Path) -> list[tuple[str, Path]]:
         if sid in (".", ".."):
             raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` names a special folder; expected a name for its "
                              "results' folder.")
+        if sid.startswith(".") or ".volreg-" in sid:
+            # a pair's folder of such a name could be taken for another pair's hidden working folder
+            # (``.A__B.volreg-old-PID-HEX``), which recovery after a killed run renames or removes
+            raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` could name one of volreg's hidden working "
+                             "folders (it starts with '.' or holds '.volreg-'); expected an id without either.")
         if "\x00" in p:
             raise UsageError(f"MANIFEST `{path}` line {i}: path {excerpt(p)} holds a NUL byte; expected a file path.")
         seen.add(sid)
@@ -171,9 +176,29 @@ def _remove_temporaries(outdir: Path) -> int:
     return removed
 
 
-def pair_result_done(outdir: Path, sha: tuple[str, str], consistency: bool, fingerprint: str | None = None) -> dict | None:
+def pair_outputs(protocol=None, consistency: bool = False) -> tuple[str, ...]:
+    """Every file a pair's folder holds once done with ``protocol`` (default: the default protocol),
+    relative to it: a registration's outputs (:func:`~volreg.outputs.registration.registration_outputs`),
+    or with ``consistency`` the consistency test's and both directions' in ``forward/`` and ``backward/``."""
+    registration = registration_outputs(protocol)
+    if not consistency:
+        return registration
+    return (*CONSISTENCY_OUTPUTS, *(f"{way}/{name}" for way in ("forward", "backward") for name in registration))
+
+
+def _output_checksums(outdir: Path, names) -> dict[str, str]:
+    """SHA-256 of each of the files ``names`` in ``outdir``."""
+    return {name: file_sha256(outdir / name) for name in names}
+
+
+def pair_result_done(outdir: Path, sha: tuple[str, str], consistency: bool, fingerprint: str | None = None,
+                     protocol=None) -> dict | None:
     """The saved row of a complete pair whose inputs still have the checksums ``sha`` and whose
-    settings had the fingerprint ``fingerprint`` (see :func:`settings_fingerprint`), else None."""
+    settings had the fingerprint ``fingerprint`` (see :func:`settings_fingerprint`), else None.
+
+    Complete: every output that ``protocol`` writes (:func:`pair_outputs`) is there, and, where the
+    row records their checksums (``outputs``), each still has its checksum.
+    """
     row_file = outdir / "batch_row.json"
     if not row_file.is_file():
         return None
@@ -185,8 +210,17 @@ def pair_result_done(outdir: Path, sha: tuple[str, str], consistency: bool, fing
         return None
     if fingerprint is not None and row.get("settings_sha256") != fingerprint:
         return None
-    needed = ["consistency.json"] if consistency else ["warp.nii.gz", "warped.nii.gz", "model.npz", "report.json"]
-    return row if all((outdir / n).is_file() for n in needed) else None
+    needed = pair_outputs(protocol, consistency)
+    if not all((outdir / n).is_file() for n in needed):
+        return None
+    recorded = row.get("outputs")
+    if recorded is not None:
+        try:
+            if not isinstance(recorded, dict) or any(recorded.get(n) != file_sha256(outdir / n) for n in needed):
+                return None
+        except OSError:
+            return None
+    return row
 
 
 def _remove_earlier_results(outdir: Path) -> None:
@@ -219,7 +253,7 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
         sha = (file_sha256(fpath), file_sha256(mpath))
         proto = load_protocol(protocol)
         fingerprint = settings_fingerprint(proto, consistency)
-        saved = pair_result_done(out, sha, consistency, fingerprint)
+        saved = pair_result_done(out, sha, consistency, fingerprint, protocol=proto)
         if saved is not None:
             return dict(saved, skipped=True)
         if (out / "batch_row.json").is_file():
@@ -243,7 +277,7 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
                 row.update(mean_dice_before=rep["mean_dice"]["before"], mean_dice_after=rep["mean_dice"]["after"],
                            folded_fraction=rep["jacobian"]["folded_fraction"], review=_review_cell({"": rep["review"]}))
         row.update(status="done", error="", seconds=time.perf_counter() - start, fixed_sha256=sha[0], moving_sha256=sha[1],
-                   settings_sha256=fingerprint)
+                   settings_sha256=fingerprint, outputs=_output_checksums(out, pair_outputs(proto, consistency)))
         write_json({k: v for k, v in row.items() if k != "redone"}, out / "batch_row.json", force=True)
     except VolregError as exc:
         row.update(status="failed", error=" ".join(str(exc).split()), seconds=time.perf_counter() - start)

@@ -138,15 +138,20 @@ def _forget_unhandled_interrupt() -> None:
 
 def _interrupted(command: str, name: str) -> int:
     """Report an interrupt in one line; return the exit status (130 for SIGINT, 143 for SIGTERM)."""
-    from volreg.io._atomic import kept_results
-
     _forget_unhandled_interrupt()
-    kept = "".join(f" (the previous result in `{p}` was kept)" for p in kept_results()[:1])
-    print(f"{PROG} {command}: interrupted by {name}; the outputs of this run were removed{kept}.", file=sys.stderr)
+    print(f"{PROG} {command}: interrupted by {name}; the outputs of this run were removed{_kept_note()}.",
+          file=sys.stderr)
     # An object the interrupt left half-built (llvmlite's, while numba loads) can fail in its
     # destructor on the way out ("Exception ignored in ..."): the report stays the last line.
     sys.unraisablehook = _ignore_unraisable
     return 130 if name == "SIGINT" else 128 + int(signal.SIGTERM)
+
+
+def _kept_note() -> str:
+    """`` (the previous result in `OUTDIR` was kept)`` after a failed run that left one, else ``""``."""
+    from volreg.io._atomic import kept_results
+
+    return "".join(f" (the previous result in `{p}` was kept)" for p in kept_results()[:1])
 
 
 def _ignore_unraisable(unraisable) -> None:
@@ -379,8 +384,8 @@ def _os_error(command: str, exc: OSError) -> int:
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):
         where = f" writing `{exc.filename}`" if exc.filename is not None else ""
         print(f"{PROG} {command}: error: {exc.strerror or 'no space left on device'}{where}; the outputs "
-              "were removed; expected room for them on the output's device (free some, or write elsewhere).",
-              file=sys.stderr)
+              f"were removed{_kept_note()}; expected room for them on the output's device (free some, or write "
+              "elsewhere).", file=sys.stderr)
         return 1
     # a path over the system's limits (NAME_MAX per component, PATH_MAX in all), wherever it is met
     name = exc.filename if exc.filename is not None else "a path"

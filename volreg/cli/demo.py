@@ -7,7 +7,10 @@ from pathlib import Path
 
 from volreg.cli._common import _fit_logger, _sha256, _summary_line, _warn_review, output_path
 
-__all__ = ["add_parser", "run"]
+__all__ = ["DEMO_INPUTS", "add_parser", "run"]
+
+#: The pair that `demo` writes beside the outputs of `volreg register`.
+DEMO_INPUTS = ("fixed.nii.gz", "moving.nii.gz")
 
 
 def add_parser(commands) -> None:
@@ -45,8 +48,8 @@ def run(args: argparse.Namespace) -> int:
     inputs = {"fixed": {"path": str(path), "sha256": _sha256(path), "resampled": "block mode 3x3x2" if not args.full else "none"},
               "moving": {"known_deformation": "Gaussian bumps, max 8 mm, seed 0"}}
     # Leave nothing half-done: on failure the inputs written here go too.
-    with output_folder(args.output, args.force) as folder:
-        for name, volume in (("fixed.nii.gz", fixed), ("moving.nii.gz", moving)):
+    with output_folder(args.output, args.force, outputs=DEMO_INPUTS) as folder:
+        for name, volume in zip(DEMO_INPUTS, (fixed, moving)):
             write_labels(volume, folder.path / name, force=args.force)
             folder.record(folder.path / name)
         with ProgressBars(quiet=args.quiet) as progress:

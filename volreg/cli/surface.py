@@ -17,7 +17,6 @@ if TYPE_CHECKING:  # the pipeline is imported when the command runs
 
 __all__ = ["add_parser", "run"]
 
-
 _DEFAULTS = SurfaceSettings()
 
 

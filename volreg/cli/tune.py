@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
     landmarks = _load_landmarks(args, a, b)
     outdir: Path = args.output
     paths = {name: outdir / name for name in OUTPUTS}
-    with output_folder(outdir, args.force) as folder:
+    with output_folder(outdir, args.force, outputs=OUTPUTS) as folder:
         paths = folder.check_writable(OUTPUTS, force=args.force)  # in staging, swapped into outdir at the end
         rows, best = tune_settings(a, b, protocol, grid, drive_labels=args.drive_labels, landmarks=landmarks,
                                    on_score=None if args.quiet else _print_score)

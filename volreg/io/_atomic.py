@@ -7,12 +7,18 @@ interrupted or failed command never leaves a half-written output behind.
 whole result into a hidden sibling folder, which replaces the output folder
 only once every output is written, so the output folder holds either the
 previous complete result or the new complete one, whenever the run stops.
+A folder that cannot be renamed (a mount point, a symbolic link, the working
+directory) is written through a hidden folder inside it, whose files replace
+the previous ones once all are written; one run at a time holds a folder.
 """
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
+import json
 import os
+import re
 import secrets
 import shutil
 from collections.abc import Iterable, Iterator
@@ -22,6 +28,15 @@ from pathlib import Path
 
 from volreg._signals import SignalsHeld
 from volreg.errors import UsageError, VolregIOError
+from volreg.io._folder_parts import (
+    INSIDE_PREFIX,
+    STALE_LIST,
+    FolderLock,
+    finish_in_place,
+    is_mount_point,
+    remove_tree,
+    writable,
+)
 
 __all__ = [
     "VolregIOError", "OutputFolder", "atomic_output", "check_writable", "make_directory", "output_folder",
@@ -33,12 +48,17 @@ def _exists_message(path: Path) -> str:
     return f"Output `{path}` exists; pass --force to overwrite."
 
 
-def _check_one(path: Path, force: bool) -> None:
+def _check_existing(path: Path, force: bool) -> None:
+    """Refuse an output ``path`` that is a folder, or that exists without ``force``."""
     if path.is_dir():
         raise VolregIOError(f"Output `{path}` is a directory; expected a file name.")
     if path.exists() or path.is_symlink():
         if not force:
             raise VolregIOError(_exists_message(path))
+
+
+def _check_one(path: Path, force: bool) -> None:
+    _check_existing(path, force)
     parent = path.parent
     if not parent.is_dir():
         raise VolregIOError(f"Output directory `{parent}` of `{path}` does not exist.")
@@ -205,23 +225,30 @@ class OutputFolder:
     Attributes
     ----------
     path : pathlib.Path
-        Where the run writes its outputs: a hidden sibling of ``final`` (the staging
-        folder, which replaces ``final`` when the run completes), or ``final`` itself
-        when the folder cannot be replaced as a whole (see :func:`output_folder`).
+        Where the run writes its outputs: a hidden staging folder, beside ``final`` (it replaces
+        ``final`` when the run completes) or, where ``final`` cannot be replaced as a whole, inside
+        it (its files are moved into ``final`` when the run completes); for a transaction opened
+        inside another one's folder, the matching place in that one's staging folder.
     final : pathlib.Path
         The output folder as named by the user.
     created : list of pathlib.Path
-        Folders this run created (``final``'s missing parents, and ``final`` or inner
-        folders when written in place), outermost first.
+        Folders this run created (``final``'s missing parents, and inner folders), outermost first.
     written : list of pathlib.Path
         Files this run wrote, in order (also those of inner transactions that completed).
     """
 
-    def __init__(self, path: Path, created: list[Path], final: Path | None = None) -> None:
+    def __init__(self, path: Path, created: list[Path], final: Path | None = None, *,
+                 shadow: Path | None = None) -> None:
         self.path = path
         self.final = path if final is None else final
         self.created = list(created)
         self.written: list[Path] = []
+        # Where the folder's earlier outputs are when the staging folder does not hold them (the
+        # output folder itself, when it is written through a staging folder inside it), else None.
+        self._shadow = shadow
+        # (folder relative to ``path``, name patterns): outputs whose earlier versions this run's
+        # result must not keep (see :func:`output_folder`'s ``outputs``).
+        self._family: list[tuple[Path, tuple[str, ...]]] = []
 
     def record(self, path: str | os.PathLike[str]) -> Path:
         """Record ``path`` as written by this run (call it once the file is complete); return it."""
@@ -238,17 +265,22 @@ class OutputFolder:
         VolregIOError
             As :func:`check_writable`; the message names the output folder, not the staging one.
         """
+        names = list(names)
         paths = {name: self.path / name for name in names}
         try:
             check_writable(paths.values(), force=force)
+            if self._shadow is not None:  # the earlier outputs are in the output folder, not in the staging one
+                for name in names:
+                    _check_existing(self._shadow / name, force)
         except VolregIOError as exc:
             raise VolregIOError(str(exc).replace(str(self.path), str(self.final))) from None
         return paths
 
-    def _adopt(self, inner: "OutputFolder") -> None:
-        """Take over the records of a completed inner transaction."""
+    def _adopt(self, inner: OutputFolder, relative: Path) -> None:
+        """Take over the records of a completed inner transaction, whose folder is ``relative`` in this one."""
         self.written += inner.written
         self.created += inner.created
+        self._family += [(relative / where, patterns) for where, patterns in inner._family]
 
     def _remove(self) -> None:
         """Remove the files written and then the folders created (innermost first, while empty)."""
@@ -273,9 +305,13 @@ def kept_results() -> list[Path]:
     return _kept
 
 
-#: The three kinds of hidden siblings of an output folder: a result being written, a complete
-#: result about to be swapped in, and the previous result being swapped out.
+#: The three kinds of hidden working folders of a run: a result being written, a complete result
+#: about to be swapped in, and the previous result being swapped out.
 _KINDS = ("new", "ready", "old")
+
+#: What follows the prefix in the name of a hidden working folder: its kind, its run's process id
+#: and 8 hex digits.  Matched whole, so that a folder merely starting like one is never taken for one.
+_WORKING_NAME = re.compile(r"(new|ready|old)-([0-9]+)-[0-9a-f]{8}")
 
 
 def _stage_prefix(final: Path) -> str:
@@ -286,8 +322,13 @@ def _stage_prefix(final: Path) -> str:
     return f".{name}.volreg-"
 
 
+def _hidden(where: Path, prefix: str, kind: str) -> Path:
+    """A new name for a working folder of this run in ``where``."""
+    return where / f"{prefix}{kind}-{os.getpid()}-{secrets.token_hex(4)}"
+
+
 def _stage_path(final: Path, kind: str) -> Path:
-    return final.with_name(f"{_stage_prefix(final)}{kind}-{os.getpid()}-{secrets.token_hex(4)}")
+    return _hidden(final.parent, _stage_prefix(final), kind)
 
 
 def _pid_alive(pid: int) -> bool:
@@ -300,41 +341,44 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def _leftovers(final: Path) -> dict[str, list[Path]]:
-    """The hidden siblings of ``final`` that runs no longer alive left behind, by kind."""
+def _leftovers(directory: Path, prefix: str) -> dict[str, list[Path]]:
+    """The working folders named ``PREFIX KIND-PID-HEX`` in ``directory`` that runs no longer alive
+    left behind, by kind."""
     found: dict[str, list[Path]] = {kind: [] for kind in _KINDS}
-    prefix = _stage_prefix(final)
     try:
-        entries = list(final.parent.iterdir())
+        entries = list(directory.iterdir())
     except OSError:
         return found
     for entry in entries:
         if not entry.name.startswith(prefix) or entry in _staging_open:
             continue
-        kind, _, rest = entry.name[len(prefix):].partition("-")
-        pid = rest.partition("-")[0]
-        if kind not in found or not pid.isdigit():
+        match = _WORKING_NAME.fullmatch(entry.name[len(prefix):])
+        if match is None:
             continue
-        if int(pid) != os.getpid() and _pid_alive(int(pid)):
+        pid = int(match.group(2))
+        if pid != os.getpid() and _pid_alive(pid):
             continue  # a run in progress (another process)
-        found[kind].append(entry)
+        found[match.group(1)].append(entry)
     return found
 
 
-def _remove_tree(path: Path) -> None:
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
-    else:
-        path.unlink(missing_ok=True)
+def _holds_result(folder: Path) -> bool:
+    """Whether ``folder`` holds anything besides volreg's hidden working entries."""
+    try:
+        return any(not entry.name.startswith(INSIDE_PREFIX) for entry in folder.iterdir())
+    except OSError:
+        return False
 
 
 def recover_folder(path: str | os.PathLike[str]) -> str | None:
     """Finish or undo what a run killed while writing output folder ``path`` left behind.
 
     A run killed (SIGKILL, power loss) in the middle of :func:`output_folder` can
-    leave hidden siblings of ``path``: a staging folder with part of a result, and,
-    if it was killed while swapping a complete result in, the previous result set
-    aside.  This puts a complete result back at ``path`` if there is none and
+    leave hidden working folders: beside ``path``, a staging folder with part of a
+    result, and, if it was killed while swapping a complete result in, the previous
+    result set aside; inside ``path`` (a folder written in place), a staging folder,
+    or a complete result that it was moving in file by file.  This puts a complete
+    result back at ``path`` if there is none, finishes moving a complete one in, and
     removes the rest.  :func:`output_folder` calls it before every run.
 
     Parameters
@@ -347,10 +391,23 @@ def recover_folder(path: str | os.PathLike[str]) -> str | None:
     str or None
         What was restored (``"new"``: the killed run's complete result, ``"old"``: the
         result before it), or None.
+
+    Raises
+    ------
+    VolregIOError
+        If a complete result inside ``path`` cannot be moved in.
     """
     final = Path(path)
-    found = _leftovers(final)
     restored = None
+    if final.is_dir():
+        inside = _leftovers(final, INSIDE_PREFIX)
+        for entry in inside["ready"]:  # killed while moving its complete result in: finish the move
+            finish_in_place(entry, final)
+            restored = "new"
+        for entry in inside["new"] + inside["old"]:
+            remove_tree(entry)
+    named = final if final.name not in ("", "..") else Path(os.path.abspath(final))
+    found = _leftovers(named.parent, _stage_prefix(named))
     if not final.exists() and not final.is_symlink():
         for kind in ("ready", "old"):  # a complete new result first, else the previous one
             if found[kind]:
@@ -363,7 +420,7 @@ def recover_folder(path: str | os.PathLike[str]) -> str | None:
                 break
     for entries in found.values():
         for entry in entries:
-            _remove_tree(entry)
+            remove_tree(entry)
     return restored
 
 
@@ -372,10 +429,10 @@ def _replaceable(final: Path) -> bool:
     if final.is_symlink():
         return False
     parent = final.parent
-    if parent.is_dir() and not os.access(parent, os.W_OK | os.X_OK):
+    if parent.is_dir() and not writable(parent):
         return False
     if final.exists():
-        if os.path.ismount(final):
+        if is_mount_point(final):
             return False
         try:  # never swap away the working directory or a folder above it
             here = Path.cwd().resolve()
@@ -388,21 +445,49 @@ def _replaceable(final: Path) -> bool:
 
 
 def _link_tree(source: Path, target: Path) -> None:
-    """Fill ``target`` with ``source``'s contents: hard links to its files (copies where links fail)."""
+    """Fill ``target`` with ``source``'s contents: hard links to its files (copies where links fail),
+    less the hidden working entries of runs that wrote ``source`` in place."""
     def link(src: str, dst: str) -> None:
         try:
             os.link(src, dst)
         except OSError:
             shutil.copy2(src, dst)
 
-    shutil.copytree(source, target, symlinks=True, copy_function=link, dirs_exist_ok=True)
+    def working(folder: str, names: list[str]) -> list[str]:
+        return [n for n in names if n.startswith(INSIDE_PREFIX)] if Path(folder) == source else []
+
+    shutil.copytree(source, target, symlinks=True, copy_function=link, dirs_exist_ok=True, ignore=working)
 
 
-def _swap_in(staging: Path, final: Path) -> None:
-    """Replace ``final`` (if any) by the complete result in ``staging``; see :func:`recover_folder`."""
+def _stale(root: Path, staging: Path, folder: OutputFolder) -> list[Path]:
+    """The outputs of an earlier run in ``root`` (the staging folder, or the output folder written in
+    place) that this run's result must not keep: those named by ``folder``'s output patterns that
+    this run did not write; relative to ``root``."""
+    written = set(folder.written)
+    stale = []
+    for where, patterns in folder._family:
+        try:
+            entries = sorted((root / where).iterdir())
+        except OSError:
+            continue
+        for entry in entries:
+            relative = where / entry.name
+            if any(fnmatch.fnmatchcase(entry.name, p) for p in patterns) and staging / relative not in written:
+                stale.append(relative)
+    return stale
+
+
+def _swap_in(staging: Path, final: Path, may_replace: bool) -> None:
+    """Replace ``final`` (if any) by the complete result in ``staging``; see :func:`recover_folder`.
+
+    ``may_replace``: whether a ``final`` that exists now may be replaced (false for a folder that
+    did not exist when the run started and ``--force`` was not given)."""
     ready = _stage_path(final, "ready")
     old = _stage_path(final, "old")
     with SignalsHeld():
+        if not may_replace and (final.exists() or final.is_symlink()):
+            raise VolregIOError(f"Output directory `{final}` was made by another program while this run wrote its "
+                                "outputs, which were removed; pass --force to replace it.")
         os.rename(staging, ready)
         _staging_open.discard(staging)
         try:
@@ -412,9 +497,29 @@ def _swap_in(staging: Path, final: Path) -> None:
         except OSError as exc:
             if old.exists() and not final.exists():
                 os.rename(old, final)
-            _remove_tree(ready)
+            remove_tree(ready)
             raise VolregIOError(f"Output directory `{final}` could not be replaced: {exc.strerror}.") from exc
-        _remove_tree(old)
+        remove_tree(old)
+
+
+def _move_in(staging: Path, final: Path, folder: OutputFolder, force: bool) -> None:
+    """Put the complete result in ``staging`` (inside ``final``) into ``final`` file by file; see
+    :func:`~volreg.io._folder_parts.finish_in_place`."""
+    if not force:
+        for path in folder.written:  # made meanwhile by another program
+            target = final / path.relative_to(staging)
+            if target.exists() or target.is_symlink():
+                raise VolregIOError(_exists_message(target))
+    stale = _stale(final, staging, folder)
+    (staging / STALE_LIST).write_text(json.dumps([str(p) for p in stale]))
+    ready = _hidden(final, INSIDE_PREFIX, "ready")
+    with SignalsHeld():
+        try:
+            os.rename(staging, ready)
+        except OSError as exc:
+            raise VolregIOError(f"Output directory `{final}` could not take this run's result: {exc.strerror}.") from exc
+        _staging_open.discard(staging)
+        finish_in_place(ready, final)
 
 
 def _inside(path: Path, folder: Path) -> Path | None:
@@ -427,54 +532,162 @@ def _inside(path: Path, folder: Path) -> Path | None:
 
 def _discard_staging(staging: Path, created: list[Path]) -> None:
     """Remove a staging folder, and then the folders its run ``created`` (innermost first, while empty)."""
-    _remove_tree(staging)
+    remove_tree(staging)
     _staging_open.discard(staging)
     _remove_directories(created)
 
 
-def _staged(final: Path) -> tuple[OutputFolder, Path]:
-    """A new staging sibling of ``final`` holding hard links to ``final``'s contents, and the record
-    of a run writing there: ``(folder, staging)``."""
-    created = make_directory(final.parent)
-    staging = _stage_path(final, "new")
+class _Run:
+    """One :func:`output_folder` transaction: its record (``folder``), its staging folder (beside the
+    output folder, or inside it with ``in_place``; None for a transaction inside an outer one's
+    folder, at ``relative`` in ``outer``) and the lock it holds."""
+
+    def __init__(self, folder: OutputFolder, staging: Path | None = None, *, outer: OutputFolder | None = None,
+                 relative: Path | None = None, lock: FolderLock | None = None, in_place: bool = False,
+                 force: bool = False, may_replace: bool = True) -> None:
+        self.folder, self.staging, self.outer, self.relative = folder, staging, outer, relative
+        self.lock, self.in_place, self.force, self.may_replace = lock, in_place, force, may_replace
+
+    def abandon(self) -> None:
+        """The run failed or was interrupted: remove what it wrote; the output folder keeps what it held."""
+        if self.staging is None:
+            self.folder._remove()
+            return
+        try:
+            _discard_staging(self.staging, [])
+            if _holds_result(self.folder.final):
+                _kept.append(self.folder.final)
+        finally:
+            self._release(failed=True)
+
+    def complete(self) -> None:
+        """The run completed: put its result in place (an inner one's: hand it to the outer one)."""
+        if self.staging is None:
+            if self.outer is not None:
+                self.outer._adopt(self.folder, self.relative)
+            return
+        final, folder, failed = self.folder.final, self.folder, True
+        try:
+            if self.in_place:
+                _move_in(self.staging, final, folder, self.force)
+            else:
+                for relative in _stale(self.staging, self.staging, folder):
+                    remove_tree(self.staging / relative)
+                _swap_in(self.staging, final, self.may_replace)
+            failed = False
+        finally:
+            if failed:
+                # The swap had not begun where the staging folder is still there, and a failed swap
+                # beside the folder puts it back: the folder then keeps what it held.
+                if (self.staging.exists() or not self.in_place) and _holds_result(final):
+                    _kept.append(final)
+                _discard_staging(self.staging, [])
+            self._release(failed)
+
+    def _release(self, failed: bool) -> None:
+        """Release the lock; after a failure, remove the folders the run created (the lock file's too)."""
+        if self.lock is not None:
+            self.lock.release()
+            self.lock = None
+        if failed:
+            _remove_directories(self.folder.created)
+
+
+def _name_final(exc: BaseException, folder: OutputFolder) -> None:
+    """Make an OSError about a file in the staging folder name the file in the output folder instead
+    (its messages, a full disk's, name the output as the user named it)."""
+    if isinstance(exc, OSError) and exc.filename is not None:
+        relative = _inside(Path(os.fsdecode(exc.filename)), folder.path)
+        if relative is not None:
+            exc.filename = str(folder.final / relative)
+
+
+def _check_folder_writable(final: Path) -> None:
+    """Refuse, before any work, an output folder that this process cannot write into or create."""
+    probe = final
+    while not (probe.exists() or probe.is_symlink()) and probe.parent != probe:
+        probe = probe.parent
+    if not probe.is_dir() or writable(probe):
+        return
+    if probe == final:
+        raise VolregIOError(f"Output directory `{final}` is not writable; expected a folder you can write into "
+                            "for -o.")
+    raise VolregIOError(f"Output directory `{final}` cannot be created: `{probe}` is not writable; expected a "
+                        "folder you can write into for -o.")
+
+
+def _patterns(outputs: tuple[str, ...], force: bool) -> list[tuple[Path, tuple[str, ...]]]:
+    """The output patterns a run on a folder records: with ``force`` only (without, nothing is replaced)."""
+    return [(Path("."), outputs)] if force and outputs else []
+
+
+def _nested(final: Path, outer: OutputFolder, relative: Path, force: bool, require_empty: bool,
+            outputs: tuple[str, ...]) -> _Run:
+    """A transaction on folder ``final``, at ``relative`` in the open ``outer`` one: written into its
+    staging folder, put in place with it."""
+    where = outer.path / relative
+    shadow = None if outer._shadow is None else outer._shadow / relative
+    existing = where if shadow is None else shadow
+    for place in (where, existing):
+        if place.exists() and not place.is_dir():
+            raise UsageError(f"Output directory `{final}` exists and is not a directory; expected a directory for -o.")
+    if require_empty and not force and existing.is_dir() and _holds_result(existing):
+        raise UsageError(f"Output directory `{final}` exists and is not empty; pass --force to write into it.")
+    folder = OutputFolder(where, make_directory(where), final=final, shadow=shadow)
+    folder._family = _patterns(outputs, force)
+    return _Run(folder, outer=outer, relative=relative)
+
+
+def _staged(final: Path, created: list[Path], in_place: bool) -> tuple[OutputFolder, Path]:
+    """A new staging folder for ``final`` and the record of a run writing there: ``(folder, staging)``.
+
+    Beside ``final``, it starts with hard links to ``final``'s contents; inside it (``in_place``),
+    empty, the earlier outputs staying in ``final`` until the run completes.
+    """
+    staging = _hidden(final, INSIDE_PREFIX, "new") if in_place else _stage_path(final, "new")
     try:
         staging.mkdir()
         _staging_open.add(staging)
-        if final.is_dir():
+        if final.is_dir() and not in_place:
             _link_tree(final, staging)
     except OSError as exc:
-        _discard_staging(staging, created)
+        _discard_staging(staging, [])
         raise VolregIOError(f"Output directory `{final}` could not be prepared: {exc.strerror}.") from exc
-    return OutputFolder(staging, created, final=final), staging
+    return OutputFolder(staging, created, final=final, shadow=final if in_place else None), staging
 
 
-def _prepare(
-    final: Path, outer: OutputFolder | None, force: bool, require_empty: bool
-) -> tuple[OutputFolder, Path | None]:
-    """Check output folder ``final`` and make the record of a run writing to it: ``(folder, staging)``.
-
-    Inside the folder of an outer staged run the run writes into that run's staging folder (and is
-    swapped in with it); where ``final`` can be replaced as a whole, into a staging sibling of its
-    own (``staging``); elsewhere into ``final`` itself (``staging`` is None in both other cases).
-    """
-    relative = None if outer is None or outer.path == outer.final else _inside(final, outer.final)
-    where = final if relative is None else outer.path / relative
-    if where.exists() and not where.is_dir():
+def _outermost(final: Path, force: bool, require_empty: bool, outputs: tuple[str, ...]) -> _Run:
+    """A transaction on folder ``final`` of its own: checked, locked, and staged beside or inside it."""
+    if final.is_symlink() and not final.exists():
+        raise UsageError(f"Output directory `{final}` is a symbolic link to `{os.readlink(final)}`, which does not "
+                         "exist; expected a directory for -o.")
+    if final.exists() and not final.is_dir():
         raise UsageError(f"Output directory `{final}` exists and is not a directory; expected a directory for -o.")
-    if relative is None:
+    _check_folder_writable(final)
+    created = make_directory(final.parent)
+    try:
+        lock = FolderLock(final, _stage_prefix)
+    except BaseException:
+        _remove_directories(created)
+        raise
+    try:
         recover_folder(final)
-    if require_empty and where.is_dir() and any(where.iterdir()) and not force:
-        raise UsageError(f"Output directory `{final}` exists and is not empty; pass --force to write into it.")
-    if relative is not None:
-        return OutputFolder(where, make_directory(where), final=final), None
-    if _replaceable(final):
-        return _staged(final)
-    return OutputFolder(final, make_directory(final)), None
+        existed = final.exists()
+        if require_empty and not force and final.is_dir() and _holds_result(final):
+            raise UsageError(f"Output directory `{final}` exists and is not empty; pass --force to write into it.")
+        in_place = not _replaceable(final)
+        folder, staging = _staged(final, created, in_place)
+    except BaseException:
+        lock.release()
+        _remove_directories(created)
+        raise
+    folder._family = _patterns(outputs, force)
+    return _Run(folder, staging, lock=lock, in_place=in_place, force=force, may_replace=force or existed)
 
 
 @contextmanager
 def output_folder(
-    path: str | os.PathLike[str], force: bool = False, *, require_empty: bool = True
+    path: str | os.PathLike[str], force: bool = False, *, require_empty: bool = True, outputs: Iterable[str] = ()
 ) -> Iterator[OutputFolder]:
     """An all-or-nothing output folder: yield where to write the run's outputs, put them in place at the end.
 
@@ -486,7 +699,12 @@ def output_folder(
         Whether a folder that is not empty may be written into.
     require_empty : bool, default True
         Refuse a non-empty folder unless ``force``.  ``False`` leaves it to
-        :func:`check_writable` to refuse the outputs that exist.
+        :meth:`OutputFolder.check_writable` to refuse the outputs that exist.
+    outputs : iterable of str, optional
+        Every file the command may write into the folder, whatever its options: names, or
+        ``fnmatch`` patterns (``frame_*.vtk``).  With ``force``, those of them in the folder that
+        this run does not write (an earlier run's, made with other options) are removed when it
+        completes, so that the folder holds this run's outputs and the files that are not volreg's.
 
     Yields
     ------
@@ -494,7 +712,7 @@ def output_folder(
         Write each output under :attr:`OutputFolder.path` (not under ``path``) and call
         :meth:`OutputFolder.record` with it once written.  Write a file by replacing it
         (:func:`atomic_output`, as every volreg writer does), never in place: until
-        replaced, the files there are hard links to the previous result's.
+        replaced, the files there may be hard links to the previous result's.
 
     Raises
     ------
@@ -502,10 +720,14 @@ def output_folder(
         If ``path`` is a non-empty folder (with ``require_empty`` and without
         ``force``) or exists and is not a folder.
     VolregIOError
-        If the folder cannot be created or replaced.
+        Before the run, if the folder (or, where it does not exist, the nearest folder above it)
+        cannot be written, or another run is writing it; at the end, if it cannot be replaced.
 
     Notes
     -----
+    The run holds a lock on ``path`` (an ``flock`` on a hidden ``.<name>.volreg-lock`` beside it)
+    from the start: a second run on ``path`` meanwhile, in this process or another, fails at once.
+
     The run writes into a hidden sibling folder of ``path`` (named
     ``.<name>.volreg-new-<pid>-<hex>``), which starts as a copy of ``path``'s current
     contents made of hard links, so files of ``path`` that the run does not write
@@ -517,14 +739,16 @@ def output_folder(
     between the two renames, a sibling that the next run on ``path`` puts back
     (:func:`recover_folder`).
 
-    Where ``path`` cannot be replaced as a whole (a symbolic link, a mount point, the
-    working directory or a folder above it, or a parent folder that is not writable)
-    the run writes into ``path`` itself, and a failure removes the files the run
-    wrote and the folders it created.
+    Where ``path`` cannot be replaced as a whole (a symbolic link, a mount point, bind mounts
+    included, the working directory or a folder above it, or a folder whose parent is not
+    writable) the staging folder is a hidden folder inside ``path`` (``.volreg-new-<pid>-<hex>``),
+    which starts empty: the earlier outputs stay in ``path``, whole, until the run completes;
+    then the staging folder is marked complete by a rename and its files replace their namesakes
+    one by one (signals held back), and a run killed meanwhile is finished by the next run on
+    ``path``.
 
     A transaction opened inside another one's folder (in the same thread) writes into
-    the outer one's staging folder and completes with it; other nested ones hand
-    their records to the outer one when they complete.
+    the outer one's staging folder and completes with it.
     """
     final = Path(path)
     outer = _open_folder.get()
@@ -533,29 +757,26 @@ def output_folder(
     held = SignalsHeld()
     held.__enter__()
     try:
-        folder, staging = _prepare(final, outer, force, require_empty)
+        relative = None if outer is None else _inside(final, outer.final)
+        if relative is not None:
+            run = _nested(final, outer, relative, force, require_empty, tuple(outputs))
+        else:
+            run = _outermost(final, force, require_empty, tuple(outputs))
     except BaseException:
         held.__exit__(None, None, None)
         raise
-    token = _open_folder.set(folder)
+    token = _open_folder.set(run.folder)
     try:
         held.__exit__(None, None, None)
-        yield folder
-    except BaseException:
-        if staging is not None:
-            _discard_staging(staging, folder.created)
-            if final.is_dir() and any(final.iterdir()):
-                _kept.append(final)
-        else:
-            folder._remove()
+        yield run.folder
+    except BaseException as exc:
+        _name_final(exc, run.folder)
+        run.abandon()
         raise
     finally:
         _open_folder.reset(token)
-    if staging is not None:
-        try:
-            _swap_in(staging, final)
-        except BaseException:
-            _discard_staging(staging, folder.created)  # where the swap had not begun: the run's outputs go with it
-            raise
-    elif outer is not None:
-        outer._adopt(folder)
+    try:
+        run.complete()
+    except OSError as exc:
+        _name_final(exc, run.folder)
+        raise

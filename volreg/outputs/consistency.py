@@ -172,7 +172,7 @@ def write_consistency_test(
         raise ValueError("Expected both `forward` and `backward` warps, or neither (to register both ways).")
     start = time.perf_counter()
     outdir = Path(outdir)
-    with output_folder(outdir, force) as folder:
+    with output_folder(outdir, force, outputs=CONSISTENCY_OUTPUTS) as folder:
         paths = folder.check_writable(CONSISTENCY_OUTPUTS, force=force)  # in staging, swapped in at the end
         if forward is None:
             both = write_both_ways(a, b, outdir, protocol=protocol, drive_labels=drive_labels, force=force,

@@ -34,7 +34,13 @@ from volreg.pipeline.surfaces import register_surface_pair
 from volreg.settings import Protocol
 from volreg.warp.model import KernelWarp
 
-__all__ = ["morph_arrays", "render_frames", "shared_arrays", "write_morph"]
+__all__ = ["MORPH_OUTPUTS", "morph_arrays", "render_frames", "shared_arrays", "write_morph"]
+
+#: Every file :func:`write_morph` may write, whatever its options (an earlier run's that this one
+#: does not write are removed with ``force``): frames as .vtk, .png and .surf.gii, their data
+#: arrays, the animation.
+MORPH_OUTPUTS = ("frame_[0-9][0-9][0-9].vtk", "frame_[0-9][0-9][0-9].png", "frame_[0-9][0-9][0-9].*.gii",
+                 "morph.gif")
 
 ProgressCallback = Callable[[str, int, int], None]
 
@@ -234,7 +240,7 @@ def write_morph(
     shared = shared_arrays(source, target)
     data_names = {name: {n: data_file_name(n, name, vertex_array_meta(source, name)) for n in frame_names}
                   for name in shared}
-    with output_folder(outdir, force) as folder:
+    with output_folder(outdir, force, outputs=MORPH_OUTPUTS) as folder:
         folder.check_writable(_output_names(frame_names, data_names, gifti), force=force)
         outdir = folder.path  # written into the run's staging folder, swapped in at the end
         registered = warp is None

@@ -204,7 +204,7 @@ def write_outputs(
         As written to ``report.json``; its ``seconds`` count the outputs alone.
     """
     protocol = load_protocol("default") if protocol is None else protocol
-    with output_folder(outdir, force) as folder, JobQueue() as jobs:  # the jobs end before the folder closes
+    with output_folder(outdir, force, outputs=REGISTRATION_OUTPUTS) as folder, JobQueue() as jobs:  # the jobs end before the folder closes
         folder.check_writable(registration_outputs(protocol), force=force)
         started = time.perf_counter()
         return _write_result(folder, jobs, fixed, moving, result, protocol=protocol, landmarks=landmarks,
@@ -220,7 +220,7 @@ def register_and_write(fixed, moving, outdir, *, protocol: Protocol | None = Non
                        ) -> tuple[LabelRegistration, RegistrationReport]:
     """:func:`write_registration`, also returning the registration itself."""
     protocol = load_protocol("default") if protocol is None else protocol
-    with output_folder(outdir, force) as folder, JobQueue() as jobs:  # the jobs end before the folder closes
+    with output_folder(outdir, force, outputs=REGISTRATION_OUTPUTS) as folder, JobQueue() as jobs:  # the jobs end before the folder closes
         folder.check_writable(registration_outputs(protocol), force=force)
         started = time.perf_counter()
         # The scores before registration need only the inputs: computed in the background while

@@ -51,7 +51,7 @@ from volreg.settings import Protocol, SurfaceSettings
 from volreg.warp.model import KernelWarp
 
 __all__ = [
-    "FRAMES", "SURFACE_REGISTRATION_GIFTI", "SURFACE_REGISTRATION_OUTPUTS", "TransferredArray", "WrittenLabelSurfaces",
+    "FRAMES", "LABEL_SURFACE_OUTPUTS", "SURFACE_REGISTRATION_GIFTI", "SURFACE_REGISTRATION_OUTPUTS", "TransferredArray", "WrittenLabelSurfaces",
     "WrittenSurfaceRegistration", "data_file_name", "is_label_array", "load_surface_model", "read_surface_with_data",
     "select_vertex_array", "vertex_array_meta", "write_label_surfaces", "write_moved_gifti_surface",
     "write_moved_surface", "write_surface_registration", "write_transferred_array",
@@ -64,6 +64,11 @@ FRAMES = {".vtk": "LPS mm", ".gii": "RAS mm", ".csv": "LPS mm"}
 
 #: The files :func:`write_surface_registration` writes.
 SURFACE_REGISTRATION_OUTPUTS = ("warped.vtk", "correspondence.csv", "model.npz", "report.json")
+
+#: Every file :func:`write_label_surfaces` may write, whatever its labels (an earlier run's that
+#: this one does not write are removed with ``force``): each label's mesh, GIFTI surface and
+#: signed distance, the summary.
+LABEL_SURFACE_OUTPUTS = ("label_*.vtk", "label_*.surf.gii", "sdf_*.nii.gz", "surface.json")
 
 #: Written besides :data:`SURFACE_REGISTRATION_OUTPUTS` with ``gifti=True``.
 SURFACE_REGISTRATION_GIFTI = "warped.surf.gii"
@@ -382,7 +387,7 @@ def write_surface_registration(
     start = time.perf_counter() if started is None else started
     names = SURFACE_REGISTRATION_OUTPUTS + ((SURFACE_REGISTRATION_GIFTI,) if gifti else ())
     limits = SurfaceReviewLimits()
-    with output_folder(outdir, force) as folder:
+    with output_folder(outdir, force, outputs=(*SURFACE_REGISTRATION_OUTPUTS, SURFACE_REGISTRATION_GIFTI)) as folder:
         paths = folder.check_writable(names, force=force)  # in staging, swapped into outdir at the end
         # surfaces of other sizes (units) are refused by register_surface_pair
         warp = register_surface_pair(source, target, protocol, landmarks, progress,
@@ -588,7 +593,7 @@ def write_label_surfaces(
              "sdf": {v: outdir / f"sdf_{v}.nii.gz" for v in labels}}
     summary_name = "surface.json"
     # Existing outputs are refused one by one (check_writable), not the folder as a whole.
-    with output_folder(outdir, require_empty=False) as folder:
+    with output_folder(outdir, force, require_empty=False, outputs=LABEL_SURFACE_OUTPUTS) as folder:
         folder.check_writable([p.name for kind in names.values() for p in kind.values()] + [summary_name],
                               force=force)
         # written into the run's staging folder, swapped into outdir at the end
