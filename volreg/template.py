@@ -31,6 +31,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 import shutil
@@ -46,7 +47,7 @@ from volreg.cohort import read_manifest, register_cohort
 from volreg.errors import TemplateError, UsageError, VolregError
 from volreg.evaluation.metrics import dice
 from volreg.grid import Grid, LabelVolume
-from volreg.io import read_labels, write_json, write_labels
+from volreg.io import read_labels, write_json, write_labels, write_text
 from volreg.io.fields import read_displacement
 from volreg.io.frames import write_frames
 from volreg.io.protocol import load_protocol
@@ -370,6 +371,34 @@ def build_template(
         Fewer than two subjects' registrations succeeded in an iteration.
     """
     outdir = Path(outdir)
+    _check_request(outdir, iterations, tolerance, spacing, linear, protocol, force)
+    outdir.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    manifest, rows = _subjects(subjects, outdir)
+    if len(rows) < 2:
+        raise UsageError(f"MANIFEST `{manifest}` has {len(rows)} subject; expected at least two for a template.")
+    work = outdir / "iterations"
+    work.mkdir(exist_ok=True)
+
+    t0 = time.perf_counter()
+    to_subject = _linear_start(rows, linear, work, progress)
+    grid, labels, counts = _first_template(rows, to_subject, spacing, progress)
+    template = vote(counts, len(rows), np.array(labels))
+    start_info = {"kind": linear, "reference": rows[0][0],
+                  "mean_of": "log-Euclidean mean of the affine maps from the reference",
+                  "seconds": time.perf_counter() - t0}
+    tolerance = 0.25 * float(grid.spacing[0]) if tolerance is None else float(tolerance)
+    options = {"protocol": protocol, "workers": workers, "scheduler": scheduler, "progress": progress,
+               "notify": notify, "compile_helpers": compile_helpers, "warn": warn or (lambda line: None)}
+    history = _iterate(work, manifest, rows, grid, labels, template, options, tolerance, iterations, notify)
+    report = {"volreg_version": __version__, "command": "template", "linear_start": start_info, "protocol": protocol,
+              "tolerance_mm": tolerance}
+    return _write_outputs(outdir, work, rows, grid, labels, history, report, start)
+
+
+def _check_request(outdir: Path, iterations, tolerance, spacing, linear, protocol, force: bool) -> None:
+    """Refuse bad arguments, or a finished template in ``outdir`` without ``force`` (whose
+    outputs and work are removed with it), before any work."""
     if not isinstance(iterations, int) or isinstance(iterations, bool) or iterations < 1:
         raise UsageError(f"--iterations {iterations!r}: expected a positive integer.")
     for name, value in (("tolerance", tolerance), ("spacing", spacing)):
@@ -386,23 +415,12 @@ def build_template(
             (outdir / name).unlink(missing_ok=True)
         shutil.rmtree(outdir / "iterations", ignore_errors=True)
         shutil.rmtree(outdir / "subjects", ignore_errors=True)
-    outdir.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    manifest, rows = _subjects(subjects, outdir)
-    if len(rows) < 2:
-        raise UsageError(f"MANIFEST `{manifest}` has {len(rows)} subject; expected at least two for a template.")
-    work = outdir / "iterations"
-    work.mkdir(exist_ok=True)
 
-    t0 = time.perf_counter()
-    to_subject = _linear_start(rows, linear, work, progress)
-    grid, labels, counts = _first_template(rows, to_subject, spacing, progress)
-    template = vote(counts, len(rows), np.array(labels))
-    linear_seconds = time.perf_counter() - t0
-    tolerance = 0.25 * float(grid.spacing[0]) if tolerance is None else float(tolerance)
-    options = {"protocol": protocol, "workers": workers, "scheduler": scheduler, "progress": progress,
-               "notify": notify, "compile_helpers": compile_helpers, "warn": warn or (lambda line: None)}
 
+def _iterate(work: Path, manifest: Path, rows, grid: Grid, labels, template: np.ndarray, options: dict,
+             tolerance: float, iterations: int, notify) -> list[dict]:
+    """The rounds of registration (module notes, step 2), each one's statistics in order; a round
+    an earlier run finished (its ``stats.json`` and the next template on disk) is read, not redone."""
     history = []
     for k in range(1, iterations + 1):
         saved = work / f"{k:02d}" / "stats.json"
@@ -415,8 +433,8 @@ def build_template(
             template = read_labels(nxt).array
             continue
         previous = history[-1]["update_mean_mm"] if history else None
-        stats, counts, following = _iteration(k, work, manifest, rows, grid, labels, template, options, tolerance,
-                                              previous)
+        stats, _, following = _iteration(k, work, manifest, rows, grid, labels, template, options, tolerance,
+                                         previous)
         stats["converged"] = following is None
         stats["stopped"] = ("tolerance" if stats["update_mean_mm"] <= tolerance else "no progress") \
             if following is None else ("iterations" if k == iterations else None)
@@ -424,57 +442,54 @@ def build_template(
         if notify is not None:
             notify(f"template iteration {k}: update mean {stats['update_mean_mm']:.2f} mm, max "
                    f"{stats['update_max_mm']:.2f} mm; mean Dice {stats['mean_dice']:.3f}")
-        if following is None:
-            write_json(stats, saved, force=True)
-            break
-        if k < iterations:
+        if following is not None and k < iterations:
             nxt.parent.mkdir(parents=True, exist_ok=True)
             write_labels(grid.with_array(following), nxt, force=True)
-        write_json(stats, saved, force=True)
-        if k < iterations:
-            template = following
+        write_json(stats, saved, force=True)  # after the next template: the round is then complete
+        if following is None:
+            break
+        template = following
+    return history
 
-    final = history[-1]["iteration"]
-    folder = work / f"{final:02d}"
+
+def _write_outputs(outdir: Path, work: Path, rows, grid: Grid, labels, history: list[dict], report: dict,
+                   start: float) -> TemplateResult:
+    """The template, probabilities, subjects' folders, labels.csv, report.json and report.png
+    from the last round (report.json last: it marks the template finished)."""
+    last = history[-1]
+    folder = work / f"{last['iteration']:02d}"
     template = read_labels(folder / "template.nii.gz")
-    rows = [r for r in rows if r[0] not in set(history[-1].get("left_out", []))]
+    rows = [r for r in rows if r[0] not in set(last.get("left_out", []))]
     counts, _, _, _ = _registered(folder, rows, grid, labels, template.array)
     probabilities = counts.astype(np.float32) / len(rows)
-    ranked, outliers = rank_subjects(history[-1]["distance_mm"])
+    ranked, outliers = rank_subjects(last["distance_mm"])
     subjects_out = {}
     for sid, _ in rows:
         subjects_out[sid] = outdir / "subjects" / sid
         _link_tree(folder / "pairs" / _PAIR.format(sid), subjects_out[sid])
     write_labels(template, outdir / "template.nii.gz", force=True)
     write_frames(probabilities, template, outdir / "probabilities.nii.gz", force=True)
-    with open(outdir / "labels.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["frame", "label", "template_voxels", "sharpness"])
-        sharp = history[-1]["sharpness"]
-        for i, v in enumerate(labels):
-            w.writerow([i, v, int((template.array == v).sum()), sharp.get(str(v), "")])
-    report = {
-        "volreg_version": __version__,
-        "command": "template",
+    table = io.StringIO()
+    w = csv.writer(table, lineterminator="\n")
+    w.writerow(["frame", "label", "template_voxels", "sharpness"])
+    for i, v in enumerate(labels):
+        w.writerow([i, v, int((template.array == v).sum()), last["sharpness"].get(str(v), "")])
+    write_text(table.getvalue(), outdir / "labels.csv", force=True)
+    report |= {
         "subjects": [{"id": sid, "path": str(p)} for sid, p in rows],
-        "left_out": history[-1].get("left_out", []),
+        "left_out": last.get("left_out", []),
         "template": {"shape": list(grid.shape), "spacing_mm": grid.spacing.tolist(), "origin_mm": grid.origin.tolist(),
                      "labels": labels},
-        "linear_start": {"kind": linear, "reference": rows[0][0], "mean_of": "log-Euclidean mean of the affine maps "
-                         "from the reference", "seconds": linear_seconds},
-        "protocol": protocol,
-        "tolerance_mm": tolerance,
-        "converged": history[-1].get("stopped") == "tolerance",
-        "stopped": history[-1].get("stopped"),
+        "converged": last.get("stopped") == "tolerance",
+        "stopped": last.get("stopped"),
         "iterations": [{k: v for k, v in s.items() if k not in ("dice", "distance_mm")} for s in history],
-        "mean_displacement_mm": {"mean": history[-1]["update_mean_mm"], "max": history[-1]["update_max_mm"]},
-        "ranking": [{"id": s, "distance_mm": history[-1]["distance_mm"][s], "dice": history[-1]["dice"][s]}
-                    for s in ranked],
+        "mean_displacement_mm": {"mean": last["update_mean_mm"], "max": last["update_max_mm"]},
+        "ranking": [{"id": s, "distance_mm": last["distance_mm"][s], "dice": last["dice"][s]} for s in ranked],
         "outliers": outliers,
         "seconds": time.perf_counter() - start,
     }
     _report_figure(report, outdir / "report.png")
     write_json(report, outdir / "report.json", force=True)
-    for k in range(1, final):  # earlier iterations' registrations: only their templates and statistics stay
+    for k in range(1, last["iteration"]):  # earlier rounds' registrations: their templates and statistics stay
         shutil.rmtree(work / f"{k:02d}" / "pairs", ignore_errors=True)
     return TemplateResult(template, probabilities, labels, subjects_out, report)
