@@ -287,7 +287,7 @@ class Grid:
 
         The values of :meth:`index_to_world` at every index (the same products and sums, in the
         same order), each axis's term broadcast from its own index line: no index array is made
-        (on 32 M voxels 2.2 s instead of 6.5 s).
+        (on tens of millions of voxels that array costs more than the products).
         """
         matrix = self.direction * self.spacing[None, :]
         out = np.empty((*self.shape, self.ndim))

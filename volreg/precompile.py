@@ -113,9 +113,8 @@ def helper_order(cold: list[int]) -> list[int]:
     """The order in which the helper compiles the cold loops (indices into :data:`LOOPS`).
 
     Those from :data:`HELPER_FROM` on in the order a run needs them, then the earlier ones
-    from the last back.  All from the last back, the helper met the command in the warp fit's
-    largest loop, which both then compiled: the frog's first run took 5.4 s longer than a
-    warm one, in this order 4.5 s (medians of 3).
+    from the last back.  All from the last back, the helper would meet the command in the warp
+    fit's largest loop, which both would then compile.
 
     Parameters
     ----------

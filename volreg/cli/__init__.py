@@ -399,8 +399,8 @@ def run() -> None:
     """The ``volreg`` console command (and ``python -m volreg``): :func:`main`, then a quick exit.
 
     When :func:`main` returns, every output is complete and closed.  What remains of a normal
-    interpreter shutdown is freeing the objects of every loaded module, which took 0.3-0.5 s
-    with numba, scipy and matplotlib loaded.  So the ``atexit`` handlers run, the standard
+    interpreter shutdown is freeing the objects of every loaded module, a noticeable part of a
+    short command with numba, scipy and matplotlib loaded.  So the ``atexit`` handlers run, the standard
     streams are flushed, and the process ends with ``os._exit`` and :func:`main`'s status.
     Errors that escape :func:`main` (bugs) take the normal way out, with their traceback.
     """

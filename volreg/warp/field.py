@@ -169,8 +169,7 @@ def _on_grid(warp, reference: GridLike, order: int, chunk: int, progress: Progre
     The chunks are made, evaluated and finished side by side on volreg's threads
     (:func:`~volreg._threads.thread_map`), in order: besides the kernel sums, which run in parts
     on the threads anyway, each chunk's points, starts and Newton steps are NumPy work on one
-    thread, which a second chunk overlaps (the 1 mm phantom's resample and inverse stages took
-    3.1-3.3 and 2.7-2.8 s instead of 3.6-3.7 and 3.0 s on two threads).  At most
+    thread, which a second chunk overlaps.  At most
     :data:`_AHEAD_PER_THREAD` chunks per thread are in flight, so memory stays bounded by the
     chunk size.
     """
@@ -273,8 +272,8 @@ def fields_on_grid(
 
     The same values as :func:`displacement_on_grid` and
     :func:`jacobian_determinant_on_grid`, from one evaluation of ``tau`` and its
-    analytic Jacobian per voxel instead of two evaluations (on the frog at its
-    native 1 x 1 x 1.5 mm the displacement alone took 15 s of 32 million voxels).
+    analytic Jacobian per voxel instead of two evaluations (on tens of millions of voxels the
+    displacement alone is a large part of a run).
 
     Parameters
     ----------
