@@ -174,9 +174,8 @@ def _first_template(rows, to_subject: dict[str, LinearMap], spacing: float | Non
             raise UsageError(f"Subject `{sid}` ({path}) holds no label; expected a label map.")
         finest = min(finest, float(v.spacing.min()))
         half = 0.5 * v.spacing.max()
-        inv = to_subject[sid].inverse()
-        boxes.append((inv(_corners(pts.min(0) - half, pts.max(0) + half)).min(0),
-                      inv(_corners(pts.min(0) - half, pts.max(0) + half)).max(0)))
+        corners = to_subject[sid].inverse()(_corners(pts.min(0) - half, pts.max(0) + half))
+        boxes.append((corners.min(0), corners.max(0)))
         volumes[sid] = v
     step = float(spacing) if spacing is not None else finest
     grid = template_grid(boxes, step, margin=4 * step)
@@ -390,10 +389,10 @@ def build_template(
     tolerance = 0.25 * float(grid.spacing[0]) if tolerance is None else float(tolerance)
     options = {"protocol": protocol, "workers": workers, "scheduler": scheduler, "progress": progress,
                "notify": notify, "compile_helpers": compile_helpers, "warn": warn or (lambda line: None)}
-    history = _iterate(work, manifest, rows, grid, labels, template, options, tolerance, iterations, notify)
+    history, counts = _iterate(work, manifest, rows, grid, labels, template, options, tolerance, iterations, notify)
     report = {"volreg_version": __version__, "command": "template", "linear_start": start_info, "protocol": protocol,
               "tolerance_mm": tolerance}
-    return _write_outputs(outdir, work, rows, grid, labels, history, report, start)
+    return _write_outputs(outdir, work, rows, grid, labels, history, counts, report, start)
 
 
 def _check_request(outdir: Path, iterations, tolerance, spacing, linear, protocol, force: bool) -> None:
@@ -418,10 +417,11 @@ def _check_request(outdir: Path, iterations, tolerance, spacing, linear, protoco
 
 
 def _iterate(work: Path, manifest: Path, rows, grid: Grid, labels, template: np.ndarray, options: dict,
-             tolerance: float, iterations: int, notify) -> list[dict]:
-    """The rounds of registration (module notes, step 2), each one's statistics in order; a round
+             tolerance: float, iterations: int, notify) -> tuple[list[dict], np.ndarray | None]:
+    """The rounds of registration (module notes, step 2): each one's statistics in order, and the
+    last round's vote counts where this run registered it (None where an earlier run did).  A round
     an earlier run finished (its ``stats.json`` and the next template on disk) is read, not redone."""
-    history = []
+    history, counts = [], None
     for k in range(1, iterations + 1):
         saved = work / f"{k:02d}" / "stats.json"
         nxt = work / f"{k + 1:02d}" / "template.nii.gz"
@@ -431,10 +431,11 @@ def _iterate(work: Path, manifest: Path, rows, grid: Grid, labels, template: np.
             if stats.get("converged"):
                 break
             template = read_labels(nxt).array
+            counts = None
             continue
         previous = history[-1]["update_mean_mm"] if history else None
-        stats, _, following = _iteration(k, work, manifest, rows, grid, labels, template, options, tolerance,
-                                         previous)
+        stats, counts, following = _iteration(k, work, manifest, rows, grid, labels, template, options, tolerance,
+                                              previous)
         stats["converged"] = following is None
         stats["stopped"] = ("tolerance" if stats["update_mean_mm"] <= tolerance else "no progress") \
             if following is None else ("iterations" if k == iterations else None)
@@ -448,19 +449,22 @@ def _iterate(work: Path, manifest: Path, rows, grid: Grid, labels, template: np.
         write_json(stats, saved, force=True)  # after the next template: the round is then complete
         if following is None:
             break
-        template = following
-    return history
+        if k < iterations:  # another round: these counts are not the last one's
+            template, counts = following, None
+    return history, counts
 
 
-def _write_outputs(outdir: Path, work: Path, rows, grid: Grid, labels, history: list[dict], report: dict,
+def _write_outputs(outdir: Path, work: Path, rows, grid: Grid, labels, history: list[dict], counts, report: dict,
                    start: float) -> TemplateResult:
     """The template, probabilities, subjects' folders, labels.csv, report.json and report.png
-    from the last round (report.json last: it marks the template finished)."""
+    from the last round (report.json last: it marks the template finished); its vote ``counts``
+    read again from its registrations where None."""
     last = history[-1]
     folder = work / f"{last['iteration']:02d}"
     template = read_labels(folder / "template.nii.gz")
     rows = [r for r in rows if r[0] not in set(last.get("left_out", []))]
-    counts, _, _, _ = _registered(folder, rows, grid, labels, template.array)
+    if counts is None:
+        counts = _registered(folder, rows, grid, labels, template.array)[0]
     probabilities = counts.astype(np.float32) / len(rows)
     ranked, outliers = rank_subjects(last["distance_mm"])
     subjects_out = {}
