@@ -85,6 +85,7 @@ _API = {
     "RegistrationInputError": "volreg.errors",
     "RegistrationDiverged": "volreg.errors",
     "UsageError": "volreg.errors",
+    "ArgumentTypeError": "volreg.errors",
     "SchedulerUnavailable": "volreg.errors",
     "VolregWarning": "volreg.errors",
 }
