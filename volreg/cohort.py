@@ -33,6 +33,7 @@ from typing import Callable
 from volreg.errors import CohortInterrupted, SchedulerUnavailable, UsageError, VolregError
 from volreg.io import atomic_output, read_labels, write_json, write_text
 from volreg.io._atomic import make_directory
+from volreg.io.documents import parse_json
 from volreg.io.protocol import load_protocol
 from volreg.io.summary import file_sha256
 from volreg.outputs.consistency import CONSISTENCY_OUTPUTS, write_consistency_test
@@ -178,8 +179,8 @@ def pair_result_done(outdir: Path, sha: tuple[str, str], consistency: bool, fing
     if not row_file.is_file():
         return None
     try:
-        row = json.loads(row_file.read_text())
-    except (OSError, ValueError):
+        row = parse_json(row_file.read_text(), f"Pair row `{row_file}`")
+    except (OSError, ValueError):  # unreadable, not JSON or nested beyond reason: the pair is done again
         return None
     if not isinstance(row, dict) or row.get("status") != "done" or (row.get("fixed_sha256"), row.get("moving_sha256")) != sha:
         return None
