@@ -104,13 +104,44 @@ def _warn_findings(command: str, findings: list[Finding]) -> None:
         _warn(command, finding.message)
 
 
-def _load_model(result: Path) -> KernelWarp:
-    """The 3-D warp saved in a ``volreg register-surfaces`` OUTDIR."""
+def _check_result_kind(result: Path, option: str) -> None:
+    """Refuse an OUTDIR whose report.json says another command than ``register-surfaces`` wrote it.
+
+    A label-volume registration (``volreg register``) saves a 3-D ``model.npz`` too, of fixed
+    points to moving points: taken for a surface registration it would carry values between
+    unrelated surfaces without a word.  A folder without a report (a model copied alone), or
+    with one that is not JSON, is left to the model's own checks.
+    """
+    import json
+
+    from volreg.io.documents import parse_json
+
+    report = result / "report.json"
+    try:
+        data = parse_json(report.read_text(encoding="utf-8"), f"{option} `{result}`: report.json", error=UsageError)
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return
+    if not isinstance(data, dict):
+        return
+    command = data.get("command")
+    inputs = data.get("inputs")
+    labels = command == "register" or (command is None and isinstance(inputs, dict) and "fixed" in inputs)
+    if labels:
+        raise UsageError(f"{option} `{result}` is a label-volume registration (its report.json says `volreg "
+                         "register`); expected a surface registration from `volreg register-surfaces`.")
+    if isinstance(command, str) and command != "register-surfaces":
+        raise UsageError(f"{option} `{result}` was written by `volreg {' '.join(command.split())[:40]}` (its "
+                         "report.json says so); expected a surface registration from `volreg register-surfaces`.")
+
+
+def _load_model(result: Path, option: str) -> KernelWarp:
+    """The 3-D warp saved in a ``volreg register-surfaces`` OUTDIR (given as ``option``)."""
     from volreg.warp.model import KernelWarp
 
     model = result / "model.npz"
     if not model.is_file():
         raise UsageError(f"`{result}` has no model.npz; expected an OUTDIR written by `volreg register-surfaces`.")
+    _check_result_kind(result, option)
     warp = KernelWarp.load(model)
     if warp.dim != 3:
         raise UsageError(f"`{model}` is a {warp.dim}-D warp; expected a 3-D surface registration.")

@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
                          "and the steps between).")
     source = _read(args.source, "SOURCE", args.source_data)
     target = _read(args.target, "TARGET", args.target_data)
-    warp = _load_model(args.from_result) if args.from_result is not None else None
+    warp = _load_model(args.from_result, "--from-result") if args.from_result is not None else None
     protocol = load_protocol(args.protocol) if warp is None else None
     outdir: Path = args.output
     names = [f"frame_{k:03d}" for k in range(args.frames)]

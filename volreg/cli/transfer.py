@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
                          "values (interpolation would spread them to their neighbours).")
     _check_output(args.output)
     check_writable([args.output], force=args.force)
-    warp = _load_model(args.result)
+    warp = _load_model(args.result, "--result")
     findings = review_surface_extents(source.vertices, target.vertices)
     warped = warp(source.vertices)
     gaps, measured = surface_gaps(warped, target.vertices, target.triangles)
