@@ -66,6 +66,7 @@ MODULE_TIERS = {
     "test_reliability.py": "integration",
     "test_reliability_files.py": "integration",
     "test_reliability_pairs.py": "integration",
+    "test_reliability_parsers.py": "integration",
     "test_reliability_values.py": "integration",
     "test_report_figure.py": "unit",
     "test_review.py": "unit",
