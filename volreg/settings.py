@@ -36,7 +36,8 @@ def _kind_expected(annotation: str) -> str:
 def _check_types(settings) -> None:
     """Refuse a field of a settings dataclass whose value is not of the field's type, as the
     protocol files' reader refuses it (:func:`settings_from_mapping`): true and false are not
-    numbers here (Python counts them as 1 and 0), nor are numbers true or false.
+    numbers here (Python counts them as 1 and 0), nor are numbers true or false.  A numpy number
+    is kept as the Python number it holds (so that the settings write back as TOML and JSON).
 
     Raises
     ------
@@ -49,7 +50,9 @@ def _check_types(settings) -> None:
         base = annotation.replace(" | None", "")
         if value is None:
             ok = "None" in annotation
-        elif isinstance(value, bool) or type(value).__name__ == "bool_":  # numpy's bool is no number either
+        elif type(value).__name__ == "bool_":  # numpy's: neither a number nor (for the TOML writer) a bool
+            ok = False
+        elif isinstance(value, bool):
             ok = base == "bool"
         elif base == "int":
             ok = isinstance(value, numbers.Integral)
@@ -64,6 +67,8 @@ def _check_types(settings) -> None:
         if not ok:
             raise ArgumentTypeError(f"Expected `{f.name}` of {type(settings).__name__} to be "
                                     f"{_kind_expected(annotation)}, got {value!r}.")
+        if isinstance(value, numbers.Number) and hasattr(value, "item") and not isinstance(value, (int, float)):
+            object.__setattr__(settings, f.name, value.item())  # numpy's float32, int64, ...
 
 
 @dataclass(frozen=True)
