@@ -31,6 +31,7 @@ TIERS = ("unit", "integration", "system")
 
 #: Each test module's tier (a test's own tier marker wins over its module's).
 MODULE_TIERS = {
+    "test_api_arguments.py": "integration",
     "test_apply_points.py": "integration",
     "test_batch.py": "system",
     "test_cli.py": "integration",
