@@ -53,6 +53,7 @@ MODULE_TIERS = {
     "test_label_interpolation.py": "integration",
     "test_layout.py": "unit",
     "test_linear_fit.py": "integration",
+    "test_linear_least_rotation.py": "integration",
     "test_linear_model.py": "integration",
     "test_objective.py": "unit",
     "test_outputs_library.py": "integration",
