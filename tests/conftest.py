@@ -31,6 +31,7 @@ TIERS = ("unit", "integration", "system")
 
 #: Each test module's tier (a test's own tier marker wins over its module's).
 MODULE_TIERS = {
+    "test_api_arguments.py": "integration",
     "test_apply_points.py": "integration",
     "test_batch.py": "system",
     "test_cli.py": "integration",
@@ -53,6 +54,7 @@ MODULE_TIERS = {
     "test_label_interpolation.py": "integration",
     "test_layout.py": "unit",
     "test_linear_fit.py": "integration",
+    "test_linear_least_rotation.py": "integration",
     "test_linear_model.py": "integration",
     "test_objective.py": "unit",
     "test_output_folders.py": "integration",
@@ -71,6 +73,7 @@ MODULE_TIERS = {
     "test_reliability_memory.py": "integration",
     "test_reliability_messages.py": "integration",
     "test_reliability_pairs.py": "integration",
+    "test_reliability_parsers.py": "integration",
     "test_reliability_values.py": "integration",
     "test_report_figure.py": "unit",
     "test_review.py": "unit",

@@ -93,6 +93,7 @@ _API = {
     "RegistrationInputError": "volreg.errors",
     "RegistrationDiverged": "volreg.errors",
     "UsageError": "volreg.errors",
+    "ArgumentTypeError": "volreg.errors",
     "SchedulerUnavailable": "volreg.errors",
     "VolregWarning": "volreg.errors",
 }

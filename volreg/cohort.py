@@ -21,6 +21,8 @@ import hashlib
 import io
 import json
 import logging
+import numbers
+import os
 import re
 import shutil
 import sys
@@ -30,17 +32,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from volreg.errors import CohortInterrupted, SchedulerUnavailable, UsageError, VolregError, exception_text, excerpt
+from volreg.errors import ArgumentTypeError, CohortInterrupted, SchedulerUnavailable, UsageError, VolregError, exception_text, excerpt
 from volreg.io import atomic_output, read_labels, write_json, write_text
 from volreg.io._atomic import make_directory
+from volreg.io.documents import parse_json
 from volreg.io.protocol import load_protocol
 from volreg.io.summary import file_sha256
 from volreg.outputs.consistency import CONSISTENCY_OUTPUTS, write_consistency_test
 from volreg.outputs.registration import REGISTRATION_OUTPUTS, registration_outputs, write_registration
+from volreg.pipeline.arguments import bool_argument, callable_argument, path_argument
 from volreg.pipeline.checks import check_pair, check_pair_headers
 from volreg.progress import ProgressBars
 
-__all__ = ["COLUMNS", "CohortSummary", "pair_folders", "pair_outputs", "pair_result_done", "plan_pairs", "read_manifest",
+__all__ = ["COLUMNS", "PAIR_MODES", "CohortSummary", "pair_folders", "pair_outputs", "pair_result_done", "plan_pairs", "read_manifest",
            "register_cohort", "run_pair", "settings_fingerprint", "write_cohort_plot", "write_cohort_table"]
 
 #: The columns of ``batch.csv``.
@@ -203,8 +207,8 @@ def pair_result_done(outdir: Path, sha: tuple[str, str], consistency: bool, fing
     if not row_file.is_file():
         return None
     try:
-        row = json.loads(row_file.read_text())
-    except (OSError, ValueError):
+        row = parse_json(row_file.read_text(), f"Pair row `{row_file}`")
+    except (OSError, ValueError):  # unreadable, not JSON or nested beyond reason: the pair is done again
         return None
     if not isinstance(row, dict) or row.get("status") != "done" or (row.get("fixed_sha256"), row.get("moving_sha256")) != sha:
         return None
@@ -493,6 +497,36 @@ def _check_request(manifest: Path, template: Path | None, mode: str, protocol: s
     return pairs, pair_folders(pairs, manifest)
 
 
+#: How :func:`register_cohort` may pair a cohort's subjects (:func:`plan_pairs`).
+PAIR_MODES = ("all", "consecutive")
+
+
+def _checked_arguments(manifest, outdir, template, pairs, consistency, protocol, workers, scheduler, progress,
+                       notify) -> tuple:
+    """:func:`register_cohort`'s arguments, checked before anything starts: paths as Paths, the pairing
+    one of :data:`PAIR_MODES`, a protocol by its name or file (each worker reads it), a whole number of
+    workers, the scheduler's address as text, callables."""
+    manifest, outdir = path_argument(manifest, "manifest"), path_argument(outdir, "outdir")
+    template = path_argument(template, "template", optional=True)
+    if not isinstance(pairs, str):
+        raise ArgumentTypeError(f"Expected `pairs` to be one of {', '.join(PAIR_MODES)}, got {type(pairs).__name__} "
+                                f"{pairs!r:.60}.")
+    if pairs not in PAIR_MODES:
+        raise UsageError(f"Expected `pairs` to be one of {', '.join(PAIR_MODES)}, got {pairs!r:.60}.")
+    if not isinstance(protocol, (str, os.PathLike)):
+        raise ArgumentTypeError(f"Expected `protocol` to be a preset name or the path of a protocol file (each worker "
+                                f"reads it), got {type(protocol).__name__}.")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, numbers.Integral)):
+        raise ArgumentTypeError(f"Expected `workers` to be None or a whole number, got {type(workers).__name__} "
+                                f"{workers!r:.60}.")
+    if scheduler is not None and not isinstance(scheduler, str):
+        raise ArgumentTypeError(f"Expected `scheduler` to be None or an address (str), got {type(scheduler).__name__}.")
+    return (manifest, outdir, template, pairs, bool_argument(consistency, "consistency"), protocol,
+            None if workers is None else int(workers), scheduler,
+            callable_argument(progress, "progress", "progress(stage, done, total)"),
+            callable_argument(notify, "notify", "of a line of news"))
+
+
 def register_cohort(
     manifest: Path,
     outdir: Path,
@@ -512,17 +546,17 @@ def register_cohort(
 
     Parameters
     ----------
-    manifest : Path
+    manifest : path-like
         CSV with the columns ``id,path`` (:func:`read_manifest`).
-    outdir : Path
+    outdir : path-like
         Created with missing parents; finished pairs in it are kept and skipped on a rerun.
-    template : Path, optional
+    template : path-like, optional
         Register every subject to this volume; without it, ``pairs``.
     pairs : {"all", "consecutive"}
         Every ordered pair of subjects, or consecutive ones (:func:`plan_pairs`).
     consistency : bool
         Register both ways and run the consistency test per pair.
-    protocol : str
+    protocol : str or path-like
         A preset name or a protocol file, for every registration.
     workers : int, optional
         Worker processes of a local cluster (default 2).
@@ -542,8 +576,10 @@ def register_cohort(
 
     Raises
     ------
+    ArgumentTypeError
+        An argument of the wrong kind (a Protocol object for ``protocol``, a float for ``workers``), named.
     UsageError
-        A bad manifest, template, protocol, worker count or scheduler address, before any work.
+        A bad manifest, template, pairing, protocol, worker count or scheduler address, before any work.
     SchedulerUnavailable
         No scheduler answered at ``scheduler``; the folders made for the run are removed.
     CohortInterrupted
@@ -555,6 +591,9 @@ def register_cohort(
         raise UsageError("volreg batch needs Dask: pip install 'dask[distributed]' (or volreg[batch]).") from None
     from volreg import precompile
 
+    manifest, outdir, template, pairs, consistency, protocol, workers, scheduler, progress, notify = (
+        _checked_arguments(manifest, outdir, template, pairs, consistency, protocol, workers, scheduler, progress,
+                           notify))
     start = time.perf_counter()
     planned, folders = _check_request(manifest, template, pairs, protocol, workers)
     if scheduler:

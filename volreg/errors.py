@@ -3,8 +3,8 @@
 Every error that describes a user's input (a file, an argument, a protocol, a pair of
 volumes that cannot be registered) derives from :class:`VolregError`; the command line
 reports any of them as one line and exits with status 2.  Each also derives from the
-built-in class it has always been (``ValueError`` or ``RuntimeError``), so code that
-catches those keeps working.  Anything else is a bug and keeps its traceback.
+built-in class it has always been (``ValueError``, ``TypeError`` or ``RuntimeError``), so
+code that catches those keeps working.  Anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ __all__ = [
     "RegistrationInputError",
     "RegistrationDiverged",
     "UsageError",
+    "ArgumentTypeError",
     "VolregWarning",
 ]
 
@@ -158,6 +159,11 @@ class RegistrationDiverged(VolregError, RuntimeError):
 
 class UsageError(VolregError, ValueError):
     """A command-line request that cannot be carried out (bad argument or combination)."""
+
+
+class ArgumentTypeError(VolregError, TypeError):
+    """An argument of a public function of the wrong kind (a list where a label volume is
+    expected, a number where a callable is): the message names the argument and what it takes."""
 
 
 class SchedulerUnavailable(VolregError, RuntimeError):

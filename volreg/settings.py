@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
-from volreg.errors import ProtocolError, excerpt
+from volreg.errors import ArgumentTypeError, ProtocolError, excerpt
 
 __all__ = ["LINEAR_KINDS", "LinearSettings", "OutputSettings", "Protocol", "ReviewSettings", "SurfaceSettings", "WarpSettings", "replace_settings", "settings_from_mapping"]
 
@@ -23,6 +24,51 @@ __all__ = ["LINEAR_KINDS", "LinearSettings", "OutputSettings", "Protocol", "Revi
 #: (the defaults are 100 and 1e5 for the weights, a few mm for the lengths), and far enough
 #: below double precision's range that the cost's sums and squares stay finite.
 MAX_SETTING = 1e12
+
+
+def _kind_expected(annotation: str) -> str:
+    """How a message names the values a field of this annotation takes."""
+    base = annotation.replace(" | None", "")
+    kind = {"bool": "true or false", "int": "an integer", "float": "a number", "str": "a string"}.get(base, base)
+    return f"{kind} (or None)" if "None" in annotation else kind
+
+
+def _check_types(settings) -> None:
+    """Refuse a field of a settings dataclass whose value is not of the field's type, as the
+    protocol files' reader refuses it (:func:`settings_from_mapping`): true and false are not
+    numbers here (Python counts them as 1 and 0), nor are numbers true or false.  A numpy number
+    is kept as the Python number it holds (so that the settings write back as TOML and JSON).
+
+    Raises
+    ------
+    ArgumentTypeError
+        Naming the field, the kind of value it takes and the value given.
+    """
+    for f in dataclasses.fields(settings):
+        annotation = f.type if isinstance(f.type, str) else f.type.__name__
+        value = getattr(settings, f.name)
+        base = annotation.replace(" | None", "")
+        if value is None:
+            ok = "None" in annotation
+        elif type(value).__name__ == "bool_":  # numpy's: neither a number nor (for the TOML writer) a bool
+            ok = False
+        elif isinstance(value, bool):
+            ok = base == "bool"
+        elif base == "int":
+            ok = isinstance(value, numbers.Integral)
+        elif base == "float":
+            ok = isinstance(value, numbers.Real)
+        elif base == "str":
+            ok = isinstance(value, str)
+        elif base == "bool":
+            ok = False  # a number, a string: not true or false
+        else:
+            continue  # a section of a Protocol: checked by its own class
+        if not ok:
+            raise ArgumentTypeError(f"Expected `{f.name}` of {type(settings).__name__} to be "
+                                    f"{_kind_expected(annotation)}, got {excerpt(value)}.")
+        if isinstance(value, numbers.Number) and hasattr(value, "item") and not isinstance(value, (int, float)):
+            object.__setattr__(settings, f.name, value.item())  # numpy's float32, int64, ...
 
 
 @dataclass(frozen=True)
@@ -126,33 +172,34 @@ class WarpSettings:
     robust: float = 0.5
 
     def __post_init__(self) -> None:
+        _check_types(self)
         for name in ("lambda_loc", "alpha", "lambda_p", "neighbourhood", "lambda_fold", "fold_margin", "min_det",
                      "lambda_consistency", "robust"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"Expected `{name}` >= 0, got {value}.")
+                raise ProtocolError(f"Expected `{name}` >= 0, got {value}.")
             if value > MAX_SETTING:
-                raise ValueError(f"Expected `{name}` of at most {MAX_SETTING:g}, got {value:g}: beyond, the cost's "
+                raise ProtocolError(f"Expected `{name}` of at most {MAX_SETTING:g}, got {value:g}: beyond, the cost's "
                                  "terms leave double precision (weights of 1e200 gave infinite samples).")
         for name in ("fold_margin", "min_det"):
             if getattr(self, name) >= 1:
-                raise ValueError(f"Expected `{name}` in [0, 1) (a Jacobian determinant below which the fold guards "
+                raise ProtocolError(f"Expected `{name}` in [0, 1) (a Jacobian determinant below which the fold guards "
                                  f"act; at 1 or more they would undo every warp that compresses space), got "
                                  f"{getattr(self, name)}.")
         for name in ("pad", "min_width", "band", "sample_spacing"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
-                raise ValueError(f"Expected a positive `{name}` (mm), got {value}.")
+                raise ProtocolError(f"Expected a positive `{name}` (mm), got {value}.")
         if not (math.isfinite(self.sample_scale) and 0 < self.sample_scale <= 16):
-            raise ValueError(f"Expected `sample_scale` in (0, 16], got {self.sample_scale}.")
+            raise ProtocolError(f"Expected `sample_scale` in (0, 16], got {self.sample_scale}.")
         if not (math.isfinite(self.max_folded_fraction) and 0 <= self.max_folded_fraction <= 1):
-            raise ValueError(f"Expected `max_folded_fraction` in [0, 1], got {self.max_folded_fraction}.")
+            raise ProtocolError(f"Expected `max_folded_fraction` in [0, 1], got {self.max_folded_fraction}.")
         if not 0 < self.fraction <= 1:
-            raise ValueError(f"Expected `fraction` in (0, 1], got {self.fraction}.")
+            raise ProtocolError(f"Expected `fraction` in (0, 1], got {self.fraction}.")
         if not (math.isfinite(self.tolerance) and 0 < self.tolerance < 1):
-            raise ValueError(f"Expected `tolerance` in (0, 1), got {self.tolerance}.")
+            raise ProtocolError(f"Expected `tolerance` in (0, 1), got {self.tolerance}.")
         if self.max_iter < 0:
-            raise ValueError(f"Expected `max_iter` >= 0, got {self.max_iter}.")
+            raise ProtocolError(f"Expected `max_iter` >= 0, got {self.max_iter}.")
 
     def resolved(self, diameter: float) -> WarpSettings:
         """These settings with the defaults that depend on the source filled in.
@@ -227,27 +274,28 @@ class SurfaceSettings:
     resample_finer: bool = True
 
     def __post_init__(self) -> None:
+        _check_types(self)
         if not (math.isfinite(self.smoothing) and 0 <= self.smoothing <= 10):
-            raise ValueError(f"Expected `smoothing` in [0, 10] voxels, got {self.smoothing}.")
+            raise ProtocolError(f"Expected `smoothing` in [0, 10] voxels, got {self.smoothing}.")
         if not (math.isfinite(self.min_width_voxels) and self.min_width_voxels > 0):
-            raise ValueError(f"Expected a positive `min_width_voxels`, got {self.min_width_voxels}.")
+            raise ProtocolError(f"Expected a positive `min_width_voxels`, got {self.min_width_voxels}.")
         if not (math.isfinite(self.implicit_weight) and self.implicit_weight >= 0):
-            raise ValueError(f"Expected `implicit_weight` >= 0, got {self.implicit_weight}.")
+            raise ProtocolError(f"Expected `implicit_weight` >= 0, got {self.implicit_weight}.")
         if not (math.isfinite(self.distance_weight) and self.distance_weight >= 0):
-            raise ValueError(f"Expected `distance_weight` >= 0, got {self.distance_weight}.")
+            raise ProtocolError(f"Expected `distance_weight` >= 0, got {self.distance_weight}.")
         if self.implicit_weight == 0 and self.distance_weight == 0:
-            raise ValueError("Expected `implicit_weight` or `distance_weight` > 0, got both 0: no feature would "
+            raise ProtocolError("Expected `implicit_weight` or `distance_weight` > 0, got both 0: no feature would "
                              "drive the warp.")
         if not (math.isfinite(self.distance_clip) and 0 < self.distance_clip <= MAX_SETTING):
-            raise ValueError(f"Expected a positive `distance_clip` (voxels) of at most {MAX_SETTING:g}, got "
+            raise ProtocolError(f"Expected a positive `distance_clip` (voxels) of at most {MAX_SETTING:g}, got "
                              f"{self.distance_clip:g}.")
         if not (math.isfinite(self.min_distance_clip) and 0 <= self.min_distance_clip <= MAX_SETTING):
-            raise ValueError(f"Expected `min_distance_clip` >= 0 (mm) and at most {MAX_SETTING:g}, got "
+            raise ProtocolError(f"Expected `min_distance_clip` >= 0 (mm) and at most {MAX_SETTING:g}, got "
                              f"{self.min_distance_clip:g}.")
         if not (math.isfinite(self.distance_scale) and 0 <= self.distance_scale <= 10):
-            raise ValueError(f"Expected `distance_scale` in [0, 10] voxels, got {self.distance_scale}.")
+            raise ProtocolError(f"Expected `distance_scale` in [0, 10] voxels, got {self.distance_scale}.")
         if not (math.isfinite(self.distance_smoothing) and 0 <= self.distance_smoothing <= 10):
-            raise ValueError(f"Expected `distance_smoothing` in [0, 10] voxels, got {self.distance_smoothing}.")
+            raise ProtocolError(f"Expected `distance_smoothing` in [0, 10] voxels, got {self.distance_smoothing}.")
 
     def clip_mm(self, unit: float) -> float:
         """The voxel distance maps' clip, mm: ``distance_clip`` voxels of ``unit`` mm, at least
@@ -280,8 +328,9 @@ class LinearSettings:
     kind: str = "affine"
 
     def __post_init__(self) -> None:
+        _check_types(self)
         if self.kind not in LINEAR_KINDS:
-            raise ValueError(f"Expected `kind` in {LINEAR_KINDS}, got {excerpt(self.kind)}.")
+            raise ProtocolError(f"Expected `kind` in {LINEAR_KINDS}, got {excerpt(self.kind)}.")
 
 
 @dataclass(frozen=True)
@@ -300,8 +349,7 @@ class ReviewSettings:
     strict: bool = False
 
     def __post_init__(self) -> None:
-        if not isinstance(self.strict, bool):
-            raise ValueError(f"Expected `strict` true or false, got {excerpt(self.strict)}.")
+        _check_types(self)
 
 
 @dataclass(frozen=True)
@@ -322,8 +370,7 @@ class OutputSettings:
     itk_h5: bool = True
 
     def __post_init__(self) -> None:
-        if not isinstance(self.itk_h5, bool):
-            raise ValueError(f"Expected `itk_h5` true or false, got {excerpt(self.itk_h5)}.")
+        _check_types(self)
 
 
 @dataclass(frozen=True)
@@ -337,6 +384,15 @@ class Protocol:
     linear: LinearSettings = field(default_factory=LinearSettings)
     review: ReviewSettings = field(default_factory=ReviewSettings)
     outputs: OutputSettings = field(default_factory=OutputSettings)
+
+    def __post_init__(self) -> None:
+        _check_types(self)  # name and description
+        for name, cls in (("surface", SurfaceSettings), ("warp", WarpSettings), ("linear", LinearSettings),
+                          ("review", ReviewSettings), ("outputs", OutputSettings)):
+            value = getattr(self, name)
+            if not isinstance(value, cls):
+                raise ArgumentTypeError(f"Expected `{name}` of Protocol to be a {cls.__name__}, got "
+                                        f"{type(value).__name__} {value!r:.80}.")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data (for reports and saved models)."""

@@ -46,13 +46,17 @@ def add_parser(commands) -> None:
 
 def _saved_inputs(result: Path) -> tuple[str | None, str | None]:
     """The checksums of the fixed and moving files a saved ``volreg register`` OUTDIR was made from
-    (its report.json), or ``None`` where it does not say."""
+    (its report.json), or ``None`` where it does not say (no report, or not JSON); a report nested
+    beyond reason is refused (:func:`~volreg.io.documents.parse_json`)."""
     import json
 
+    from volreg.io.documents import parse_json
+
+    report = result / "report.json"
     try:
-        inputs = json.loads((result / "report.json").read_text(encoding="utf-8")).get("inputs", {})
+        inputs = parse_json(report.read_text(encoding="utf-8"), f"Report `{report}`").get("inputs", {})
         return inputs.get("fixed", {}).get("sha256"), inputs.get("moving", {}).get("sha256")
-    except (OSError, ValueError, AttributeError):
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError, AttributeError):
         return None, None
 
 

@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
                          "and the steps between).")
     source = read_surface_with_data(args.source, "SOURCE", args.source_data)
     target = read_surface_with_data(args.target, "TARGET", args.target_data)
-    warp = load_surface_model(args.from_result) if args.from_result is not None else None
+    warp = load_surface_model(args.from_result, "--from-result") if args.from_result is not None else None
     protocol = load_protocol(args.protocol) if warp is None else None
     gifti = _wants_gifti(args, args.source)
     with ProgressBars(quiet=args.quiet) as progress:

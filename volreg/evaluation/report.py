@@ -233,7 +233,8 @@ def _review(fixed: LabelVolume, moving: LabelVolume, result: LabelRegistration, 
     findings = review_registration(
         before, after, voxel_mm=feature_unit(fixed, moving), label_voxels=voxels,
         label_interior=interior, linear=linear, cut_labels=cut, folded_fraction=folded_fraction(jac, inside),
-        kernel_warp=kernel_warp, dice_before_interpolated=interpolated_dice_before(fixed, moving, fell))
+        kernel_warp=kernel_warp, dice_before_interpolated=interpolated_dice_before(fixed, moving, fell),
+        linear_kind=None if result.linear is None else result.linear.log.get("kind"))
     return findings_summary(findings, judged=judged)
 
 

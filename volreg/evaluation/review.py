@@ -215,8 +215,8 @@ _DICE = _Rule(
     "dice", False, "", 2,
     "label {label} overlaps its fixed counterpart with Dice {value} after registration (limit {limit})",
     "{count} labels overlap their fixed counterparts with a Dice below {limit} after registration",
-    "check that label {label} marks the same structure in both images, or try `[linear] kind = \"rigid\"`",
-    "check that these labels mark the same structures in both images, or try `[linear] kind = \"rigid\"`")
+    "check that label {label} marks the same structure in both images{linear}",
+    "check that these labels mark the same structures in both images{linear}")
 _DROP = _Rule(
     "dice_drop", True, "", 2,
     "the Dice of label {label} fell by {value} during registration (from {before} to {after}; limit {limit})",
@@ -227,6 +227,18 @@ _DROP = _Rule(
     "name them in `--drive-labels`")
 
 
+def _linear_hint(kind: str | None) -> str:
+    """What a finding of poor overlap suggests about the linear stage, after a comma: a rigid stage
+    (a similarity or affine one can meet the labels by a wrong scale or stretch, and without one
+    the poses are not brought together), except where it was rigid already; then the one thing a
+    rigid map cannot undo, a mirrored image.  ``kind`` is the stage's kind (the
+    protocol's ``[linear] kind``), None where it is not known."""
+    if kind == "rigid":
+        return (", and whether one image is mirrored (a flipped axis in one header: a rigid map turns "
+                "but cannot mirror)")
+    return ', or try `[linear] kind = "rigid"`'
+
+
 def _check_scores(name: str, scores, label: int, keys: Sequence[str]) -> dict:
     entry = scores.get(label)
     if not isinstance(entry, Mapping) or any(k not in entry for k in keys):
@@ -235,7 +247,8 @@ def _check_scores(name: str, scores, label: int, keys: Sequence[str]) -> dict:
     return entry
 
 
-def _per_label(rule: _Rule, failures: list[tuple[int, float, float, dict]], limits: ReviewLimits) -> list[Finding]:
+def _per_label(rule: _Rule, failures: list[tuple[int, float, float, dict]], limits: ReviewLimits,
+               linear_kind: str | None = None) -> list[Finding]:
     """Findings of one per-label rule: one per label, or one summary for more than ``max_listed``.
 
     ``failures`` holds ``(label, value, limit, extra)``, with ``extra`` more fields of the message.
@@ -248,7 +261,7 @@ def _per_label(rule: _Rule, failures: list[tuple[int, float, float, dict]], limi
         for label, value, limit, extra in failures:
             text = rule.single.format(label=label, value=_number(value, limit, rule.decimals),
                                       limit=f"{limit:.{rule.decimals}f}", **extra)
-            hint = rule.hint.format(label=label)
+            hint = rule.hint.format(label=label, linear=_linear_hint(linear_kind))
             out.append(Finding(label, rule.figure, value, limit, f"{text}; {hint}.", (label,)))
         return out
     limit = failures[0][2]  # one limit per rule
@@ -256,7 +269,7 @@ def _per_label(rule: _Rule, failures: list[tuple[int, float, float, dict]], limi
                       for label, value, lim, _ in failures[: limits.worst_listed])
     text = rule.several.format(count=len(failures), limit=f"{limit:.{rule.decimals}f}")
     label_list = tuple(sorted(f[0] for f in failures))
-    message = f"{text}; worst: {worst}; {rule.hint_several}."
+    message = f"{text}; worst: {worst}; {rule.hint_several.format(linear=_linear_hint(linear_kind))}."
     return [Finding(None, rule.figure, failures[0][1], limit, message, label_list)]
 
 
@@ -344,6 +357,7 @@ def review_registration(
     kernel_warp: Mapping | None = None,
     limits: ReviewLimits = ReviewLimits(),
     dice_before_interpolated: Mapping[int, float] | None = None,
+    linear_kind: str | None = None,
 ) -> list[Finding]:
     """Check a registration's figures against ``limits``; one finding per broken rule.
 
@@ -397,6 +411,10 @@ def review_registration(
         are (per-label interpolation) rather than by nearest neighbour; where given, the Dice
         drop is measured from the lower of the two readings (on small labels between grids of
         other resolutions they differ by more than ``max_dice_drop``).
+    linear_kind : {"none", "rigid", "similarity", "affine"}, optional
+        The kind of linear stage that ran (the protocol's ``[linear] kind``): the findings suggest
+        no kind that is already set (after a rigid stage, a mirrored image rather than a rigid
+        stage).  Not known: the suggestions name a rigid stage.
 
     Returns
     -------
@@ -421,7 +439,7 @@ def review_registration(
                            cut_labels=cut_labels, limits=limits)
     findings: list[Finding] = []
     if linear is not None:
-        findings += _linear_findings(linear, limits)
+        findings += _linear_findings(linear, limits, linear_kind)
     if kernel_warp is not None and kernel_warp.get("kept") == "linear":
         findings.append(_kernel_warp_left_out(kernel_warp, float(voxel_mm), cut_labels))
     if folded_fraction > limits.max_folded_fraction:
@@ -430,27 +448,29 @@ def review_registration(
             f"the warp folds (det d tau/dx <= 0) at {100 * folded_fraction:.2g} % of the fixed labels' voxels "
             f"(limit {100 * limits.max_folded_fraction:.2g} %); try a larger `[warp] lambda_fold` or `min_width`."))
     after = {v: _check_scores("scores_after", scores_after, v, ("dice", "mean_surface_distance_mm")) for v in judged}
-    findings += _overall_findings(judged, after, scores_after, limits)
+    findings += _overall_findings(judged, after, scores_after, limits, linear_kind)
     findings += _label_findings(judged, after, scores_before, dice_before_interpolated,
-                                limits.max_distance(float(voxel_mm)), limits)
+                                limits.max_distance(float(voxel_mm)), limits, linear_kind)
     return findings
 
 
-def _linear_findings(linear: Mapping, limits: ReviewLimits) -> list[Finding]:
+def _linear_findings(linear: Mapping, limits: ReviewLimits, kind: str | None = None) -> list[Finding]:
     """Findings on the linear part (:meth:`~volreg.warp.linear.LinearMap.describe`): its rotation
-    angle, then its smallest and largest scales."""
+    angle, then its smallest and largest scales; ``kind`` the stage's kind, as
+    :func:`review_registration` takes it."""
     if not isinstance(linear, Mapping) or "rotation_deg" not in linear or "scales" not in linear:
         raise ValueError("Expected `linear` as LinearMap.describe() output (with 'rotation_deg' and 'scales') "
                          f"or None, got {linear!r}.")
     findings = []
     angle = float(linear["rotation_deg"])
     if angle > limits.max_rotation_deg:
+        try_kind = ('`[linear] kind = "none"` for images already aligned' if kind == "rigid" else
+                    '`[linear] kind = "rigid"` (or "none" for images already aligned)')
         findings.append(Finding(
             None, "rotation_deg", angle, limits.max_rotation_deg,
             f"the linear part rotates the images by {_number(angle, limits.max_rotation_deg, 1)} deg "
             f"(limit {limits.max_rotation_deg:.1f} deg), likely a wrong orientation header or a wrong pairing "
-            "of images; check both images' headers, or try `[linear] kind = \"rigid\"` (or \"none\" for "
-            "images already aligned)."))
+            f"of images; check both images' headers, or try {try_kind}."))
     scales = [float(s) for s in linear["scales"]]
     low, high = min(scales), max(scales)
     for value, limit, side in ((low, limits.min_scale, "below"), (high, limits.max_scale, "above")):
@@ -478,7 +498,7 @@ def _kernel_warp_left_out(kernel_warp: Mapping, voxel_mm: float, cut_labels: lis
 
 
 def _overall_findings(judged: list[int], after: Mapping[int, Mapping], scores_after: Mapping[int, Mapping],
-                      limits: ReviewLimits) -> list[Finding]:
+                      limits: ReviewLimits, linear_kind: str | None = None) -> list[Finding]:
     """Findings on the judged labels as a whole: none could be judged, or their mean Dice is too low."""
     if not judged:
         if any(int(v) != 0 for v in scores_after):
@@ -494,14 +514,14 @@ def _overall_findings(judged: list[int], after: Mapping[int, Mapping], scores_af
             None, "mean_dice", mean_dice, limits.min_mean_dice,
             f"the mean Dice after registration is {_number(mean_dice, limits.min_mean_dice, 2)} over "
             f"{len(judged)} judged labels (limit {limits.min_mean_dice:.2f}): the images were not brought "
-            "together; check that they show the same anatomy with the same label values, or try "
-            "`[linear] kind = \"rigid\"`.", tuple(judged))]
+            f"together; check that they show the same anatomy with the same label values"
+            f"{_linear_hint(linear_kind)}.", tuple(judged))]
     return []
 
 
 def _label_findings(judged: list[int], after: Mapping[int, Mapping], scores_before: Mapping[int, Mapping],
                     dice_before_interpolated: Mapping[int, float] | None, max_distance: float,
-                    limits: ReviewLimits) -> list[Finding]:
+                    limits: ReviewLimits, linear_kind: str | None = None) -> list[Finding]:
     """Findings of the per-label rules, in order: mean surface distance above ``max_distance`` (mm),
     Dice below ``limits.min_dice``, Dice drop above ``limits.max_dice_drop``."""
     distance, low_dice, drop = [], [], []
@@ -521,7 +541,7 @@ def _label_findings(judged: list[int], after: Mapping[int, Mapping], scores_befo
                              dict(before=f"{dice_before:.2f}", after=f"{dice_after:.2f}")))
     findings: list[Finding] = []
     for rule, failures in ((_DISTANCE, distance), (_DICE, low_dice), (_DROP, drop)):
-        findings += _per_label(rule, failures, limits)
+        findings += _per_label(rule, failures, limits, linear_kind)
     return findings
 
 

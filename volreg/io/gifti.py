@@ -29,6 +29,7 @@ __all__ = [
     "DATA_KINDS",
     "GiftiArrayMeta",
     "GiftiSurfaceMeta",
+    "check_gifti_name",
     "data_name",
     "is_gifti",
     "read_gifti_data",
@@ -56,6 +57,37 @@ def _kind_of(path: Path) -> str | None:
     """``"shape"``, ``"func"`` or ``"label"`` from a name like ``lh.thickness.shape.gii``; None otherwise."""
     parts = path.name.lower().split(".")
     return parts[-2] if len(parts) >= 3 and parts[-2] in DATA_KINDS else None
+
+
+def check_gifti_name(path: str | os.PathLike[str], *, surface: bool) -> None:
+    """Refuse a GIFTI output named as the other kind of GIFTI file.
+
+    A surface (``POINTSET`` and ``TRIANGLE``) written as ``x.shape.gii`` (or ``.func.gii``,
+    ``.label.gii``) is taken for per-vertex values by the tools that go by the name (Connectome
+    Workbench, FreeSurfer, volreg's own ``--source-data``), and values written as ``x.surf.gii``
+    for a surface.
+
+    Parameters
+    ----------
+    path : path-like
+        The output's name.
+    surface : bool
+        Whether a surface is to be written there (else a data file).
+
+    Raises
+    ------
+    VolregIOError
+        One line naming the output and the suffix expected.
+    """
+    p = Path(path)
+    kind = _kind_of(p)
+    if surface and kind is not None:
+        raise VolregIOError(f"Output `{p}` has the suffix of a GIFTI data file (.{kind}.gii) but would hold a surface; "
+                            f"expected a surface name such as `{data_name(p)}.surf.gii` (data files hold per-vertex "
+                            "values).")
+    if not surface and p.name.lower().endswith(".surf.gii"):
+        raise VolregIOError(f"Output `{p}` has the suffix of a GIFTI surface (.surf.gii) but would hold per-vertex "
+                            "values; expected a GIFTI data file (.shape.gii, .func.gii, .label.gii).")
 
 
 def data_name(path: str | os.PathLike[str]) -> str:
@@ -306,12 +338,14 @@ def write_gifti(vertices: np.ndarray, triangles: np.ndarray, path: str | os.Path
     Raises
     ------
     VolregIOError
-        Malformed vertices or triangles, an existing ``path`` without
-        ``force``, or a failed write.
+        Malformed vertices or triangles, a ``path`` named as a data file
+        (:func:`check_gifti_name`), an existing ``path`` without ``force``, or a
+        failed write.
     """
     from nibabel.gifti import GiftiCoordSystem, GiftiDataArray, GiftiImage, GiftiMetaData
 
     p = Path(path)
+    check_gifti_name(p, surface=True)
     pts = np.asarray(vertices, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0 or not np.all(np.isfinite(pts)):
         raise VolregIOError(f"Expected finite `vertices` of shape (N, 3), got {pts.shape}.")
@@ -355,12 +389,14 @@ def write_gifti_data(values: np.ndarray, path: str | os.PathLike[str], *, meta: 
     Raises
     ------
     VolregIOError
-        Values that are not 1-D or 2-D, an existing ``path`` without ``force``,
-        or a failed write.
+        Values that are not 1-D or 2-D, a ``path`` named as a surface
+        (:func:`check_gifti_name`), an existing ``path`` without ``force``, or
+        a failed write.
     """
     from nibabel.gifti import GiftiDataArray, GiftiImage, GiftiLabel, GiftiLabelTable, GiftiMetaData
 
     p = Path(path)
+    check_gifti_name(p, surface=False)
     a = np.asarray(values)
     if a.ndim not in (1, 2) or len(a) == 0:
         raise VolregIOError(f"Expected `values` of shape (N,) or (N, K), got {a.shape}.")

@@ -13,15 +13,19 @@ A ``.mrk.json`` markup's ``coordinateUnits`` (default ``mm``) is honoured:
 from __future__ import annotations
 
 import csv
+import io
+import itertools
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from volreg.errors import VolregIOError, exception_text, excerpt
+from volreg.io.documents import parse_json
 
-__all__ = ["read_landmarks"]
+__all__ = ["csv_rows", "fcsv_records", "read_landmarks"]
 
 _FLIP = np.array([-1.0, -1.0, 1.0])
 
@@ -43,20 +47,50 @@ def _fcsv_frame(line: str, path: Path) -> bool:
     return _frame(value, path)
 
 
+def csv_rows(text: str) -> list[list[str]]:
+    """The rows of CSV text, a quoted field's line breaks kept inside it (the csv module splits the
+    lines itself: ``str.splitlines`` would cut a quoted field in two, and split at form feeds,
+    U+2028 and other separators inside a value)."""
+    return list(csv.reader(io.StringIO(text)))
+
+
+def fcsv_records(text: str) -> Iterator[tuple[int, str, list[str] | None]]:
+    """The records of a Slicer ``.fcsv`` file: ``(line, text, row)`` for each, in order.
+
+    A comment (``#`` first) or blank line gives its text (without the line break) and ``row``
+    ``None``; a point gives its fields as ``row``, read as CSV over as many lines as its quoted
+    fields span (``text`` is then the first of them); ``line`` counts from 1.
+    """
+    lines = io.StringIO(text)  # splits at "\n" alone, as the csv module expects
+    read = 0
+
+    def counted() -> Iterator[str]:
+        nonlocal read
+        for line in lines:
+            read += 1
+            yield line
+
+    source = counted()
+    for line in source:
+        number, body = read, line.rstrip("\n")
+        if body.startswith("#") or not body.strip():
+            yield number, body, None
+        else:  # the reader takes the lines after this one only while a quoted field goes on
+            yield number, body, next(csv.reader(itertools.chain([line], source)))
+
+
 def _read_fcsv(path: Path, text: str) -> np.ndarray:
     ras = True
     points = []
-    for number, line in enumerate(text.splitlines(), start=1):
-        if line.startswith("#"):
-            if "CoordinateSystem" in line:
+    for number, line, r in fcsv_records(text):
+        if r is None:
+            if line.startswith("#") and "CoordinateSystem" in line:
                 ras = _fcsv_frame(line, path)
             continue
-        if line.strip():
-            r = next(csv.reader([line]))
-            if len(r) < 4:
-                raise VolregIOError(f"Landmark file `{path}` line {number} has {len(r)} fields; expected Slicer's "
-                                    "id,x,y,z,... columns.")
-            points.append([_number(v, path, f"line {number}") for v in r[1:4]])
+        if len(r) < 4:
+            raise VolregIOError(f"Landmark file `{path}` line {number} has {len(r)} fields; expected Slicer's "
+                                "id,x,y,z,... columns.")
+        points.append([_number(v, path, f"line {number}") for v in r[1:4]])
     points = np.array(points, dtype=float).reshape(-1, 3)
     return points * _FLIP if ras else points
 
@@ -80,7 +114,7 @@ def _units_mm(value: object, path: Path) -> float:
 def _read_mrk_json(path: Path, text: str) -> np.ndarray:
     """The control points, with a row of NaN for each one not placed (``positionStatus``
     ``"undefined"``): their order pairs them with another file's."""
-    data = json.loads(text)
+    data = parse_json(text, f"Landmark file `{path}`")
     expected = "expected a Slicer markups file: an object whose `markups` list holds objects with `controlPoints`"
     if not isinstance(data, dict):
         raise VolregIOError(f"Landmark file `{path}` holds {type(data).__name__} data at the top; {expected}.")
@@ -102,6 +136,7 @@ def _read_mrk_json(path: Path, text: str) -> np.ndarray:
             if not isinstance(cp, dict) or "position" not in cp:
                 raise VolregIOError(f"Landmark file `{path}` control point {len(points) + 1} is not an object with a "
                                     f"`position`; {expected}.")
+            _check_coordinates(cp["position"], path, len(points) + 1)
             try:
                 p = np.asarray(cp["position"], dtype=float) * scale
             except (TypeError, ValueError):  # words or nested lists: numpy's message would quote them whole
@@ -118,8 +153,17 @@ def _read_mrk_json(path: Path, text: str) -> np.ndarray:
     return np.array(points).reshape(-1, 3)
 
 
+def _check_coordinates(position: object, path: Path, number: int) -> None:
+    """Refuse a control point's ``position`` holding true/false or text, which numpy would read as
+    numbers (true as 1 mm, ``"5"`` as 5 mm)."""
+    if isinstance(position, list) and any(isinstance(v, (bool, str)) for v in position):
+        what = "true or false" if any(isinstance(v, bool) for v in position) else "text"
+        raise VolregIOError(f"Landmark file `{path}` control point {number} has position {excerpt(json.dumps(position), quote=False)}; "
+                            f"expected three numbers (in the markup's coordinateUnits), not {what}.")
+
+
 def _read_csv(path: Path, text: str) -> np.ndarray:
-    rows = [r for r in csv.reader(text.splitlines()) if r and any(c.strip() for c in r)]
+    rows = [r for r in csv_rows(text) if r and any(c.strip() for c in r)]
     if not rows:
         return np.zeros((0, 3))
     header = [c.strip().lower() for c in rows[0]]

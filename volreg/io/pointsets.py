@@ -41,8 +41,9 @@ import numpy as np
 
 from volreg.errors import VolregIOError, exception_text
 from volreg.io._atomic import atomic_output
-from volreg.io.gifti import load_gifti
-from volreg.io.landmarks import _fcsv_frame, _frame, _units_mm, read_landmarks
+from volreg.io.documents import parse_json
+from volreg.io.gifti import check_gifti_name, load_gifti
+from volreg.io.landmarks import _fcsv_frame, _frame, _units_mm, csv_rows, fcsv_records, read_landmarks
 from volreg.io.meshes import quiet_vtk, read_pyvista
 
 __all__ = ["POINT_SUFFIXES", "MESH_FORMATS", "PointSetFile", "check_same_format", "point_set_kind", "read_point_set",
@@ -183,12 +184,9 @@ def _read_gifti(p: Path) -> PointSetFile:
     return PointSetFile(p, "gifti", data * _FLIP, None, [], _content=(img, arrays[0]))
 
 
-def _csv_rows(text: str) -> list[list[str]]:
-    return list(csv.reader(text.splitlines()))
-
-
 def check_same_format(source: str | os.PathLike[str], output: str | os.PathLike[str]) -> None:
-    """Refuse an ``output`` name whose format is not that of ``source`` (``.mrk.json`` and ``.json`` are one).
+    """Refuse an ``output`` name whose format is not that of ``source`` (``.mrk.json`` and ``.json`` are one),
+    and a GIFTI surface's output named as a data file (:func:`~volreg.io.gifti.check_gifti_name`).
 
     Raises
     ------
@@ -201,6 +199,8 @@ def check_same_format(source: str | os.PathLike[str], output: str | os.PathLike[
     if not same:
         raise VolregIOError(f"Output `{output}` must have the suffix of `{source.name}` ({_suffix(source)}); "
                             "points and meshes are written in the format they were read in.")
+    if kind == "gifti":  # a GIFTI surface is carried, and written back as one
+        check_gifti_name(output, surface=True)
 
 
 def read_point_set(path: str | os.PathLike[str]) -> PointSetFile:
@@ -233,7 +233,7 @@ def read_point_set(path: str | os.PathLike[str]) -> PointSetFile:
     if kind in ("csv", "fcsv", "mrk.json"):
         points = read_landmarks(p, keep_unplaced=True)
         text = p.read_text(encoding="utf-8-sig")  # a byte-order mark, as read_landmarks allows
-        content = json.loads(text) if kind == "mrk.json" else text
+        content = parse_json(text, f"Landmark file `{p}`") if kind == "mrk.json" else text
         return PointSetFile(p, kind, points, None, [], _content=content)
     out = _read_gifti(p) if kind == "gifti" else _read_pyvista(p)
     if not np.all(np.isfinite(out.points)):
@@ -255,7 +255,7 @@ def _write_lines(rows: list[list[str]]) -> str:
 
 
 def _csv_text(text: str, points: np.ndarray) -> str:
-    rows = _csv_rows(text)
+    rows = csv_rows(text)
     data = [i for i, r in enumerate(rows) if r and any(c.strip() for c in r)]
     header = [c.strip().lower() for c in rows[data[0]]]
     cols = [header.index(c) for c in ("x", "y", "z")]
@@ -268,16 +268,12 @@ def _csv_text(text: str, points: np.ndarray) -> str:
 def _fcsv_text(text: str, points: np.ndarray, path: Path) -> str:
     ras = True
     out, k = [], 0
-    for line in text.splitlines():
-        if line.startswith("#"):
-            if "CoordinateSystem" in line:
+    for _, line, row in fcsv_records(text):
+        if row is None:  # a comment or blank line, kept as it is
+            if line.startswith("#") and "CoordinateSystem" in line:
                 ras = _fcsv_frame(line, path)
             out.append(line + "\n")
             continue
-        if not line.strip():
-            out.append(line + "\n")
-            continue
-        row = next(csv.reader([line]))
         q = points[k] * _FLIP if ras else points[k]
         row[1:4] = [_number(v) for v in q]
         out.append(_write_lines([row]))

@@ -34,6 +34,7 @@ from volreg.settings import (
     settings_from_mapping,
 )
 from volreg.errors import ProtocolError, exception_text, excerpt
+from volreg.io.documents import parse_toml
 
 __all__ = ["PROTOCOL_DIR", "load_protocol", "protocol_to_toml"]
 
@@ -82,7 +83,7 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
     except UnicodeDecodeError:
         raise ProtocolError(f"Protocol `{path}` is not UTF-8 text; expected a TOML file.") from None
     try:
-        data = tomllib.loads(raw)
+        data = parse_toml(raw, f"Protocol `{path}`")
     except tomllib.TOMLDecodeError as exc:
         raise ProtocolError(f"Protocol `{path}` is not valid TOML: {exception_text(exc)}.") from None
     loose = sorted(k for k, v in data.items() if not isinstance(v, Mapping))

@@ -30,6 +30,7 @@ from volreg.io._atomic import output_folder
 from volreg.io.report_figure import write_error_figure
 from volreg.io.summary import json_safe, package_versions
 from volreg.outputs.registration import register_and_write
+from volreg.pipeline.arguments import mapping_argument, path_argument
 from volreg.pipeline.labels import LabelRegistration
 from volreg.pipeline.two_way import TwoWayRegistration, register_both_ways
 from volreg.settings import Protocol
@@ -72,7 +73,7 @@ def write_both_ways(
 
     Parameters
     ----------
-    a, b : LabelVolume
+    a, b : LabelVolume or path-like
     outdir : path-like
     protocol, drive_labels, landmarks, progress
         As :func:`~volreg.pipeline.two_way.register_both_ways`.
@@ -87,6 +88,8 @@ def write_both_ways(
     -------
     WrittenBothWays
     """
+    outdir = path_argument(outdir, "outdir")  # the other arguments: as each direction's registration checks them
+    inputs = mapping_argument(inputs, "inputs")
     reports = {}
     keys = {"forward": ("A", "B"), "backward": ("B", "A")}
 

@@ -26,10 +26,20 @@ from volreg.evaluation.report import RegistrationReport, landmark_errors, regist
 from volreg import io
 from volreg.io._atomic import OutputFolder, output_folder
 from volreg.io.fields import write_displacement, write_itk_composite, write_itk_linear
-from volreg.io.protocol import load_protocol
+from volreg.pipeline.arguments import (
+    bool_argument,
+    callable_argument,
+    drive_labels_argument,
+    label_volume_argument,
+    landmarks_argument,
+    mapping_argument,
+    path_argument,
+    protocol_argument,
+)
 from volreg.io import report_figure
 from volreg.pipeline.grid_fields import FixedGridFields, inverse_on_moving_grid, sample_on_fixed_grid
 from volreg.pipeline.labels import LabelRegistration, register_labels
+from volreg.errors import ArgumentTypeError
 from volreg.settings import Protocol
 
 __all__ = ["ITK_H5_OUTPUTS", "REGISTRATION_OUTPUTS", "registration_outputs", "write_outputs", "write_registration"]
@@ -187,12 +197,13 @@ def write_outputs(
     ----------
     result : LabelRegistration
         :func:`~volreg.pipeline.labels.register_labels` of ``fixed`` and ``moving``.
-    fixed, moving : LabelVolume
+    fixed, moving : LabelVolume or path-like
+        The volumes, or the paths of label images.
     outdir : path-like
         The output folder, all or nothing (see :func:`write_registration`).
-    protocol : Protocol, optional
-        The protocol ``result`` was registered with (its ``outputs`` and ``warp.max_folded_fraction``
-        apply, and the report records it); default the default protocol.
+    protocol : Protocol, str or path-like, optional
+        The protocol ``result`` was registered with, or its preset name or file (its ``outputs`` and
+        ``warp.max_folded_fraction`` apply, and the report records it); default the default protocol.
     landmarks : pair of (L, D) float ndarrays, optional
         Fixed landmarks and their moving partners, mm: the report gives the warp's error at them.
     force, inputs, truth, progress
@@ -203,13 +214,28 @@ def write_outputs(
     RegistrationReport
         As written to ``report.json``; its ``seconds`` count the outputs alone.
     """
-    protocol = load_protocol("default") if protocol is None else protocol
+    if not isinstance(result, LabelRegistration):
+        raise ArgumentTypeError(f"Expected `result` to be the LabelRegistration of register_labels, got "
+                                f"{type(result).__name__}.")
+    fixed, moving, outdir, protocol, landmarks, force, inputs, truth, progress = _checked(
+        fixed, moving, outdir, protocol, landmarks, force, inputs, truth, progress)
     with output_folder(outdir, force, outputs=REGISTRATION_OUTPUTS) as folder, JobQueue() as jobs:  # the jobs end before the folder closes
         folder.check_writable(registration_outputs(protocol), force=force)
         started = time.perf_counter()
         return _write_result(folder, jobs, fixed, moving, result, protocol=protocol, landmarks=landmarks,
                              force=force, inputs=inputs, truth=truth, progress=progress, before=None,
                              started=started)
+
+
+def _checked(fixed, moving, outdir, protocol, landmarks, force, inputs, truth, progress) -> tuple:
+    """The arguments the writers share, checked (:mod:`volreg.pipeline.arguments`) before a folder is
+    made: volumes or their paths, the output folder's path, a protocol or its name, landmarks of the
+    volumes' dimension, ``force`` true or false, the inputs' record a mapping, callables."""
+    fixed, moving = label_volume_argument(fixed, "fixed"), label_volume_argument(moving, "moving")
+    return (fixed, moving, path_argument(outdir, "outdir"), protocol_argument(protocol),
+            landmarks_argument(landmarks, fixed.ndim), bool_argument(force, "force"), mapping_argument(inputs, "inputs"),
+            callable_argument(truth, "truth", "of (N, D) fixed points, mm"),
+            callable_argument(progress, "progress", "progress(stage, done, total)"))
 
 
 def register_and_write(fixed, moving, outdir, *, protocol: Protocol | None = None,
@@ -219,7 +245,11 @@ def register_and_write(fixed, moving, outdir, *, protocol: Protocol | None = Non
                        on_fit: Callable[[LabelRegistration], None] | None = None
                        ) -> tuple[LabelRegistration, RegistrationReport]:
     """:func:`write_registration`, also returning the registration itself."""
-    protocol = load_protocol("default") if protocol is None else protocol
+    fixed, moving, outdir, protocol, landmarks, force, inputs, truth, progress = _checked(
+        fixed, moving, outdir, protocol, landmarks, force, inputs, truth, progress)
+    drive_labels = drive_labels_argument(drive_labels)
+    prior = callable_argument(prior, "prior", "of (N, D) fixed points, mm")
+    on_fit = callable_argument(on_fit, "on_fit", "of a LabelRegistration")
     with output_folder(outdir, force, outputs=REGISTRATION_OUTPUTS) as folder, JobQueue() as jobs:  # the jobs end before the folder closes
         folder.check_writable(registration_outputs(protocol), force=force)
         started = time.perf_counter()
@@ -265,13 +295,15 @@ def write_registration(
 
     Parameters
     ----------
-    fixed, moving : LabelVolume
+    fixed, moving : LabelVolume or path-like
+        The volumes, or the paths of label images (:func:`volreg.io.read_labels`).
     outdir : path-like
         The output folder; created with missing parents.  A warp folding more than
         ``protocol.warp.max_folded_fraction`` of the fixed grid is refused before
         anything is written.
-    protocol : Protocol, optional
-        Default :func:`volreg.io.protocol.load_protocol` ``("default")``.
+    protocol : Protocol, str or path-like, optional
+        A protocol, or a preset name or protocol file; default
+        :func:`volreg.io.protocol.load_protocol` ``("default")``.
     drive_labels, landmarks, prior
         As :func:`~volreg.pipeline.labels.register_labels`.
     force : bool, default False
@@ -298,7 +330,8 @@ def write_registration(
     Raises
     ------
     VolregError
-        Inputs that cannot be registered, a non-empty ``outdir`` without ``force``, an output
+        An argument of the wrong kind (:class:`~volreg.errors.ArgumentTypeError`, a ``TypeError``)
+        or value, before anything is made; inputs that cannot be registered, a non-empty ``outdir`` without ``force``, an output
         that cannot be written, a warp that diverges or folds.  On any error (and on an
         interrupt) the files written so far and the folders created are removed.
     """

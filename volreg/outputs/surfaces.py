@@ -183,13 +183,46 @@ def data_file_name(stem: str, name: str, meta: GiftiArrayMeta) -> str:
     return f"{stem}.{safe}.{meta.kind}.gii"
 
 
-def load_surface_model(result: str | os.PathLike[str]) -> KernelWarp:
+def _check_result_kind(result: Path, option: str) -> None:
+    """Refuse an OUTDIR whose report.json says another command than ``register-surfaces`` wrote it.
+
+    A label-volume registration (``volreg register``) saves a 3-D ``model.npz`` too, of fixed
+    points to moving points: taken for a surface registration it would carry values between
+    unrelated surfaces without a word.  A folder without a report (a model copied alone), or
+    with one that is not JSON, is left to the model's own checks.
+    """
+    import json
+
+    from volreg.io.documents import parse_json
+
+    report = result / "report.json"
+    try:
+        data = parse_json(report.read_text(encoding="utf-8"), f"{option} `{result}`: report.json", error=UsageError)
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return
+    if not isinstance(data, dict):
+        return
+    command = data.get("command")
+    inputs = data.get("inputs")
+    labels = command == "register" or (command is None and isinstance(inputs, dict) and "fixed" in inputs)
+    if labels:
+        raise UsageError(f"{option} `{result}` is a label-volume registration (its report.json says `volreg "
+                         "register`); expected a surface registration from `volreg register-surfaces`.")
+    if isinstance(command, str) and command != "register-surfaces":
+        raise UsageError(f"{option} `{result}` was written by `volreg {' '.join(command.split())[:40]}` (its "
+                         "report.json says so); expected a surface registration from `volreg register-surfaces`.")
+
+
+def load_surface_model(result: str | os.PathLike[str], option: str = "--result") -> KernelWarp:
     """The 3-D warp saved in a ``volreg register-surfaces`` output folder.
 
     Parameters
     ----------
     result : path-like
-        The folder; its ``model.npz`` is read.
+        The folder; its ``model.npz`` is read.  A folder whose ``report.json`` names another
+        command (a label-volume registration saves a 3-D model too) is refused.
+    option : str, default "--result"
+        The argument's name in messages.
 
     Returns
     -------
@@ -199,12 +232,13 @@ def load_surface_model(result: str | os.PathLike[str]) -> KernelWarp:
     Raises
     ------
     UsageError
-        No ``model.npz`` there, or a warp that is not 3-D.
+        No ``model.npz`` there, a folder another command wrote, or a warp that is not 3-D.
     """
     result = Path(result)
     model = result / "model.npz"
     if not model.is_file():
         raise UsageError(f"`{result}` has no model.npz; expected an OUTDIR written by `volreg register-surfaces`.")
+    _check_result_kind(result, option)
     warp = KernelWarp.load(model)
     if warp.dim != 3:
         raise UsageError(f"`{model}` is a {warp.dim}-D warp; expected a 3-D surface registration.")

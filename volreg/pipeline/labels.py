@@ -10,6 +10,7 @@ fine (:func:`~volreg.warp.fit.fit_warp`), kept only where it does not lower the 
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Callable, NamedTuple, Sequence
@@ -18,7 +19,13 @@ import numpy as np
 
 from volreg._threads import single_blas
 from volreg.grid import LabelVolume, label_world_boxes
-from volreg.io.protocol import load_protocol
+from volreg.pipeline.arguments import (
+    callable_argument,
+    drive_labels_argument,
+    label_volume_argument,
+    landmarks_argument,
+    protocol_argument,
+)
 from volreg.pipeline.label_features import (
     LabelFeatures,
     candidate_labels,
@@ -119,12 +126,12 @@ class LabelRegistration(RegistrationResult):
 
 @single_blas
 def register_labels(
-    fixed: LabelVolume,
-    moving: LabelVolume,
+    fixed: LabelVolume | str | os.PathLike[str],
+    moving: LabelVolume | str | os.PathLike[str],
     *,
     drive_labels: Sequence[int] | None = None,
     landmarks: tuple[np.ndarray, np.ndarray] | None = None,
-    protocol: Protocol | None = None,
+    protocol: Protocol | str | os.PathLike[str] | None = None,
     prior: PointMap | None = None,
     progress: ProgressCallback | None = None,
 ) -> LabelRegistration:
@@ -141,7 +148,8 @@ def register_labels(
 
     Parameters
     ----------
-    fixed, moving : LabelVolume
+    fixed, moving : LabelVolume or path-like
+        The volumes, or the paths of label images (read with :func:`volreg.io.read_labels`).
     drive_labels : sequence of int, optional
         Labels whose distance maps (and implicit surfaces) drive the warp; default every label
         present in both volumes, whose meshes and implicit surfaces leave out speckled ones
@@ -153,8 +161,9 @@ def register_labels(
         ``result.skipped`` says which and why.
     landmarks : pair of (L, D) float ndarrays, optional
         Fixed-space points and their moving-space partners, LPS mm.
-    protocol : Protocol, optional
-        Default :func:`volreg.protocol.load_protocol` ``("default")``.
+    protocol : Protocol, str or path-like, optional
+        A protocol, or a preset name or protocol file (:func:`volreg.io.protocol.load_protocol`);
+        default ``load_protocol("default")``.
     prior : callable, optional
         Target positions for the symmetric option (see :func:`fit_warp`), e.g. the
         inverse of a registration of ``moving`` to ``fixed``.
@@ -167,12 +176,22 @@ def register_labels(
 
     Raises
     ------
+    ArgumentTypeError
+        An argument of the wrong kind (a list or an array for a volume, a number for a callable,
+        a label that is not a number), named, before any work.
     RegistrationInputError
-        No label in common, a requested label absent from a volume, or, with
+        A label that is not a whole number, landmarks of the wrong shape or not finite, no label
+        in common, a requested label absent from a volume, or, with
         the protocol's ``distance_weight`` 0 (implicit surfaces alone), no label with a surface
         in both volumes (with distance maps every common label drives, surface or not).
     """
-    protocol = load_protocol("default") if protocol is None else protocol
+    fixed = label_volume_argument(fixed, "fixed")
+    moving = label_volume_argument(moving, "moving")
+    drive_labels = drive_labels_argument(drive_labels)
+    landmarks = landmarks_argument(landmarks, fixed.ndim)
+    protocol = protocol_argument(protocol)
+    prior = callable_argument(prior, "prior", "of (N, D) fixed points, mm")
+    progress = callable_argument(progress, "progress", "progress(stage, done, total)")
     driving = candidate_labels(fixed, moving, drive_labels)
     stages = []
 

@@ -8,6 +8,7 @@ and fits the warp (9) between the feature pairs (6) with :func:`~volreg.warp.fit
 
 from __future__ import annotations
 
+import os
 from typing import Callable
 
 import numpy as np
@@ -17,7 +18,9 @@ from volreg._threads import single_blas, thread_map
 from volreg.features.implicit import ImplicitSurface, default_min_width
 from volreg.features.mapped import LinearlyMapped
 from volreg.grid import box_diameter
+from volreg.errors import ArgumentTypeError
 from volreg.io.meshes import SurfaceData
+from volreg.pipeline.arguments import bool_argument, callable_argument, landmarks_argument, warp_settings_argument
 from volreg.pipeline.surface_inputs import check_point_extent, check_size_ratio, fitting_points
 from volreg.settings import Protocol
 from volreg.settings import WarpSettings
@@ -44,15 +47,21 @@ def _surface_points(surface) -> ImplicitSurface | tuple[np.ndarray, np.ndarray]:
         return surface
     if isinstance(surface, tuple):
         if len(surface) != 2:
-            raise TypeError(f"Expected `source`/`target` tuples as (points, normals), got {len(surface)} items.")
-        return tuple(np.asarray(a, float) for a in surface)
+            raise ArgumentTypeError(f"Expected `source`/`target` tuples as (points, normals), got {len(surface)} items.")
+        try:
+            return tuple(np.asarray(a, float) for a in surface)
+        except (TypeError, ValueError):  # ragged lists, text, objects
+            raise ArgumentTypeError("Expected `source`/`target` tuples of two (N, D) arrays of numbers (points, "
+                                    "normals).") from None
     pv = _pyvista()
     if pv is not None and isinstance(surface, pv.PolyData):
         mesh = surface.triangulate().compute_normals(point_normals=True, cell_normals=False,
                                                      auto_orient_normals=True, consistent_normals=True)
         return np.asarray(mesh.points, float), np.asarray(mesh.point_data["Normals"], float)
-    raise TypeError(
-        f"Expected `source`/`target` as pyvista PolyData, ImplicitSurface or (points, normals), got {type(surface).__name__}."
+    hint = " (read a mesh file with pyvista.read(path))" if isinstance(surface, (str, os.PathLike)) else ""
+    raise ArgumentTypeError(
+        f"Expected `source`/`target` as pyvista PolyData, ImplicitSurface or (points, normals), got "
+        f"{type(surface).__name__}{hint}."
     )
 
 
@@ -95,7 +104,8 @@ def register_surfaces(
         width / sqrt(2), but not below 3 vertex spacings.
     landmarks : pair of (L, D) float ndarrays, optional
         Source landmark points and their target positions, mm.
-    settings : WarpSettings
+    settings : WarpSettings, Protocol or str, optional
+        The warp settings, or a protocol (or its preset name or file) whose ``warp`` section to take.
     progress : callable, optional
     align_centroids : bool
         First move the source by the translation between the two point sets' centroids, where
@@ -116,11 +126,24 @@ def register_surfaces(
     RegistrationResult
         ``.warp`` (:class:`~volreg.warp.KernelWarp`) and ``.log`` (per level:
         width, samples, iterations, objective terms, seconds).
+
+    Raises
+    ------
+    ArgumentTypeError
+        An argument of the wrong kind (a path for a surface, a number for a callable), named.
+    ValueError
+        Source and target lists of different lengths, landmarks of the wrong shape
+        (:class:`~volreg.errors.RegistrationInputError`), surfaces that bound no volume.
     """
+    settings = warp_settings_argument(settings)
+    progress = callable_argument(progress, "progress", "progress(stage, done, total)")
+    align_centroids = bool_argument(align_centroids, "align_centroids")
     sources = source if isinstance(source, list) else [source]
     targets = target if isinstance(target, list) else [target]
     if len(sources) != len(targets):
         raise ValueError(f"Expected as many `target` objects as `source` objects, got {len(targets)} and {len(sources)}.")
+    if not sources:
+        raise ArgumentTypeError("Expected at least one `source` and one `target` object, got empty lists.")
     data = [_surface_points(x) for x in sources + targets]
     _check_objects(sources + targets, data, check_names, len(sources))
 
@@ -128,6 +151,8 @@ def register_surfaces(
         return np.concatenate([d.points if isinstance(d, ImplicitSurface) else d[0] for d in objects])
 
     points = points_of(data[:len(sources)])
+    if landmarks is not None and points.ndim == 2:
+        landmarks = landmarks_argument(landmarks, points.shape[1])
     # Surfaces given as points are fitted about as finely as the warp's finest level at least
     # (features coarser than a level cannot pin it): down to its width / sqrt(2), so that the
     # halving widths of a target of another size also reach it, but not below 3 vertex spacings

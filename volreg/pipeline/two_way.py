@@ -14,7 +14,13 @@ from typing import Callable, Protocol as Signature, Sequence
 import numpy as np
 
 from volreg.grid import LabelVolume
-from volreg.io.protocol import load_protocol
+from volreg.pipeline.arguments import (
+    callable_argument,
+    drive_labels_argument,
+    label_volume_argument,
+    landmarks_argument,
+    protocol_argument,
+)
 from volreg.pipeline.labels import LabelRegistration, register_labels
 from volreg.settings import Protocol
 from volreg.warp.inverse import InverseWarp
@@ -74,9 +80,11 @@ def register_both_ways(
 
     Parameters
     ----------
-    a, b : LabelVolume
-    protocol : Protocol, optional
-        For both registrations; default :func:`volreg.io.protocol.load_protocol` ``("default")``.
+    a, b : LabelVolume or path-like
+        The volumes, or the paths of label images (:func:`volreg.io.read_labels`).
+    protocol : Protocol, str or path-like, optional
+        For both registrations: a protocol, or a preset name or protocol file; default
+        :func:`volreg.io.protocol.load_protocol` ``("default")``.
     drive_labels : sequence of int, optional
         As :func:`~volreg.pipeline.labels.register_labels`, for both.
     landmarks : pair of (L, D) float ndarrays, optional
@@ -93,8 +101,20 @@ def register_both_ways(
     Returns
     -------
     TwoWayRegistration
+
+    Raises
+    ------
+    ArgumentTypeError, RegistrationInputError
+        An argument of the wrong kind or value, named, before any work (as
+        :func:`~volreg.pipeline.labels.register_labels`).
     """
-    protocol = load_protocol("default") if protocol is None else protocol
+    a, b = label_volume_argument(a, "a"), label_volume_argument(b, "b")
+    protocol = protocol_argument(protocol)
+    drive_labels = drive_labels_argument(drive_labels)
+    landmarks = landmarks_argument(landmarks, a.ndim)
+    progress = callable_argument(progress, "progress", "progress(stage, done, total)")
+    on_fit = callable_argument(on_fit, "on_fit", "of a LabelRegistration")
+    register = callable_argument(register, "register", "register(name, fixed, moving, landmarks, prior)")
     reverse = None if landmarks is None else (landmarks[1], landmarks[0])
 
     def fit_only(name, fixed, moving, points, prior) -> LabelRegistration:

@@ -50,7 +50,11 @@ coarse-to-fine least-squares fit of the symmetric locational distance cost
    coarse levels (a spheroidal brain shows it only by its folds): before the finest
    level is solved, its cost is evaluated at turns about that axis in steps of 5
    degrees and the lowest kept (of those within 2 % of it, the smallest turn),
-   logged as ``turn_search``.
+   logged as ``turn_search``.  A symmetric object fits as well turned by any of its
+   symmetries: where the refined map turns more than 45 degrees, the finest level's
+   cost is evaluated after each turn that carries a cube onto itself in the fixed
+   labels' principal axes and in the fixed image's axes, and of the maps within 2 %
+   of the lowest the least rotated kept, logged as ``least_rotation``.
 3. **Partial fields of view.** Samples of a label cut by the edge of either image
    (:func:`cut_labels`) whose image falls outside the other volume's field of view
    less two of its voxels carry no cost, and cut labels are left out of the
@@ -303,7 +307,12 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
     uncut = [v for v in drive if v not in pair.cut]
     turn_axis = None if by_centroids or dim != 3 else _free_axis([shapes_f[v] for v in (uncut or drive)])
 
-    current, level_log, turn_log = _refine(pair, current, local, coarse_local, spacings, counts, turn_axis, progress)
+    # The frames in which the fixed labels may be symmetric: their principal axes, and the image's
+    # own axes (a cube's moments are the same about every axis, its principal axes any three).
+    _, _, cov_f = _union_moments(list(shapes_f.values()))
+    frames = [np.linalg.eigh(cov_f)[1], np.asarray(fixed.direction, float)]
+    current, level_log, searches = _refine(pair, current, local, coarse_local, spacings, counts, turn_axis, frames,
+                                           progress)
     current, overlap, kept = _overlap_check(fixed, moving, chosen_start, current, drive, boxes_f)
     log = dict(
         kind=kind,
@@ -319,8 +328,7 @@ def fit_linear(fixed, moving, *, kind: str = "affine", labels=None, progress=Non
         map=current.describe(),
         seconds=time.perf_counter() - t_begin,
     )
-    if turn_log is not None:
-        log["turn_search"] = turn_log
+    log.update(searches)  # turn_search, least_rotation: where they ran
     return LinearFit(current, log)
 
 

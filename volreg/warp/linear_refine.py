@@ -4,11 +4,14 @@ The levels' map spacings are the object's diameter over 16, 32 and 64, never fin
 coarser volume's voxel (:func:`_level_plan`); each level solves the cost of
 :mod:`volreg.warp.linear_cost` on its maps and samples (:func:`_solve_level`).  Where the labels'
 second moments are nearly symmetric about an axis, the finest level's cost is first searched
-over turns about it (:func:`_turn_search`).
+over turns about it (:func:`_turn_search`).  Where the map found turns more than 45 degrees, the
+turns of the fixed labels' symmetries are tried after it (:func:`_least_rotated`): of the maps that
+fit as well, the least rotated is kept.
 """
 
 from __future__ import annotations
 
+import itertools
 import time
 
 import numpy as np
@@ -36,6 +39,14 @@ _LEVEL_SOLVES = 3
 _TURN_AXIS_TOL = 0.1
 _TURN_STEP_DEG = 5.0
 _TURN_TIE = 0.02
+#: A refined map that turns more than this (degrees) is compared with itself after each turn of
+#: :func:`symmetry_turns` (:func:`_least_rotated`).  Those turns are of 90 degrees or more, and a
+#: map turned by ``t`` after one of ``s`` turns by at least ``s - t``: below half of 90 degrees no
+#: such map turns less, and nothing is tried.
+_SYMMETRY_CHECK_DEG = 45.0
+#: Of the maps whose score is within this fraction of the lowest, the least rotated is kept (the
+#: labels' boundary samples are thinned at random, so a symmetry's two maps score alike, not equal).
+_SYMMETRY_TIE = 0.02
 
 
 def _voxel_size(volume) -> float:
@@ -94,8 +105,8 @@ def _solve_level(local: _Local, current: LinearMap, pair: _LabelPair, bank_f, ba
 
 
 def _refine(pair: _LabelPair, start: LinearMap, local: _Local, coarse_local: _Local, spacings: list[float],
-            counts: list[int], turn_axis: np.ndarray | None,
-            progress=None) -> tuple[LinearMap, list[dict], dict | None]:
+            counts: list[int], turn_axis: np.ndarray | None, frames: list[np.ndarray] = (),
+            progress=None) -> tuple[LinearMap, list[dict], dict]:
     """Coarse-to-fine least squares from ``start``.
 
     Parameters
@@ -109,6 +120,9 @@ def _refine(pair: _LabelPair, start: LinearMap, local: _Local, coarse_local: _Lo
         From :func:`_level_plan`.
     turn_axis : (3,) float ndarray or None
         The axis whose turn the finest level's cost is searched over (:func:`_free_axis`).
+    frames : list of (D, D) float ndarray
+        Orthonormal frames of the fixed labels (their principal axes, the image's axes) whose
+        symmetry turns the refined map is compared after (:func:`_least_rotated`).
     progress : callable, optional
         ``progress("fit linear", done, total)`` per level.
 
@@ -119,29 +133,89 @@ def _refine(pair: _LabelPair, start: LinearMap, local: _Local, coarse_local: _Lo
     list of dict
         Per level, JSON-ready: ``spacing_mm``, ``f_scale_mm``, ``samples``, ``samples_outside_view``,
         ``cost``, ``iterations``, ``mean_abs_distance_mm``.
-    dict or None
-        The turn search's log (:func:`_turn_search`), None where there was none.
+    dict
+        The searches' logs, by name, where they ran: ``turn_search`` (:func:`_turn_search`) and
+        ``least_rotation`` (:func:`_least_rotated`).
     """
     current = start
-    turn_log = None
+    searches = {}
     level_log = []
     for level, (h, count) in enumerate(zip(spacings, counts)):
         bank_f, bank_m, fwd, back = pair.level(h, count)
         f_scale = 2.0 * h
         finest = level == len(spacings) - 1
         if turn_axis is not None and finest and len(spacings) > 1:
-            current, turn_log = _turn_search(current, turn_axis, pair.centre, lambda m: _run(
+            current, searches["turn_search"] = _turn_search(current, turn_axis, pair.centre, lambda m: _run(
                 coarse_local, m, pair.centre, bank_f, bank_m, fwd, back, f_scale, pair.radius, 1,
                 _LEVEL_TOLERANCE)[1]["score"])
         current, info, iterations = _solve_level(local if finest else coarse_local, current, pair,
                                                  bank_f, bank_m, fwd, back, f_scale)
+        if finest and frames and current.describe()["rotation_deg"] > _SYMMETRY_CHECK_DEG:
+            current, searches["least_rotation"] = _least_rotated(current, frames, pair.centre, lambda m: _run(
+                local, m, pair.centre, bank_f, bank_m, fwd, back, f_scale, pair.radius, 1,
+                _LEVEL_TOLERANCE)[1]["score"])
         level_log.append(dict(spacing_mm=float(h), f_scale_mm=float(f_scale), samples=int(info["valid"]),
                               samples_outside_view=int(info["total"] - info["valid"]), cost=_finite(info["cost"]),
                               iterations=int(iterations),
                               mean_abs_distance_mm=_finite(info["mean_abs_distance_mm"])))
         if progress is not None:
             progress("fit linear", level + 1, len(spacings))
-    return current, level_log, turn_log
+    return current, level_log, searches
+
+
+def symmetry_turns(frames: list[np.ndarray]) -> list[np.ndarray]:
+    """The turns that would carry an object symmetric in one of ``frames`` onto itself: per frame
+    ``F`` (orthonormal (D, D), its columns the axes), ``F P F^T`` for each signed permutation ``P``
+    of the axes with determinant +1 other than the identity (a cube's 23 turns in 3-D, 3 in 2-D),
+    each turn once.
+
+    Returns
+    -------
+    list of (D, D) float ndarray
+        Rotation matrices.
+    """
+    turns: list[np.ndarray] = []
+    for frame in frames:
+        f = np.asarray(frame, float)
+        dim = len(f)
+        for order in itertools.permutations(range(dim)):
+            for signs in itertools.product((1.0, -1.0), repeat=dim):
+                p = np.zeros((dim, dim))
+                p[range(dim), order] = signs
+                if np.linalg.det(p) < 0 or np.array_equal(p, np.eye(dim)):
+                    continue
+                turn = f @ p @ f.T
+                if not any(np.allclose(turn, t, atol=1e-9) for t in turns):
+                    turns.append(turn)
+    return turns
+
+
+def _least_rotated(current: LinearMap, frames: list[np.ndarray], centre: np.ndarray, score) -> tuple[LinearMap, dict]:
+    """Of ``current`` and ``current`` after each turn of :func:`symmetry_turns` about ``centre``
+    (``x -> L(S (x - c) + c)``), the least rotated of those whose ``score(map)`` is within
+    :data:`_SYMMETRY_TIE` of the lowest, and a JSON-ready log.
+
+    An object with symmetries (a cube, a box) fits as well turned by any of them: the refinement
+    ends at whichever its start led to, a cube turned 45 degrees at a turn of 98.  The least
+    rotated of the equals is the pose the images most likely differ by, and the one the review of
+    a registration judges (a turn above its limit reads as a wrong orientation header).
+    """
+    t0 = time.perf_counter()
+    maps = [current] + [LinearMap(current.matrix @ s, current.matrix @ (centre - s @ centre) + current.translation)
+                        for s in symmetry_turns(frames)]
+    scores = np.array([score(m) for m in maps])
+    angles = np.array([m.describe()["rotation_deg"] for m in maps])
+    finite = np.isfinite(scores)
+    log = dict(rotation_deg=float(angles[0]), tried=len(maps) - 1, kept_rotation_deg=float(angles[0]),
+               score=float(scores[0]) if finite[0] else None, seconds=0.0)
+    if finite.any():
+        best = float(scores[finite].min())
+        near = np.flatnonzero(finite & (scores <= best * (1.0 + _SYMMETRY_TIE)))
+        pick = int(near[np.argmin(np.round(angles[near], 6))])  # the first of equal angles: current before its turns
+        current = maps[pick]
+        log.update(kept_rotation_deg=float(angles[pick]), score=float(scores[pick]))
+    log["seconds"] = time.perf_counter() - t0
+    return current, log
 
 
 def _free_axis(shapes: list[_LabelShape]) -> np.ndarray | None:

@@ -640,6 +640,8 @@ def _get_int(arrays: Mapping[str, np.ndarray], key: str) -> int:
 
 def _parse(arrays: Mapping[str, np.ndarray]) -> KernelWarp:
     """Validate :meth:`KernelWarp.to_arrays`-style arrays and build the warp."""
+    from volreg.io.documents import parse_json  # volreg.io loads SimpleITK: only when a warp is read
+
     if "format" not in arrays:
         raise _FormatError("no `format` entry (not written by KernelWarp.save)")
     fmt = _get_string(arrays, "format")
@@ -651,7 +653,7 @@ def _parse(arrays: Mapping[str, np.ndarray]) -> KernelWarp:
     _get_string(arrays, "volreg_version")
     settings_text = _get_string(arrays, "settings_json")
     try:
-        settings = json.loads(settings_text)
+        settings = parse_json(settings_text, "`settings_json`", error=lambda message: _FormatError(message.rstrip(".")))
     except ValueError as exc:
         raise _FormatError(f"`settings_json` is not valid JSON ({_one_line(exc)})") from None
     if not isinstance(settings, dict):
