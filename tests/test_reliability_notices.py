@@ -1,0 +1,81 @@
+"""Reliability of messages: a full disk, a truncated field, retries, protocol files, long values, early signals.
+
+Each case ends in one line on stderr (``volreg COMMAND: error: …`` or an interrupt's report) with the
+documented exit status: 1 for a full disk, 2 for invalid input, 130 / 143 for SIGINT / SIGTERM.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from volreg.cli import main
+from volreg.io import write_labels
+from helpers import TEST_PROTOCOL, cube
+
+# ----------------------------------------------------------------------------- a full disk
+
+
+def _inputs(tmp_path: Path) -> dict[str, Path]:
+    """Two label volumes, a mesh of each, an identity transform and a protocol file."""
+    from volreg.io.fields import write_itk_linear
+    from volreg.linear_map import LinearMap
+
+    write_labels(cube(), tmp_path / "a.nii.gz")
+    write_labels(cube(lo=5, hi=12), tmp_path / "b.nii.gz")
+    (tmp_path / "p.toml").write_text(TEST_PROTOCOL)
+    for name in ("a", "b"):
+        assert main(["surface", str(tmp_path / f"{name}.nii.gz"), "-o", str(tmp_path / f"s{name}"), "--quiet"]) == 0
+    write_itk_linear(tmp_path / "id.tfm", LinearMap.identity(3))
+    return {"a": tmp_path / "a.nii.gz", "b": tmp_path / "b.nii.gz", "p": tmp_path / "p.toml",
+            "ma": next((tmp_path / "sa").glob("*.vtk")), "mb": next((tmp_path / "sb").glob("*.vtk")),
+            "tfm": tmp_path / "id.tfm"}
+
+
+#: Each command with a full disk: its arguments (from :func:`_inputs`) and its output's name.
+FULL_DISK = {
+    "surface": lambda f, o: ["surface", f["a"], "-o", o],
+    "morph": lambda f, o: ["morph", f["ma"], f["mb"], "-o", o, "--frames", "3"],
+    "register-surfaces": lambda f, o: ["register-surfaces", f["ma"], f["mb"], "-o", o],
+    "apply": lambda f, o: ["apply", f["tfm"], f["a"], "--reference", f["b"], "-o", o / "moved.nii.gz"],
+    "consistency": lambda f, o: ["consistency", f["a"], f["b"], "-o", o, "--protocol", f["p"]],
+}
+
+
+@pytest.fixture(scope="module")
+def disk_inputs(tmp_path_factory):
+    return _inputs(tmp_path_factory.mktemp("inputs"))
+
+
+@pytest.mark.parametrize("how", ["os.replace", "library"])
+@pytest.mark.parametrize("command", list(FULL_DISK))
+def test_a_full_disk_ends_in_one_line_naming_the_output(disk_inputs, tmp_path, capfd, monkeypatch, command, how):
+    """Every write ends in a rename (os.replace); a full disk there, or inside a library that
+    turns it into an error of its own (ITK's RuntimeError, VTK's), names the user's output."""
+    real_replace = os.replace
+    out = tmp_path / "out"
+
+    def full(src, dst, *args, **kwargs):
+        if str(tmp_path) not in os.fspath(dst):  # numba writes its cache the same way
+            return real_replace(src, dst, *args, **kwargs)
+        if how == "os.replace":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), os.fspath(src))
+        raise RuntimeError(f"ITK ERROR: ImageFileWriter(0x55d0): Could not write {os.fspath(src)}\n"
+                           f"  error: No space left on device\n" + "dump line\n" * 30)
+
+    monkeypatch.setattr(os, "replace", full)
+    (out if command == "apply" else out.parent).mkdir(exist_ok=True)
+    args = [str(a) for a in FULL_DISK[command](disk_inputs, out)] + ["--quiet"]
+    capfd.readouterr()
+    rc = main(args)
+    monkeypatch.setattr(os, "replace", real_replace)
+    err = capfd.readouterr().err.strip()
+    assert rc == 1, err
+    assert "\n" not in err and "Traceback" not in err, err
+    assert "No space left on device writing `" in err, err
+    assert ".volreg-new" not in err and ".tmp-" not in err, err
+    assert str(out) in err, err
