@@ -79,3 +79,39 @@ def test_a_full_disk_ends_in_one_line_naming_the_output(disk_inputs, tmp_path, c
     assert "No space left on device writing `" in err, err
     assert ".volreg-new" not in err and ".tmp-" not in err, err
     assert str(out) in err, err
+
+
+# ----------------------------------------------------------------------------- a truncated field
+
+
+def _volreg(*args, timeout: float = 120) -> "subprocess.CompletedProcess":
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    return subprocess.run([sys.executable, "-m", "volreg", *map(str, args)], capture_output=True, text=True,
+                          env=env, timeout=timeout)
+
+
+@pytest.mark.parametrize("cut", ["half", "superblock", "signature", "scrambled", "nifti"])
+def test_a_truncated_field_is_named_in_one_line(tmp_path, cut):
+    """HDF5 prints its diagnostic stack from C (not through Python): the subprocess's own stderr
+    must hold only volreg's line."""
+    from volreg.io.fields import write_displacement, write_itk_composite
+
+    volume = cube()
+    write_labels(volume, tmp_path / "a.nii.gz")
+    u = np.zeros(volume.grid.shape + (3,))
+    name = "warp.nii.gz" if cut == "nifti" else "warp.h5"
+    (write_displacement if cut == "nifti" else write_itk_composite)(u, volume.grid, tmp_path / name)
+    data = (tmp_path / name).read_bytes()
+    cuts = {"half": data[:len(data) // 2], "superblock": data[:40], "signature": data[:8], "nifti": data[:len(data) // 2],
+            "scrambled": data[:48] + bytes(len(data) - 48)}
+    (tmp_path / name).write_bytes(cuts[cut])
+    done = _volreg("apply", tmp_path / name, tmp_path / "a.nii.gz", "--reference", tmp_path / "a.nii.gz",
+                   "-o", tmp_path / "moved.nii.gz", "--quiet")
+    err = done.stderr.strip()
+    assert done.returncode == 2, err
+    assert "\n" not in err and "HDF5-DIAG" not in err and "Traceback" not in err, err
+    assert name in err and ("truncated" in err or cut == "scrambled"), err
+    assert not (tmp_path / "moved.nii.gz").exists()
