@@ -115,3 +115,48 @@ def test_a_truncated_field_is_named_in_one_line(tmp_path, cut):
     assert "\n" not in err and "HDF5-DIAG" not in err and "Traceback" not in err, err
     assert name in err and ("truncated" in err or cut == "scrambled"), err
     assert not (tmp_path / "moved.nii.gz").exists()
+
+
+# ----------------------------------------------------------------------------- batch retries
+
+
+@pytest.mark.parametrize("failure", ["ENOSPC", "EDQUOT", "library", "input"])
+def test_a_pair_that_fails_for_good_is_tried_once(tmp_path, monkeypatch, failure):
+    """A task that raises is retried by Dask (``retries``); a failure that recurs on every try is a
+    row instead, returned from the one attempt."""
+    import volreg.cohort as cohort
+    from volreg.errors import RegistrationInputError
+
+    write_labels(cube(), tmp_path / "a.nii.gz")
+    (tmp_path / "p.toml").write_text(TEST_PROTOCOL)
+    calls = []
+
+    def fails(*args, **kwargs):
+        calls.append(1)
+        staged = tmp_path / ".out.volreg-new-1-0a1b2c3d" / ".tmp-0a1b2c3d-warp.h5"
+        if failure == "input":
+            raise RegistrationInputError("the pair shares no label")
+        if failure == "library":
+            raise RuntimeError(f"HDF5-DIAG: H5Dwrite failed\nerrno = 28, error message = 'No space left on device' "
+                               f"{staged}")
+        code = getattr(errno, failure)
+        raise OSError(code, os.strerror(code), str(staged))
+
+    monkeypatch.setattr(cohort, "write_registration", fails)
+    row = cohort.run_pair("a", str(tmp_path / "a.nii.gz"), "b", str(tmp_path / "a.nii.gz"), str(tmp_path / "out"),
+                          str(tmp_path / "p.toml"))
+    assert calls == [1] and row["status"] == "failed", row
+    assert ".volreg-new" not in row["error"] and ".tmp-" not in row["error"], row
+    if failure != "input":
+        assert row["error"].startswith(("No space left on device", "Disk quota exceeded")), row
+
+
+def test_a_bug_in_a_pair_is_left_to_dask(tmp_path, monkeypatch):
+    import volreg.cohort as cohort
+
+    write_labels(cube(), tmp_path / "a.nii.gz")
+    (tmp_path / "p.toml").write_text(TEST_PROTOCOL)
+    monkeypatch.setattr(cohort, "write_registration", lambda *a, **k: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        cohort.run_pair("a", str(tmp_path / "a.nii.gz"), "b", str(tmp_path / "a.nii.gz"), str(tmp_path / "out"),
+                        str(tmp_path / "p.toml"))

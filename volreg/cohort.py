@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from volreg.errors import ArgumentTypeError, CohortInterrupted, SchedulerUnavailable, UsageError, VolregError, exception_text, excerpt
-from volreg.io import atomic_output, read_labels, write_json, write_text
+from volreg.errors import ArgumentTypeError, CohortInterrupted, SchedulerUnavailable, UsageError, VolregError, exception_text, excerpt, full_disk
+from volreg.io import atomic_output, read_labels, user_path, write_json, write_text
 from volreg.io._atomic import make_directory
 from volreg.io.documents import parse_json
 from volreg.io.protocol import load_protocol
@@ -244,9 +244,11 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
              consistency: bool = False) -> dict:
     """One task: register MOVING to FIXED (or both ways with ``consistency``) into ``outdir``; return its row.
 
-    Runs on a worker; reads its inputs from their paths.  Input errors become a
-    ``failed`` row with the one-line message (not an exception, which Dask would
-    retry); anything else propagates (a bug).
+    Runs on a worker; reads its inputs from their paths.  Input errors and a full disk
+    (errors that recur on every try) become a ``failed`` row with the one-line message,
+    not an exception, which Dask would retry; anything else propagates (a bug, or an
+    error that may not recur).  A lost worker's task is run again by Dask whatever this
+    returns.
     """
     start = time.perf_counter()
     out, fpath, mpath = Path(outdir), Path(fixed), Path(moving)
@@ -285,6 +287,14 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
         write_json({k: v for k, v in row.items() if k != "redone"}, out / "batch_row.json", force=True)
     except VolregError as exc:
         row.update(status="failed", error=" ".join(str(exc).split()), seconds=time.perf_counter() - start)
+    except Exception as exc:
+        full = full_disk(exc)
+        if full is None:
+            raise  # a bug, or an error that may not recur (Dask retries the task)
+        # A full disk fails the same way on every try: a row, which Dask does not retry.
+        name = full.filename if full.filename is not None else out
+        row.update(status="failed", seconds=time.perf_counter() - start,
+                   error=f"{full.strerror or os.strerror(full.errno)} writing `{user_path(name)}`")
     return row
 
 
