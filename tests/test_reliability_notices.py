@@ -160,3 +160,29 @@ def test_a_bug_in_a_pair_is_left_to_dask(tmp_path, monkeypatch):
     with pytest.raises(ZeroDivisionError):
         cohort.run_pair("a", str(tmp_path / "a.nii.gz"), "b", str(tmp_path / "a.nii.gz"), str(tmp_path / "out"),
                         str(tmp_path / "p.toml"))
+
+
+# ----------------------------------------------------------------------------- protocol files
+
+
+@pytest.mark.parametrize("name", ["proto.TOML", "proto.Toml", "proto.cfg", "proto"])
+def test_a_protocol_file_of_any_suffix_is_read_as_a_file(tmp_path, monkeypatch, name):
+    from volreg.io.protocol import load_protocol
+
+    monkeypatch.chdir(tmp_path)
+    Path(name).write_text(TEST_PROTOCOL)
+    assert load_protocol(name).name == "test"
+    assert load_protocol(tmp_path / name).name == "test"
+
+
+@pytest.mark.parametrize("name", ["fastest", "x" * 100_000, "nothere.TOML"])
+def test_neither_preset_nor_file_lists_the_presets(tmp_path, monkeypatch, capsys, name):
+    monkeypatch.chdir(tmp_path)
+    write_labels(cube(), tmp_path / "a.nii.gz")
+    assert main(["register", "a.nii.gz", "a.nii.gz", "-o", "out", "--protocol", name, "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and len(err) < 400, err[:400]
+    if len(name) > 255:  # over the system's name limit: no file can have it
+        assert "cannot be looked up: File name too long" in err, err
+    else:
+        assert "is no such preset or file" in err and "fast" in err and "default" in err, err
