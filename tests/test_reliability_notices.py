@@ -186,3 +186,42 @@ def test_neither_preset_nor_file_lists_the_presets(tmp_path, monkeypatch, capsys
         assert "cannot be looked up: File name too long" in err, err
     else:
         assert "is no such preset or file" in err and "fast" in err and "default" in err, err
+
+
+# ----------------------------------------------------------------------------- long values, settings' tables
+
+LONG = "k" * 100_000
+
+
+@pytest.mark.parametrize("case", ["protocol key", "protocol section", "protocol value", "grid name", "grid value",
+                                  "grid table", "manifest id"])
+def test_a_long_user_value_is_never_echoed_whole(tmp_path, monkeypatch, capsys, case):
+    monkeypatch.chdir(tmp_path)
+    write_labels(cube(), tmp_path / "a.nii.gz")
+    texts = {"protocol key": f"[warp]\n{LONG} = 1\n", "protocol section": f"[{LONG}]\na = 1\n",
+             "protocol value": f"[warp]\nmin_width = \"{LONG}\"\n"}
+    if case.startswith("protocol"):
+        Path("p.toml").write_text(texts[case])
+        args = ["register", "a.nii.gz", "a.nii.gz", "-o", "out", "--protocol", "p.toml"]
+    elif case.startswith("grid"):
+        grid = {"grid name": f"{LONG}=1,2", "grid value": f"alpha=1,{LONG}", "grid table": f"{LONG}=a"}[case]
+        args = ["tune", "a.nii.gz", "a.nii.gz", "-o", "out", "--grid", grid]
+    else:
+        Path("m.csv").write_text(f"id,path\n{LONG},a.nii.gz\nb,a.nii.gz\n")
+        args = ["batch", "m.csv", "-o", "out"]
+    assert main(args + ["--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and len(err) < 400, err[:600]
+
+
+@pytest.mark.parametrize("grid, words", [
+    ("kind=rigid,affine", ["`kind` is a setting of [linear]", "set [linear] kind in the --protocol file"]),
+    ("smoothing=x", ["`smoothing` is a setting of [surface]"]),
+    ("colour=red", ["`colour` is no [warp] setting", "lambda_loc", "alpha"]),
+])
+def test_a_grid_setting_of_another_table_is_named(tmp_path, capsys, grid, words):
+    write_labels(cube(), tmp_path / "a.nii.gz")
+    assert main(["tune", str(tmp_path / "a.nii.gz"), str(tmp_path / "a.nii.gz"), "-o", str(tmp_path / "o"),
+                 "--grid", grid, "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "not a number" not in err and all(w in err for w in words), err

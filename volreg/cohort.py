@@ -54,6 +54,11 @@ COLUMNS = ["fixed_id", "moving_id", "status", "error", "mean_dice_before", "mean
 ProgressCallback = Callable[[str, int, int], None]
 
 
+#: The longest id (in bytes) of a manifest: a pair's folder ``A__B``, with the hidden prefix and
+#: suffix of its working folder, stays within the usual 255-byte name limit.
+MAX_ID_BYTES = 100
+
+
 def read_manifest(path: Path) -> list[tuple[str, Path]]:
     """The subjects of a cohort's manifest: ``id,path`` rows (header required; relative paths are
     relative to the manifest).
@@ -103,13 +108,17 @@ def read_manifest(path: Path) -> list[tuple[str, Path]]:
         if any(c in sid for c in "/\\") or any(c < " " or c == "\x7f" for c in sid):
             raise UsageError(f"MANIFEST `{path}` line {i}: id {excerpt(sid)} must not contain path separators or control "
                              "characters; expected a name for its results' folder.")
+        if len(os.fsencode(sid)) > MAX_ID_BYTES:
+            raise UsageError(f"MANIFEST `{path}` line {i}: id `{excerpt(sid, quote=False)}` is {len(os.fsencode(sid))} "
+                             f"bytes long; expected at most {MAX_ID_BYTES}, so that a pair's folder (A__B) is a "
+                             "name the system allows.")
         if sid in (".", ".."):
-            raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` names a special folder; expected a name for its "
+            raise UsageError(f"MANIFEST `{path}` line {i}: id `{excerpt(sid, quote=False)}` names a special folder; expected a name for its "
                              "results' folder.")
         if sid.startswith(".") or ".volreg-" in sid:
             # a pair's folder of such a name could be taken for another pair's hidden working folder
             # (``.A__B.volreg-old-PID-HEX``), which recovery after a killed run renames or removes
-            raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` could name one of volreg's hidden working "
+            raise UsageError(f"MANIFEST `{path}` line {i}: id `{excerpt(sid, quote=False)}` could name one of volreg's hidden working "
                              "folders (it starts with '.' or holds '.volreg-'); expected an id without either.")
         if "\x00" in p:
             raise UsageError(f"MANIFEST `{path}` line {i}: path {excerpt(p)} holds a NUL byte; expected a file path.")
