@@ -225,3 +225,31 @@ def test_a_grid_setting_of_another_table_is_named(tmp_path, capsys, grid, words)
                  "--grid", grid, "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert "not a number" not in err and all(w in err for w in words), err
+
+
+# ----------------------------------------------------------------------------- signals while starting
+
+
+@pytest.mark.parametrize("delay_ms", [20, 50, 200])
+@pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
+def test_a_signal_while_the_command_starts_ends_in_one_line(tmp_path, signame, delay_ms):
+    """During Python's imports a SIGINT gave a KeyboardInterrupt traceback and a SIGTERM a silent
+    status -15. (A signal before the interpreter runs any code, 0 ms, takes the system's default
+    action: nothing in Python can handle it.)"""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    write_labels(cube(), tmp_path / "a.nii.gz")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    proc = subprocess.Popen([sys.executable, "-m", "volreg", "register", "a.nii.gz", "a.nii.gz", "-o", "out", "--quiet"],
+                            stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    time.sleep(delay_ms / 1000)
+    proc.send_signal(getattr(signal, signame))
+    err = proc.communicate(timeout=120)[1].strip()
+    if proc.returncode == 0:  # finished before the signal came: nothing to check
+        pytest.skip("the run ended before the signal")
+    assert proc.returncode == (130 if signame == "SIGINT" else 143), err
+    assert "Traceback" not in err and len(err.splitlines()) == 1 and "interrupted by " + signame in err, err
+    assert not (tmp_path / "out").exists()
