@@ -72,6 +72,7 @@ MODULE_TIERS = {
     "test_reliability_links.py": "integration",
     "test_reliability_memory.py": "integration",
     "test_reliability_messages.py": "integration",
+    "test_reliability_notices.py": "integration",
     "test_reliability_pairs.py": "integration",
     "test_reliability_parsers.py": "integration",
     "test_reliability_values.py": "integration",

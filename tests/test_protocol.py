@@ -61,7 +61,7 @@ def test_bad_files_are_refused_by_name(tmp_path, body, message):
 
 
 def test_unknown_preset():
-    with pytest.raises(ProtocolError, match="Protocol `nope` not found.*default"):
+    with pytest.raises(ProtocolError, match="Protocol `nope` is no such preset or file.*default"):
         load_protocol("nope")
 
 

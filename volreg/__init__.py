@@ -12,6 +12,16 @@ stays light)::
     result = volreg.register_labels(fixed, moving)   # result.warp maps fixed -> moving points
 """
 
+import sys as _sys
+
+if _sys.argv[0].endswith(("/volreg", "\\volreg", "volreg.exe")) or (
+        _sys.argv[:1] == ["-m"] and "volreg" in getattr(_sys, "orig_argv", [])[1:3]):
+    # ``python -m volreg`` (argv[0] is "-m" while the package is imported; not ``-m volreg.X``,
+    # the compiling helpers) or the console command: the command line's first signal handlers, before anything heavy is loaded.
+    from volreg._signals import exit_on_early_signals as _exit_on_early_signals
+
+    _exit_on_early_signals()
+
 from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 

@@ -13,7 +13,38 @@ from __future__ import annotations
 import signal
 import threading
 
-__all__ = ["SignalsHeld"]
+__all__ = ["SignalsHeld", "exit_on_early_signals"]
+
+
+def _early_exit(signum, frame) -> None:
+    """Report a signal that came while the command was starting, and end the process at once."""
+    import os
+    import sys
+
+    name = signal.Signals(signum).name
+    try:
+        sys.stderr.write(f"volreg: interrupted by {name} while starting; nothing was written.\n")
+        sys.stderr.flush()
+    except (OSError, ValueError, AttributeError):  # no stderr to report on
+        pass
+    os._exit(130 if signum == signal.SIGINT else 128 + int(signum))
+
+
+def exit_on_early_signals() -> None:
+    """Make SIGINT and SIGTERM end the process with one line and status 130 / 143 from now on.
+
+    For the command line only, installed before anything heavy is imported: an interrupt that
+    came during Python's own imports (numpy, numba, VTK) ended in a KeyboardInterrupt traceback,
+    and a SIGTERM then ended the process silently (status -15).  Nothing is written while the
+    command starts, so ending at once is safe; the command installs its own handlers (which
+    remove what a run wrote) before it writes anything.  A SIGINT that is ignored (a job in
+    the background) stays ignored.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            signal.signal(signum, _early_exit)
 
 
 class SignalsHeld:

@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from volreg.errors import ArgumentTypeError, CohortInterrupted, SchedulerUnavailable, UsageError, VolregError, exception_text, excerpt
-from volreg.io import atomic_output, read_labels, write_json, write_text
+from volreg.errors import ArgumentTypeError, CohortInterrupted, SchedulerUnavailable, UsageError, VolregError, exception_text, excerpt, full_disk
+from volreg.io import atomic_output, read_labels, user_path, write_json, write_text
 from volreg.io._atomic import make_directory
 from volreg.io.documents import parse_json
 from volreg.io.protocol import load_protocol
@@ -52,6 +52,11 @@ COLUMNS = ["fixed_id", "moving_id", "status", "error", "mean_dice_before", "mean
            "consistency_p95_mm", "folded_fraction", "review", "seconds", "outdir"]
 
 ProgressCallback = Callable[[str, int, int], None]
+
+
+#: The longest id (in bytes) of a manifest: a pair's folder ``A__B``, with the hidden prefix and
+#: suffix of its working folder, stays within the usual 255-byte name limit.
+MAX_ID_BYTES = 100
 
 
 def read_manifest(path: Path) -> list[tuple[str, Path]]:
@@ -103,13 +108,17 @@ def read_manifest(path: Path) -> list[tuple[str, Path]]:
         if any(c in sid for c in "/\\") or any(c < " " or c == "\x7f" for c in sid):
             raise UsageError(f"MANIFEST `{path}` line {i}: id {excerpt(sid)} must not contain path separators or control "
                              "characters; expected a name for its results' folder.")
+        if len(os.fsencode(sid)) > MAX_ID_BYTES:
+            raise UsageError(f"MANIFEST `{path}` line {i}: id `{excerpt(sid, quote=False)}` is {len(os.fsencode(sid))} "
+                             f"bytes long; expected at most {MAX_ID_BYTES}, so that a pair's folder (A__B) is a "
+                             "name the system allows.")
         if sid in (".", ".."):
-            raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` names a special folder; expected a name for its "
+            raise UsageError(f"MANIFEST `{path}` line {i}: id `{excerpt(sid, quote=False)}` names a special folder; expected a name for its "
                              "results' folder.")
         if sid.startswith(".") or ".volreg-" in sid:
             # a pair's folder of such a name could be taken for another pair's hidden working folder
             # (``.A__B.volreg-old-PID-HEX``), which recovery after a killed run renames or removes
-            raise UsageError(f"MANIFEST `{path}` line {i}: id `{sid}` could name one of volreg's hidden working "
+            raise UsageError(f"MANIFEST `{path}` line {i}: id `{excerpt(sid, quote=False)}` could name one of volreg's hidden working "
                              "folders (it starts with '.' or holds '.volreg-'); expected an id without either.")
         if "\x00" in p:
             raise UsageError(f"MANIFEST `{path}` line {i}: path {excerpt(p)} holds a NUL byte; expected a file path.")
@@ -244,9 +253,11 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
              consistency: bool = False) -> dict:
     """One task: register MOVING to FIXED (or both ways with ``consistency``) into ``outdir``; return its row.
 
-    Runs on a worker; reads its inputs from their paths.  Input errors become a
-    ``failed`` row with the one-line message (not an exception, which Dask would
-    retry); anything else propagates (a bug).
+    Runs on a worker; reads its inputs from their paths.  Input errors and a full disk
+    (errors that recur on every try) become a ``failed`` row with the one-line message,
+    not an exception, which Dask would retry; anything else propagates (a bug, or an
+    error that may not recur).  A lost worker's task is run again by Dask whatever this
+    returns.
     """
     start = time.perf_counter()
     out, fpath, mpath = Path(outdir), Path(fixed), Path(moving)
@@ -285,6 +296,14 @@ def run_pair(fixed_id: str, fixed: str, moving_id: str, moving: str, outdir: str
         write_json({k: v for k, v in row.items() if k != "redone"}, out / "batch_row.json", force=True)
     except VolregError as exc:
         row.update(status="failed", error=" ".join(str(exc).split()), seconds=time.perf_counter() - start)
+    except Exception as exc:
+        full = full_disk(exc)
+        if full is None:
+            raise  # a bug, or an error that may not recur (Dask retries the task)
+        # A full disk fails the same way on every try: a row, which Dask does not retry.
+        name = full.filename if full.filename is not None else out
+        row.update(status="failed", seconds=time.perf_counter() - start,
+                   error=f"{full.strerror or os.strerror(full.errno)} writing `{user_path(name)}`")
     return row
 
 

@@ -9,12 +9,15 @@ code that catches those keeps working.  Anything else is a bug and keeps its tra
 
 from __future__ import annotations
 
+import errno
+import os
 import re
 
 __all__ = [
     "EXCERPT_CHARS",
     "excerpt",
     "exception_text",
+    "full_disk",
     "SchedulerUnavailable",
     "TemplateError",
     "VolregError",
@@ -126,6 +129,45 @@ def exception_text(exc: BaseException | str, limit: int = EXCERPT_CHARS) -> str:
         start = found.end()
     parts.append("".join(_printable(line[start:], escape_backslash=False)))
     return "".join(parts)
+
+
+#: The errors of a device without room (a full disk, a user's quota used up).
+FULL_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+
+#: How the C libraries volreg writes through (ITK, VTK, HDF5, zlib) word a full disk in the
+#: errors they raise instead of the system's OSError.
+_FULL_DISK_TEXT = re.compile(r"no space left on device|disk quota exceeded|errno\s*=?\s*(28|122)\b|"
+                             r"ran out of disk space|out of disk space", re.IGNORECASE)
+
+
+def full_disk(exc: BaseException) -> OSError | None:
+    """The full-device error behind ``exc``, or None.
+
+    A library may raise a full disk as an error of its own (ITK's ``RuntimeError``, VTK's,
+    HDF5's, a Dask task's), with the system's ``OSError`` in its chain of causes or only in its
+    text: either is found here, in ``exc`` or in any exception it was raised from or during.
+
+    Returns
+    -------
+    OSError or None
+        An ``OSError`` with ``errno`` ``ENOSPC`` or ``EDQUOT`` (the one found, or a new one
+        where only a message said so, with no file name), or None where nothing says the
+        device was full.
+    """
+    seen: set[int] = set()
+    chain: list[BaseException] = []
+    while exc is not None and id(exc) not in seen and len(seen) < 50:
+        seen.add(id(exc))
+        chain.append(exc)
+        if isinstance(exc, OSError) and exc.errno in FULL_DISK_ERRNOS:
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    for link in chain:
+        found = _FULL_DISK_TEXT.search(str(link)[:100_000])
+        if found:
+            code = errno.EDQUOT if "quota" in found.group(0).lower() or found.group(1) == "122" else errno.ENOSPC
+            return OSError(code, os.strerror(code))
+    return None
 
 
 class VolregError(Exception):

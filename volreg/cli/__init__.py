@@ -4,10 +4,10 @@ One module per command (``surface``, ``register``, ``apply``, ``protocols``, ``d
 ``consistency``, ``tune``, ``register-surfaces``, ``morph``, ``transfer``, ``batch``, ``template``),
 each with ``add_parser(commands)`` and ``run(args)``; ``volreg --help`` lists them.
 
-Exit status is 0 on success and 2 for any invalid input (a file that cannot
-be read or written, a bad argument, a label that cannot give a surface); the
-error is then one line on stderr, ``volreg <command>: error: <message>``, and
-no output file is left behind.  Any other exception is a bug and propagates
+Exit status is 0 on success, 2 for any invalid input (a file that cannot
+be read or written, a bad argument, a label that cannot give a surface) and 1
+for a full disk (whichever library met it); the error is then one line on
+stderr, ``volreg <command>: error: <message>``, and no output file is left behind.  Any other exception is a bug and propagates
 with its traceback.
 """
 
@@ -28,7 +28,7 @@ from volreg import __version__
 from volreg.cli import (apply, batch, consistency, demo, morph, protocols, register, register_surfaces, surface, template,
                         transfer, tune)
 from volreg.cli._common import EXPECTED_ERRORS, PROG, _warn
-from volreg.errors import UsageError, VolregWarning
+from volreg.errors import FULL_DISK_ERRNOS, UsageError, VolregWarning, full_disk
 
 __all__ = ["main", "run", "build_parser", "UsageError"]
 
@@ -315,7 +315,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     -------
     int
         Exit status: 0 on success, 2 for a usage error or invalid input
-        (reported as one line on stderr), 130 after Ctrl-C (SIGINT) and 143
+        (reported as one line on stderr), 1 for a full disk or quota (one line
+        naming the output as given, never a staging path), 130 after Ctrl-C (SIGINT) and 143
         after SIGTERM (the run's outputs removed; an output folder keeps
         its previous complete result).  ``--help`` and
         ``--version`` return 0.
@@ -341,9 +342,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _run_command(args: argparse.Namespace, held) -> int:
     """Release the signals ``held`` (one that came meanwhile is acted on now, inside the handlers), run
     the parsed command and return its exit status, input errors and interrupts reported in one line."""
+    output = getattr(args, "output", None)
     try:
         _release_signals(held)
-        output = getattr(args, "output", None)
         if output is not None and ".." in Path(output).parts:
             raise UsageError(
                 f"-o `{output}` contains '..'; expected an output path without '..' components "
@@ -353,6 +354,8 @@ def _run_command(args: argparse.Namespace, held) -> int:
     except EXPECTED_ERRORS as exc:
         if _signalled:  # the interrupt, turned into another error on its way up
             return _interrupted(args.command, _signalled[0])
+        if full_disk(exc) is not None:  # a full disk, which a library reported in words of its own
+            return _os_error(args.command, full_disk(exc), output)
         message = " ".join(str(exc).split("\n")).strip() or type(exc).__name__
         print(f"{PROG} {args.command}: error: {message}", file=sys.stderr)
         return 2
@@ -367,23 +370,31 @@ def _run_command(args: argparse.Namespace, held) -> int:
     except OSError as exc:
         if _signalled:
             return _interrupted(args.command, _signalled[0])
-        if exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.ENAMETOOLONG, errno.ELOOP):
+        if exc.errno in (errno.ENAMETOOLONG, errno.ELOOP):
+            return _os_error(args.command, exc, output)
+        if full_disk(exc) is None:
             raise
-        return _os_error(args.command, exc)
+        return _os_error(args.command, full_disk(exc), output)
     except KeyboardInterrupt as exc:
         return _interrupted(args.command, str(exc) or "SIGINT")
-    except Exception:
+    except Exception as exc:
         if _signalled:  # the interrupt, turned into another error on its way up (outputs already removed)
             return _interrupted(args.command, _signalled[0])
+        if full_disk(exc) is not None:  # ITK's RuntimeError, VTK's, HDF5's, a Dask task's, around a full disk
+            return _os_error(args.command, full_disk(exc), output)
         raise
 
 
-def _os_error(command: str, exc: OSError) -> int:
+def _os_error(command: str, exc: OSError, output=None) -> int:
     """Report in one line a full device (exit status 1) or a path over the system's limits (``ENAMETOOLONG``,
-    ``ELOOP``: 2)."""
-    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        where = f" writing `{exc.filename}`" if exc.filename is not None else ""
-        print(f"{PROG} {command}: error: {exc.strerror or 'no space left on device'}{where}; the outputs "
+    ``ELOOP``: 2).  A full device names the file as the user named it (never a staging path), or the
+    command's ``output`` where the error named no file."""
+    from volreg.io import user_path
+
+    if exc.errno in FULL_DISK_ERRNOS:
+        name = exc.filename if exc.filename is not None else output
+        where = f" writing `{user_path(name)}`" if name is not None else ""
+        print(f"{PROG} {command}: error: {exc.strerror or os.strerror(exc.errno)}{where}; the outputs "
               f"were removed{_kept_note()}; expected room for them on the output's device (free some, or write "
               "elsewhere).", file=sys.stderr)
         return 1

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from volreg.cli._common import PROG, _label_list, _load_landmarks, output_path
-from volreg.errors import ProtocolError, UsageError
+from volreg.errors import ProtocolError, UsageError, excerpt
 
 __all__ = ["add_parser", "parse_grid", "run"]
 
@@ -44,6 +44,25 @@ def add_parser(commands) -> None:
     tune.set_defaults(run=run)
 
 
+def _not_a_number(key: str, token: str) -> UsageError:
+    """The error for a --grid value that is not a number: where ``key`` is no numeric [warp] setting,
+    the table it is a setting of (``kind`` of [linear]) or the known names."""
+    import dataclasses
+
+    from volreg import settings
+
+    tables = {"warp": settings.WarpSettings, "linear": settings.LinearSettings, "surface": settings.SurfaceSettings,
+              "review": settings.ReviewSettings, "outputs": settings.OutputSettings}
+    known = [f.name for f in dataclasses.fields(settings.WarpSettings)]
+    shown = excerpt(key, quote=False)
+    if key not in known:
+        owner = next((t for t, cls in tables.items() if key in {f.name for f in dataclasses.fields(cls)}), None)
+        where = f"`{shown}` is a setting of [{owner}], not of [warp]" if owner else f"`{shown}` is no [warp] setting"
+        return UsageError(f"--grid: {where}; --grid tunes the [warp] settings ({', '.join(known)}); "
+                          + (f"set [{owner}] {shown} in the --protocol file." if owner else "expected one of them."))
+    return UsageError(f"--grid: `{shown}` value {excerpt(token)} is not a number.")
+
+
 def parse_grid(specs: list[str]) -> dict[str, list[float]]:
     """``["lambda_loc=10,100,alpha=0,10"]`` -> ``{"lambda_loc": [10.0, 100.0], "alpha": [0.0, 10.0]}``.
 
@@ -59,21 +78,21 @@ def parse_grid(specs: list[str]) -> dict[str, list[float]]:
             if "=" in token:
                 key, token = (s.strip() for s in token.split("=", 1))
                 if not key or key in grid:
-                    raise UsageError(f"--grid: {'a setting name is missing' if not key else f'`{key}` is given twice'} "
-                                     "in " + repr(spec) + "; expected KEY=V1,V2,... such as lambda_loc=10,100,alpha=0,10.")
+                    raise UsageError(f"--grid: {'a setting name is missing' if not key else f'`{excerpt(key, quote=False)}` is given twice'} "
+                                     "in " + excerpt(spec) + "; expected KEY=V1,V2,... such as lambda_loc=10,100,alpha=0,10.")
                 grid[key] = []
                 if not token:  # "alpha=" alone: no value yet
                     continue
             if key is None:
-                raise UsageError(f"--grid: expected KEY=V1,V2,... such as lambda_loc=10,100, got {spec!r}.")
+                raise UsageError(f"--grid: expected KEY=V1,V2,... such as lambda_loc=10,100, got {excerpt(spec)}.")
             try:
                 value = float(token)
             except ValueError:
-                raise UsageError(f"--grid: `{key}` value {token!r} is not a number.") from None
+                raise _not_a_number(key, token) from None
             if not math.isfinite(value):
-                raise UsageError(f"--grid: `{key}` value {token!r} is not finite.")
+                raise UsageError(f"--grid: `{excerpt(key, quote=False)}` value {excerpt(token)} is not finite.")
             if value in grid[key]:  # the same registration twice
-                raise UsageError(f"--grid: `{key}` value {token!r} is given twice; expected distinct values.")
+                raise UsageError(f"--grid: `{excerpt(key, quote=False)}` value {excerpt(token)} is given twice; expected distinct values.")
             grid[key].append(int(value) if key == "max_iter" and value.is_integer() else value)
     if not grid or any(not values for values in grid.values()):
         raise UsageError("--grid: expected at least one value for every setting, such as lambda_loc=10,100.")

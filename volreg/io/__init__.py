@@ -8,7 +8,7 @@ to overwrite unless ``force=True``.
 """
 
 from volreg.errors import VolregIOError, VolregWarning, excerpt
-from volreg.io._atomic import atomic_output, check_writable
+from volreg.io._atomic import atomic_output, check_writable, user_path
 from volreg.io.images import read_grid, read_image, read_labels, write_labels, write_scalar
 from volreg.io.meshes import read_mesh, write_mesh
 from volreg.io.summary import write_json, write_text

@@ -27,7 +27,7 @@ from contextvars import ContextVar
 from pathlib import Path
 
 from volreg._signals import SignalsHeld
-from volreg.errors import UsageError, VolregIOError
+from volreg.errors import UsageError, VolregIOError, full_disk
 from volreg.io._folder_parts import (
     INSIDE_PREFIX,
     STALE_LIST,
@@ -40,7 +40,7 @@ from volreg.io._folder_parts import (
 
 __all__ = [
     "VolregIOError", "OutputFolder", "atomic_output", "check_writable", "make_directory", "output_folder",
-    "recover_folder",
+    "recover_folder", "user_path",
 ]
 
 
@@ -156,8 +156,13 @@ def atomic_output(path: str | os.PathLike[str], *, force: bool = False) -> Itera
             # Someone created it while we were writing.
             raise VolregIOError(_exists_message(final))
         os.replace(tmp, final)
-    except BaseException:
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        full = None if isinstance(exc, KeyboardInterrupt) else full_disk(exc)
+        if full is not None:
+            # A writer's own words for a full disk (ITK's, VTK's, HDF5's) name the temporary
+            # file, or nothing: the error names the output as the user named it.
+            raise OSError(full.errno, os.strerror(full.errno), str(final)) from None
         raise
 
 
@@ -591,6 +596,27 @@ class _Run:
             self.lock = None
         if failed:
             _remove_directories(self.folder.created)
+
+
+_STAGED_PART = re.compile(r"^\.(?P<name>.+)\.volreg-(new|old)-\d+-[0-9a-f]+$")
+_INNER_STAGE = re.compile(r"^\.volreg-(new|old)-\d+-[0-9a-f]+$")
+_TEMP_FILE = re.compile(r"^\.tmp-[0-9a-f]{8}-(?P<name>.+)$")
+
+
+def user_path(path: str | os.PathLike[str]) -> str:
+    """``path`` as the user named it: each staging folder (``.OUT.volreg-new-PID-HEX`` beside an
+    output folder, ``.volreg-new-PID-HEX`` inside one) and temporary file (``.tmp-HEX-NAME``)
+    of this module replaced by the output it stands for.
+
+    A message quotes paths through this, so that it never names a hidden working path that is
+    gone once the run has failed."""
+    parts = []
+    for part in Path(os.fsdecode(path)).parts:
+        if _INNER_STAGE.match(part):
+            continue
+        staged = _STAGED_PART.match(part) or _TEMP_FILE.match(part)
+        parts.append(staged.group("name") if staged else part)
+    return str(Path(*parts)) if parts else os.fsdecode(path)
 
 
 def _name_final(exc: BaseException, folder: OutputFolder) -> None:

@@ -31,10 +31,12 @@ told what the file is.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import re
 import shutil
+import sys
 from pathlib import Path
 
 import nibabel as nib
@@ -263,6 +265,56 @@ def write_itk_composite(
             raise VolregIOError(f"Composite transform `{p}` could not be written: {_sitk_reason(exc)}.") from None
 
 
+def _check_hdf5_length(p: Path) -> None:
+    """Refuse an HDF5 file shorter than its superblock's end-of-file address (a copy cut short).
+
+    HDF5 prints a diagnostic stack of some 25 lines from C on such a file before ITK raises; the
+    superblock (versions 0-3) records the file's length, so a short file is found from its
+    first 64 bytes."""
+    with open(p, "rb") as fh:
+        head = fh.read(64)
+    size = p.stat().st_size
+    version = head[8] if len(head) > 8 else -1
+    if version in (0, 1):
+        width = head[13] if len(head) > 13 else 0
+        start = 24 if version == 0 else 28
+    elif version in (2, 3):
+        width = head[9] if len(head) > 9 else 0
+        start = 12
+    else:
+        width, start = 0, 0
+    end = start + 3 * width
+    if width not in (2, 4, 8) or len(head) < end:
+        raise VolregIOError(f"Transform `{p}` is truncated or not a valid HDF5 file (its superblock is incomplete); "
+                            "expected an ITK HDF5 transform (.h5), as register writes warp.h5.")
+    base = int.from_bytes(head[start:start + width], "little")
+    eof = int.from_bytes(head[start + 2 * width:end], "little")
+    if base + eof > size:
+        raise VolregIOError(f"Transform `{p}` is truncated or not a valid HDF5 file: {size} bytes where its header "
+                            f"says {base + eof}; expected the complete file, as register writes warp.h5.")
+
+
+@contextlib.contextmanager
+def _c_stderr_silenced():
+    """Descriptor 2 sent to the null device while C code (HDF5 through ITK) reads a file: HDF5 prints
+    its diagnostic stack there, not through Python, on any file it cannot read, and the reader's
+    one-line error says what matters."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no descriptor 2 to save: nothing to silence
+        yield
+        return
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(null)
+
+
 def read_itk_composite(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     """Read the displacement field of an ITK HDF5 transform file holding one, as
     :func:`write_itk_composite` writes it (``warp.h5``, ``inverse_warp.h5``).
@@ -294,8 +346,10 @@ def read_itk_composite(path: str | os.PathLike[str]) -> tuple[np.ndarray, Grid]:
     if signature != b"\x89HDF\r\n\x1a\n":  # HDF5 would print its error stack on anything else
         raise VolregIOError(f"Transform `{p}` is not an HDF5 file; expected an ITK HDF5 transform (.h5), as "
                             "register writes warp.h5.")
+    _check_hdf5_length(p)
     try:
-        transform = sitk.ReadTransform(str(p))
+        with _c_stderr_silenced():
+            transform = sitk.ReadTransform(str(p))
     except RuntimeError as exc:
         raise VolregIOError(f"Transform `{p}` could not be read as an ITK HDF5 transform: {_sitk_reason(exc)}.") from None
     parts = [transform]

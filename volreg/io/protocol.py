@@ -65,17 +65,27 @@ def load_protocol(name_or_path: str | os.PathLike[str] = "default") -> Protocol:
     ProtocolError
         One line naming the file and the problem.
     """
-    text = str(name_or_path)
-    path = Path(text) if (text.endswith(".toml") or os.sep in text) else PROTOCOL_DIR / f"{text}.toml"
+    text = os.fsdecode(name_or_path)
+    # A path (a PathLike, a folder in it, any suffix in any case: proto.TOML, proto.cfg) is a
+    # file; a bare name a preset, or a file of that name where no preset has it.
+    preset = PROTOCOL_DIR / f"{text}.toml"
+    as_file = isinstance(name_or_path, os.PathLike) or os.sep in text or (os.altsep or os.sep) in text \
+        or bool(Path(text).suffix) or text in (".", "..")
+    try:
+        as_file = as_file or (not preset.is_file() and Path(text).is_file())
+    except OSError:  # e.g. a name longer than the system allows: reported below
+        pass
+    path = Path(text) if as_file else preset
     try:
         is_file, exists = path.is_file(), path.exists()
     except OSError as exc:  # e.g. a name longer than the system allows
-        raise ProtocolError(f"Protocol `{text}` cannot be looked up: {exc.strerror or exc}.") from None
+        raise ProtocolError(f"Protocol `{excerpt(text, 80, quote=False)}` cannot be looked up: {exc.strerror or exc}.") from None
     if exists and not is_file:
         raise ProtocolError(f"Protocol `{path}` is a directory; expected a .toml file.")
     if not is_file:
         presets = sorted(p.stem for p in PROTOCOL_DIR.glob("*.toml"))
-        raise ProtocolError(f"Protocol `{text}` not found: expected a .toml file or a preset ({', '.join(presets)}).")
+        raise ProtocolError(f"Protocol `{excerpt(text, 80, quote=False)}` is no such preset or file: "
+                            f"expected a TOML file or a preset ({', '.join(presets)}).")
     try:
         raw = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Windows editors) is not TOML
     except OSError as exc:
