@@ -28,4 +28,5 @@ __all__ = [
     "write_mesh",
     "write_scalar",
     "write_text",
+    "user_path",
 ]
