@@ -208,7 +208,7 @@ CASES = [
     ("protocol not TOML", "register {good} {good2} -o {out} --protocol {not_toml}", ["not valid TOML"]),
     ("protocol unknown section", "register {good} {good2} -o {out} --protocol {unknown_section}", ["[wrap]"]),
     ("protocol float for int", "register {good} {good2} -o {out} --protocol {bad_int}", ["max_iter", "int"]),
-    ("protocol unknown preset", "register {good} {good2} -o {out} --protocol fastest", ["fastest", "not found"]),
+    ("protocol unknown preset", "register {good} {good2} -o {out} --protocol fastest", ["fastest", "no such preset or file"]),
     ("pickled model", "apply {pickled_model} {good} --reference {good} -o {out}/x.nii.gz",
      ["pickled.npz", "not a valid volreg kernel warp"]),
     ("truncated warp", "apply {truncated_warp} {good} --reference {good} -o {out}/x.nii.gz",
