@@ -85,6 +85,7 @@ MODULE_TIERS = {
     "test_surfaces.py": "unit",
     "test_template.py": "system",
     "test_template_shape.py": "unit",
+    "test_shape_model.py": "integration",
     "test_threads.py": "integration",
     "test_tune.py": "integration",
     "test_warp.py": "unit",

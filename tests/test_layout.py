@@ -117,7 +117,7 @@ STAGES = (
     ("volreg.warp", "volreg.synthetic"),
     ("volreg.pipeline", "volreg.morph", "volreg.demo"),
     ("volreg.evaluation",),
-    ("volreg.outputs", "volreg.cohort", "volreg.template"),
+    ("volreg.outputs", "volreg.cohort", "volreg.template", "volreg.shape_models"),
     ("volreg.cli", "volreg.__main__"),
 )
 

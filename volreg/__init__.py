@@ -53,6 +53,13 @@ _API = {
     "CohortSummary": "volreg.cohort",
     "build_template": "volreg.template",
     "TemplateResult": "volreg.template",
+    "ShapeModel": "volreg.pipeline.shape_model",
+    "LabelShapeModel": "volreg.shape_models",
+    "build_shape_models": "volreg.shape_models",
+    "ShapeModelResult": "volreg.shape_models",
+    "write_shape_models": "volreg.outputs.shape_model",
+    "write_shape_sample": "volreg.outputs.shape_model",
+    "model_quality": "volreg.evaluation.shape_quality",
     "LabelRegistration": "volreg.pipeline.labels",
     "RegistrationResult": "volreg.warp.fit",
     # data and files

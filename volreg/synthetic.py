@@ -5,7 +5,8 @@ smooth, invertible when ``max |grad u| < 1`` (checked), with an exact
 Jacobian and an inverse by fixed-point iteration.  :func:`deform_labels`
 makes the moving volume of a pair whose true pull-back warp is ``tau``:
 ``moving(y) = fixed(tau^-1(y))``, so that registering (fixed, moving) should
-recover ``tau``.
+recover ``tau``.  :class:`KnownModes` makes a cohort of such warps from a few known modes of
+deformation and known per-subject coefficients (ground truth for shape models).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 from volreg.warp.resample import resample_labels
 from volreg.grid import LabelVolume
 
-__all__ = ["GaussianBumps", "deform_labels"]
+__all__ = ["GaussianBumps", "KnownModes", "deform_labels"]
 
 
 @dataclass(frozen=True)
@@ -112,3 +113,48 @@ def deform_labels(fixed: LabelVolume, tau: GaussianBumps, *, chunk: int = 1 << 1
     for s in range(0, len(points), chunk):
         pre[s : s + chunk] = tau.inverse(points[s : s + chunk])
     return fixed.with_array(resample_labels(fixed, pre).reshape(fixed.shape))
+
+
+@dataclass(frozen=True)
+class KnownModes:
+    """Modes of deformation ``e_m(x) = sigma_m a_m exp(-|x - p_m|^2 / (2 s^2))`` and a cohort of them.
+
+    Subject ``i``'s warp is ``x + sum_m b_im e_m(x)``; :meth:`coefficients` draws the ``b`` whitened
+    (each mode's coefficients have mean 0 and variance exactly 1 over the cohort, and are
+    uncorrelated), so that the cohort's covariance is exactly ``sum_m e_m e_m^T`` and, where the
+    directions ``a_m`` are the coordinate axes, the modes are exactly orthogonal.
+
+    Attributes
+    ----------
+    centres : (M, D) float ndarray, mm
+    directions : (M, D) float ndarray
+        Unit vectors.
+    sd : (M,) float ndarray, mm
+        Each mode's peak displacement at one standard deviation.
+    scale : float, mm
+    """
+
+    centres: np.ndarray
+    directions: np.ndarray
+    sd: np.ndarray
+    scale: float
+
+    def coefficients(self, subjects: int, seed: int = 0) -> np.ndarray:
+        """Whitened coefficients ``(subjects, M)``: column means 0, ``b^T b = (subjects - 1) I``."""
+        m = len(self.sd)
+        if subjects <= m:
+            raise ValueError(f"Expected more subjects than modes ({m}), got {subjects}.")
+        b = np.random.default_rng(seed).standard_normal((subjects, m))
+        b -= b.mean(0)
+        q, r = np.linalg.qr(b)
+        q *= np.sign(np.diag(r))  # keep the draws' signs
+        return q * np.sqrt(subjects - 1)
+
+    def warp(self, b: np.ndarray) -> GaussianBumps:
+        """The warp of coefficients ``b`` (M,)."""
+        amplitudes = np.asarray(b, float)[:, None] * self.sd[:, None] * np.asarray(self.directions, float)
+        return GaussianBumps(np.asarray(self.centres, float), amplitudes, float(self.scale))
+
+    def fields(self, points: np.ndarray) -> np.ndarray:
+        """Each mode at one standard deviation at ``points`` (N, D): ``(M, N, D)`` mm."""
+        return np.stack([self.warp(np.eye(len(self.sd))[k]).displacement(points) for k in range(len(self.sd))])

@@ -25,8 +25,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from volreg import __version__
-from volreg.cli import (apply, batch, consistency, demo, morph, protocols, register, register_surfaces, surface, template,
-                        transfer, tune)
+from volreg.cli import (apply, batch, consistency, demo, morph, protocols, register, register_surfaces, shape_model,
+                        surface, template, transfer, tune)
 from volreg.cli._common import EXPECTED_ERRORS, PROG, _warn
 from volreg.errors import FULL_DISK_ERRNOS, UsageError, VolregWarning, full_disk
 
@@ -35,7 +35,7 @@ __all__ = ["main", "run", "build_parser", "UsageError"]
 #: The commands, in the order ``volreg --help`` lists them: each module's ``add_parser(commands)``
 #: adds its subparser, whose ``run(args)`` carries the command out.
 COMMANDS = (surface, register, apply, protocols, demo, consistency, tune, register_surfaces, morph, transfer, batch,
-            template)
+            template, shape_model)
 
 
 #: What every command but ``protocols`` loads, loaded before the command runs with SIGINT and
