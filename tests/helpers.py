@@ -6,6 +6,7 @@ use are in ``conftest.py``.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import nibabel as nib
@@ -13,6 +14,8 @@ import numpy as np
 
 from volreg import LabelVolume
 from volreg.cli import main
+from volreg.io import write_labels
+from volreg.io.fields import write_displacement
 
 #: The blob volumes' grid: 40^3 voxels of 1.5 mm.
 SHAPE = (40, 40, 40)
@@ -68,3 +71,18 @@ def run(args, protocol: bool = True) -> int:
         path.write_text(TEST_PROTOCOL)
         args += ["--protocol", str(path)]
     return main(args)
+
+
+def write_template_folder(root, template, warps, subjects, ids):
+    """A folder as ``volreg template`` writes it: template.nii.gz, report.json, subjects/<id>/warp.nii.gz."""
+    out = root / "template"
+    (out / "subjects").mkdir(parents=True)
+    write_labels(template, out / "template.nii.gz")
+    rows = []
+    for sid, u, s in zip(ids, warps, subjects):
+        (out / "subjects" / sid).mkdir()
+        write_displacement(u, template, out / "subjects" / sid / "warp.nii.gz")
+        write_labels(s, root / f"{sid}.nii.gz")
+        rows.append({"id": sid, "path": str(root / f"{sid}.nii.gz")})
+    (out / "report.json").write_text(json.dumps({"command": "template", "subjects": rows}))
+    return out

@@ -1,7 +1,8 @@
 """Shape and deformation models of a cohort generated from a known template with known modes.
 
 The cohort: a template of three labels, twelve subjects warped by ``x + sum_m b_im e_m(x)`` with
-three known modes ``e_m`` (Gaussian bumps pushing along x, y and z, at 1 sd 4, 2.5 and 1.5 mm)
+three known modes ``e_m`` (pairs of opposite Gaussian bumps pushing along x, y and z, at 1 sd 4, 2.5 and
+1.5 mm)
 and whitened known coefficients ``b`` (:class:`volreg.synthetic.KnownModes`).  The template
 folder is written as ``volreg template`` writes it, with each subject's true pull-back field as
 its warp, so that the model is judged on exact correspondences.
@@ -21,15 +22,16 @@ from volreg.errors import UsageError, VolregIOError
 from volreg.evaluation.metrics import dice
 from volreg.evaluation.shape_quality import model_quality
 from volreg.grid import LabelVolume
-from volreg.io import read_labels, write_labels
-from volreg.io.fields import write_displacement
+from volreg.io import read_labels
 from volreg.outputs.shape_model import write_shape_models, write_shape_sample
 from volreg.pipeline.shape_model import ShapeModel, fit_similarity, procrustes
 from volreg.shape_models import LabelShapeModel, build_shape_models
 from volreg.synthetic import KnownModes, deform_labels
 
+from helpers import write_template_folder
+
 N_SUBJECTS = 12
-MODES = KnownModes(np.array([[10.0, 0, 0], [-12.0, 4, 0], [0, 10, 4]]), np.eye(3), np.array([4.0, 2.5, 1.5]), 12.0)
+MODES = KnownModes(np.array([[12.0, 0, 0], [-6.0, 9, 0], [4.0, 0, 7]]), np.eye(3), np.array([4.0, 2.5, 1.5]), 10.0)
 
 
 def _template(n=34, spacing=2.0) -> LabelVolume:
@@ -39,21 +41,6 @@ def _template(n=34, spacing=2.0) -> LabelVolume:
     a[(((x - [8, 0, 0]) / [10, 8, 7]) ** 2).sum(1) <= 1] = 2
     a[(((x + [12, -3, 0]) / [7, 6, 6]) ** 2).sum(1) <= 1] = 3
     return LabelVolume(a.reshape(n, n, n), np.full(3, -(n - 1) * spacing / 2), np.full(3, spacing), np.eye(3))
-
-
-def write_template_folder(root, template, warps, subjects, ids):
-    """A folder as ``volreg template`` writes it: template.nii.gz, report.json, subjects/<id>/warp.nii.gz."""
-    out = root / "template"
-    (out / "subjects").mkdir(parents=True)
-    write_labels(template, out / "template.nii.gz")
-    rows = []
-    for sid, u, s in zip(ids, warps, subjects):
-        (out / "subjects" / sid).mkdir()
-        write_displacement(u, template, out / "subjects" / sid / "warp.nii.gz")
-        write_labels(s, root / f"{sid}.nii.gz")
-        rows.append({"id": sid, "path": str(root / f"{sid}.nii.gz")})
-    (out / "report.json").write_text(json.dumps({"command": "template", "subjects": rows}))
-    return out
 
 
 @pytest.fixture(scope="module")

@@ -117,21 +117,26 @@ def deform_labels(fixed: LabelVolume, tau: GaussianBumps, *, chunk: int = 1 << 1
 
 @dataclass(frozen=True)
 class KnownModes:
-    """Modes of deformation ``e_m(x) = sigma_m a_m exp(-|x - p_m|^2 / (2 s^2))`` and a cohort of them.
+    """Modes of deformation ``e_m(x) = sigma_m a_m (g(x - p_m) - g(x - p'_m))`` and a cohort of them.
 
-    Subject ``i``'s warp is ``x + sum_m b_im e_m(x)``; :meth:`coefficients` draws the ``b`` whitened
-    (each mode's coefficients have mean 0 and variance exactly 1 over the cohort, and are
+    ``g(r) = exp(-|r|^2 / (2 s^2))`` and ``p'_m`` is the mirror image of ``p_m`` in the plane
+    through the origin normal to ``a_m``: a pair of opposite bumps, so that a mode neither moves
+    nor turns a shape symmetric about that plane (rigid alignment leaves it alone).  Subject
+    ``i``'s warp is ``x + sum_m b_im e_m(x)``; :meth:`coefficients` draws the ``b`` whitened (each
+    mode's coefficients have mean 0 and variance exactly 1 over the cohort, and are
     uncorrelated), so that the cohort's covariance is exactly ``sum_m e_m e_m^T`` and, where the
     directions ``a_m`` are the coordinate axes, the modes are exactly orthogonal.
 
     Attributes
     ----------
     centres : (M, D) float ndarray, mm
+        ``p_m``, off the plane through the origin normal to ``a_m``.
     directions : (M, D) float ndarray
-        Unit vectors.
+        Unit vectors ``a_m``.
     sd : (M,) float ndarray, mm
-        Each mode's peak displacement at one standard deviation.
+        ``sigma_m``: each bump's peak displacement at one standard deviation.
     scale : float, mm
+        ``s``.
     """
 
     centres: np.ndarray
@@ -152,8 +157,11 @@ class KnownModes:
 
     def warp(self, b: np.ndarray) -> GaussianBumps:
         """The warp of coefficients ``b`` (M,)."""
-        amplitudes = np.asarray(b, float)[:, None] * self.sd[:, None] * np.asarray(self.directions, float)
-        return GaussianBumps(np.asarray(self.centres, float), amplitudes, float(self.scale))
+        p = np.asarray(self.centres, float)
+        a = np.asarray(self.directions, float)
+        mirror = p - 2 * (p * a).sum(1, keepdims=True) * a
+        amplitudes = np.asarray(b, float)[:, None] * np.asarray(self.sd, float)[:, None] * a
+        return GaussianBumps(np.concatenate([p, mirror]), np.concatenate([amplitudes, -amplitudes]), float(self.scale))
 
     def fields(self, points: np.ndarray) -> np.ndarray:
         """Each mode at one standard deviation at ``points`` (N, D): ``(M, N, D)`` mm."""

@@ -1,0 +1,294 @@
+"""Shape models of cohorts with known modes: `volreg template` + `volreg shape-model` against a CPD-correspondence baseline.
+
+Run:  PYTHON benchmarks/bench_shape_model.py --quick     (one cohort of 8 subjects)
+      PYTHON benchmarks/bench_shape_model.py             (two cohorts of 16 subjects, seeds 0 and 1)
+
+The Python that runs the script needs volreg and, for the baseline, pycpd (the bench extra).
+volreg runs as `--volreg-command` (default: the repository's `.venv/bin/volreg`).
+
+A cohort: a KNOWN template T (an ellipsoidal organ holding three inner structures, one small,
+at 2 mm) and subjects warped by x + sum_m b_im e_m(x), with three known modes e_m (Gaussian bumps of
+scale 10 mm, in opposite pairs that neither move nor turn the organ, pushing along x, y and z, peak
+4, 2.5 and 1.5 mm at 1 sd) and whitened known
+coefficients b (`volreg.synthetic.KnownModes`: the cohort's variance along each mode is
+exactly its own), label-preservingly resampled on T's grid. The cohort's mean shape is T.
+
+Methods, each timed as a user runs it:
+
+- `volreg`: `volreg template MANIFEST -o TEMPLATE --workers 1 --quiet` (timed on its own, not
+  part of the model's time), then `volreg shape-model TEMPLATE -o MODEL --align rigid --quiet`
+  (a fresh process, start to exit): its surface and deformation models.
+- `cpd`: the correspondence users make without a volume model: the same built template's label
+  meshes (marching cubes, `volreg.features.label_surfaces`), each label's vertices subsampled to
+  at most 1000 (seeded), registered to each subject's own label meshes by pycpd's
+  `DeformableRegistration` (beta 10 mm, alpha 2, 60 iterations; in-process, timed); then the
+  same rigid Procrustes, PCA and quality code as volreg (`volreg.ShapeModel`,
+  `volreg.model_quality`).
+- `known`: the models of the known warps on T itself (the best any correspondence can do).
+
+Scores, the same code for every model: the largest principal angle between the span of the
+leading three modes and the known modes' span at the model's points (degrees); the leading
+three variances over the known ones (the eigenvalues of the known modes' covariance at those
+points); compactness, generalization and specificity with 3 modes (mm, with their standard
+errors); correspondence both ways (the model's points in each subject against its own label
+boundary, mm: to / from); time.
+
+Output: Markdown on stdout and `shape_models.csv` / `.json` in `--out` (default benchmarks/out/shape_model).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import shlex
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from common import last_line, print_header, run_env, timed  # noqa: E402
+
+KEYS = ("cohort", "method", "model", "subjects", "angle_deg", "variance_ratio", "compactness_3", "generalization_3_mm",
+        "generalization_3_se_mm", "specificity_3_mm", "to_boundary_mm", "from_boundary_mm", "seconds",
+        "template_seconds", "failed")
+CPD_POINTS = 1000
+
+
+def known_template(n: int = 44, spacing: float = 2.0):
+    from volreg.grid import LabelVolume
+
+    x = np.indices((n, n, n)).reshape(3, -1).T * spacing - (n - 1) * spacing / 2
+    a = np.zeros(len(x), np.uint8)
+    a[((x / [34, 25, 19]) ** 2).sum(1) <= 1] = 1
+    a[(((x - [10, 0, 0]) / [13, 10, 9]) ** 2).sum(1) <= 1] = 2
+    a[(((x + [15, -4, 0]) / [9, 8, 7]) ** 2).sum(1) <= 1] = 3
+    a[(((x - [-4, -12, 6]) / [5, 4, 4]) ** 2).sum(1) <= 1] = 4
+    return LabelVolume(a.reshape(n, n, n), np.full(3, -(n - 1) * spacing / 2), np.full(3, spacing), np.eye(3))
+
+
+def known_modes():
+    from volreg.synthetic import KnownModes
+
+    return KnownModes(np.array([[16.0, 0, 0], [-8.0, 12, 0], [6.0, 0, 10]]), np.eye(3), np.array([4.0, 2.5, 1.5]), 10.0)
+
+
+def build_cohort(subjects: int, seed: int, folder: Path) -> dict:
+    """The subjects' label maps, manifest and known coefficients in ``folder``."""
+    from volreg.io import write_labels
+    from volreg.synthetic import deform_labels
+
+    template, modes = known_template(), known_modes()
+    b = modes.coefficients(subjects, seed=seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    ids = [f"s{i:02d}" for i in range(subjects)]
+    rows = ["id,path"]
+    for sid, bi in zip(ids, b):
+        write_labels(deform_labels(template, modes.warp(bi)), folder / f"{sid}.nii.gz")
+        rows.append(f"{sid},{sid}.nii.gz")
+    (folder / "manifest.csv").write_text("\n".join(rows) + "\n")
+    return {"template": template, "modes": modes, "b": b, "ids": ids, "folder": folder}
+
+
+# ----------------------------------------------------------------------------- scores
+
+
+def mode_scores(model, points: np.ndarray, to_known) -> dict:
+    """Principal angle (degrees) and variance ratio of the leading three modes against the known ones at ``points``."""
+    from scipy.linalg import subspace_angles
+
+    known = known_modes().fields(to_known(points)).reshape(3, -1)
+    k = min(3, model.n_modes)
+    angle = float(np.degrees(subspace_angles(model.modes[:k].reshape(k, -1).T, known.T)).max())
+    expected = np.sort(np.linalg.eigvalsh(known @ known.T))[::-1][:k]
+    return {"angle_deg": angle, "variance_ratio": "/".join(f"{r:.2f}" for r in model.variances[:k] / expected)}
+
+
+def quality_row(q: dict) -> dict:
+    return {"compactness_3": q["compactness"][2], "generalization_3_mm": q["generalization_mm"][2],
+            "generalization_3_se_mm": q["generalization_se_mm"][2], "specificity_3_mm": q["specificity_mm"][2]}
+
+
+def to_known_map(template_path: Path, known):
+    """Built template point -> known template point (the affine map that removes the free global pose)."""
+    from volreg.io import read_labels
+    from volreg.warp.linear import fit_linear
+
+    built = read_labels(template_path)
+    return fit_linear(known, built, kind="affine").map.inverse()
+
+
+def score_volreg(cohort: dict, template_dir: Path, model_dir: Path) -> list[dict]:
+    from volreg.shape_models import LabelShapeModel
+
+    to_known = to_known_map(template_dir / "template.nii.gz", cohort["template"])
+    rows = []
+    for kind in ("surface", "deformation"):
+        lsm = LabelShapeModel.load(model_dir / kind / "model.npz")
+        q = json.loads((model_dir / kind / "quality.json").read_text())
+        points = lsm.vertices if kind == "surface" else lsm.template.grid_points()[lsm.region]
+        rows.append({"model": kind, **mode_scores(lsm.model, points, to_known), **quality_row(q),
+                     "to_boundary_mm": q["correspondence"]["to_boundary_mm"],
+                     "from_boundary_mm": q["correspondence"]["from_boundary_mm"]})
+    return rows
+
+
+def cpd_model(cohort: dict, template_dir: Path, seed: int) -> tuple[dict, float]:
+    """The CPD baseline (module notes): its row and its seconds."""
+    from pycpd import DeformableRegistration
+    from scipy.spatial import cKDTree
+
+    from volreg import ShapeModel, model_quality
+    from volreg.features.label_surfaces import label_surfaces
+    from volreg.io import read_labels
+
+    t0 = time.perf_counter()
+    built = read_labels(template_dir / "template.nii.gz")
+    meshes = label_surfaces(built)
+    rng = np.random.default_rng(seed)
+    picks = {v: np.sort(rng.choice(len(m.vertices), min(CPD_POINTS, len(m.vertices)), replace=False))
+             for v, m in meshes.items()}
+    source = {v: meshes[v].vertices[picks[v]] for v in meshes}
+    shapes, boundaries = [], []
+    for sid in cohort["ids"]:
+        own = label_surfaces(read_labels(cohort["folder"] / f"{sid}.nii.gz"), list(meshes))
+        moved = []
+        for v in meshes:
+            target = own[v].vertices
+            sub = target[np.sort(rng.choice(len(target), min(3 * CPD_POINTS, len(target)), replace=False))]
+            reg = DeformableRegistration(X=sub, Y=source[v], alpha=2.0, beta=10.0, max_iterations=60)
+            ty, _ = reg.register()
+            moved.append(ty)
+        shapes.append(np.concatenate(moved))
+        boundaries.append({v: own[v].vertices for v in meshes})
+    shapes = np.stack(shapes)
+    reference = np.concatenate([source[v] for v in meshes])
+    model = ShapeModel.fit(shapes, ids=cohort["ids"], align="rigid", modes=10, reference=reference)
+    aligned = np.stack([s @ t[:3, :3].T + t[:3, 3] for s, t in zip(shapes, model.transforms)])
+    q = model_quality(model, aligned, samples=100, seed=0)
+    seconds = time.perf_counter() - t0
+    to_b, from_b = [], []
+    offsets = np.cumsum([0] + [len(source[v]) for v in meshes])
+    for i in range(len(shapes)):
+        for j, v in enumerate(meshes):
+            mine = shapes[i][offsets[j]:offsets[j + 1]]
+            to_b.append(cKDTree(boundaries[i][v]).query(mine)[0].mean())
+            from_b.append(cKDTree(mine).query(boundaries[i][v])[0].mean())
+    to_known = to_known_map(template_dir / "template.nii.gz", cohort["template"])
+    row = {"model": "surface", **mode_scores(model, reference, to_known), **quality_row(q),
+           "to_boundary_mm": float(np.mean(to_b)), "from_boundary_mm": float(np.mean(from_b))}
+    return row, seconds
+
+
+def known_rows(cohort: dict, work: Path) -> list[dict]:
+    """The models of the known warps on T (the module notes), through the library."""
+    sys.path.insert(0, str(REPO / "tests"))
+    from helpers import write_template_folder
+
+    from volreg.shape_models import build_shape_models
+    from volreg.synthetic import deform_labels
+
+    template, modes = cohort["template"], cohort["modes"]
+    x = template.grid_points().reshape(-1, 3)
+    warps = [modes.warp(bi).displacement(x).reshape(template.shape + (3,)) for bi in cohort["b"]]
+    subjects = [deform_labels(template, modes.warp(bi)) for bi in cohort["b"]]
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    result = build_shape_models(write_template_folder(work, template, warps, subjects, cohort["ids"]), align="rigid")
+    rows = []
+    for kind, lsm in result.models.items():
+        q = result.quality[kind]
+        points = lsm.vertices if kind == "surface" else template.grid_points()[lsm.region]
+        rows.append({"model": kind, **mode_scores(lsm.model, points, lambda p: p), **quality_row(q),
+                     "to_boundary_mm": q["correspondence"]["to_boundary_mm"],
+                     "from_boundary_mm": q["correspondence"]["from_boundary_mm"]})
+    return rows
+
+
+# ----------------------------------------------------------------------------- running
+
+
+def run_cohort(name: str, subjects: int, seed: int, work: Path, args) -> list[dict]:
+    cohort = build_cohort(subjects, seed, work / name)
+    base = {"cohort": name, "subjects": subjects}
+    rows = [{**base, "method": "known", **r} for r in known_rows(cohort, work / f"{name}-known")]
+    volreg = shlex.split(args.volreg_command)
+    template_dir, model_dir = work / f"{name}-template", work / f"{name}-model"
+    shutil.rmtree(template_dir, ignore_errors=True)
+    shutil.rmtree(model_dir, ignore_errors=True)
+    rc, t_seconds, _ = timed(volreg + ["template", str(cohort["folder"] / "manifest.csv"), "-o", str(template_dir),
+                                       "--workers", "1", "--quiet"], work / f"{name}-template.log", work,
+                             args.timeout, env=run_env())
+    if rc != 0:
+        return rows + [{**base, "method": "volreg", "failed": last_line(work / f"{name}-template.log", rc, t_seconds)}]
+    rc, m_seconds, _ = timed(volreg + ["shape-model", str(template_dir), "-o", str(model_dir), "--align", "rigid",
+                                       "--quiet"], work / f"{name}-model.log", work, args.timeout, env=run_env())
+    if rc != 0:
+        rows.append({**base, "method": "volreg", "failed": last_line(work / f"{name}-model.log", rc, m_seconds)})
+    else:
+        rows += [{**base, "method": "volreg", **r, "seconds": m_seconds, "template_seconds": t_seconds}
+                 for r in score_volreg(cohort, template_dir, model_dir)]
+    if not args.no_cpd:
+        try:
+            row, seconds = cpd_model(cohort, template_dir, seed)
+            rows.append({**base, "method": "cpd", **row, "seconds": seconds, "template_seconds": t_seconds})
+        except ImportError as exc:
+            rows.append({**base, "method": "cpd", "failed": f"pycpd not importable: {exc}"})
+    return rows
+
+
+def fmt(v) -> str:
+    if v is None or v == "":
+        return ""
+    return f"{v:.3g}" if isinstance(v, float) else str(v)
+
+
+def markdown(rows: list[dict]) -> str:
+    cols = ("cohort", "method", "model", "angle_deg", "variance_ratio", "compactness_3", "generalization_3_mm",
+            "specificity_3_mm", "to_boundary_mm", "from_boundary_mm", "seconds", "template_seconds")
+    out = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        if r.get("failed"):
+            out.append(f"| {r['cohort']} | {r['method']} | failed: {r['failed']} |" + " |" * (len(cols) - 3))
+        else:
+            out.append("| " + " | ".join(fmt(r.get(c)) for c in cols) + " |")
+    return "\n".join(out)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="one cohort of 8 subjects")
+    parser.add_argument("--subjects", type=int, default=16, help="subjects per cohort (default 16)")
+    parser.add_argument("--seeds", default="0,1", help="one cohort per seed (default 0,1)")
+    parser.add_argument("--no-cpd", action="store_true", help="leave the CPD baseline out")
+    parser.add_argument("--volreg-command", default=str(REPO / ".venv" / "bin" / "volreg"))
+    parser.add_argument("--timeout", type=float, default=3600.0)
+    parser.add_argument("--workdir", type=Path, default=None, help="keep the volumes and outputs in this new folder")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "shape_model")
+    args = parser.parse_args()
+    subjects, seeds = (8, [0]) if args.quick else (args.subjects, [int(s) for s in args.seeds.split(",")])
+    print_header("bench_shape_model.py")
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_shape_model_"))
+    rows = []
+    for seed in seeds:
+        rows += run_cohort(f"organs-{subjects}-seed{seed}", subjects, seed, work, args)
+        print(markdown(rows[-5:]), flush=True)
+    print("\n" + markdown(rows))
+    args.out.mkdir(parents=True, exist_ok=True)
+    with open(args.out / "shape_models.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, KEYS, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    (args.out / "shape_models.json").write_text(json.dumps(rows, indent=1))
+    if args.workdir is None:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
