@@ -172,3 +172,25 @@ def test_a_subject_whose_registration_fails_is_left_out_with_a_warning(cohort, t
     assert len(warnings) == 1 and "subject bad left out of iteration 1" in warnings[0]
     assert result.report["left_out"] == ["bad"] and set(result.subjects) == {"s0p", "s0m", "s1p"}
     assert not (tmp_path / "out" / "subjects" / "bad").exists()
+
+
+def test_the_shape_model_of_the_template_finds_the_cohorts_two_bumps(cohort, tmp_path, capsys):
+    """The cohort varies by two bumps, each once up and once down: from the template's own
+    registrations, two modes hold most of the deformation, and each separates one pair."""
+    _, _, subjects, out, _ = cohort
+    model_dir = tmp_path / "model"
+    assert main(["shape-model", str(out), "-o", str(model_dir), "--samples", "20", "--quiet"]) == 0
+    assert "4 subjects" in capsys.readouterr().out
+    from volreg.shape_models import LabelShapeModel
+
+    for kind in ("surface", "deformation"):
+        lsm = LabelShapeModel.load(model_dir / kind / "model.npz")
+        q = json.loads((model_dir / kind / "quality.json").read_text())
+        assert q["compactness"][1] > 0.8, (kind, q["compactness"])
+        scores = dict(zip(lsm.model.ids, lsm.model.scores[:, :2]))
+        for pair in (("s0p", "s0m"), ("s1p", "s1m")):
+            a, b = scores[pair[0]], scores[pair[1]]
+            k = int(np.argmax(np.abs(a)))  # the mode of this pair's bump: opposite signs on it
+            assert a[k] * b[k] < 0 and abs(b[k]) > abs(b[1 - k]), (kind, pair, a, b)
+        c = q["correspondence"]
+        assert c["to_boundary_mm"] < 2.0 and c["from_boundary_mm"] < 2.0, c  # 2 mm voxels
