@@ -47,7 +47,8 @@ from volreg.io.archives import read_arrays, write_arrays
 from volreg.io.documents import parse_json
 from volreg.io.fields import read_displacement
 from volreg.pipeline.shape_fields import (
-    fill_field, interpolate_displacement, labelled_region, labels_of_displacement, nearest_region_index, sample_field,
+    fill_field, labelled_region, labels_at, labels_of_displacement, nearest_region_index,
+    sample_field, vertex_spline,
 )
 from volreg.pipeline.shape_model import ALIGNMENTS, ShapeModel
 from volreg.settings import SurfaceSettings
@@ -98,6 +99,8 @@ class LabelShapeModel:
     faces: list[np.ndarray]
     region: np.ndarray | None = None
     _nearest: np.ndarray | None = field(default=None, repr=False)
+    _points: np.ndarray | None = field(default=None, repr=False)
+    _basis: np.ndarray | None = field(default=None, repr=False)
 
     # ------------------------------------------------------------------------- shapes of coefficients
 
@@ -109,6 +112,31 @@ class LabelShapeModel:
             self._nearest = nearest_region_index(self._region())
         return self._nearest
 
+    def _region_points(self) -> np.ndarray:
+        if self._points is None:
+            self._points = self.template.grid_points()[self._region()]
+        return self._points
+
+    def _spline_basis(self) -> np.ndarray:
+        """The surface model's displacement on the region for the mean and for 1 sd of each mode:
+        ``(K + 1, P, D)`` float32, one spline through the vertices carrying them all (it is linear)."""
+        if self._basis is None:
+            m = self.model
+            k, d = m.n_modes, m.mean.shape[1]
+            columns = np.concatenate([m.mean - self.vertices] + [np.sqrt(m.variances[j]) * m.modes[j] for j in range(k)],
+                                     axis=1)  # (V, (K + 1) D)
+            values = vertex_spline(self.vertices, columns)(self._region_points())
+            self._basis = values.reshape(len(values), k + 1, d).transpose(1, 0, 2).astype(np.float32)
+        return self._basis
+
+    def _region_values(self, coefficients) -> np.ndarray:
+        """A shape's displacement at the region's voxel centres: (P, D) mm."""
+        b = self.model.check_coefficients(coefficients)
+        if self.kind == "deformation":
+            return self.model.sample(b) - self._region_points()
+        basis = self._spline_basis()
+        return basis[0] + np.tensordot(b, basis[1:len(b) + 1], axes=1)
+
     def displacement(self, coefficients=()) -> np.ndarray:
         """The template grid's displacement ``x -> x + d(x)`` of a shape: ``(*shape, D)`` mm.
 
@@ -116,15 +144,17 @@ class LabelShapeModel:
         ----------
         coefficients : (M,) array-like, standard deviations of the leading modes
         """
-        points = self.model.sample(coefficients)
-        grid = self.template.grid
-        region = self._region()
-        at = grid.grid_points()[region]
-        if self.kind == "deformation":
-            values = points - at
-        else:
-            values = interpolate_displacement(self.vertices, points - self.vertices, at)
-        return fill_field(values, self._nearest_index())
+        return fill_field(self._region_values(coefficients), self._nearest_index())
+
+    def displacement_function(self, coefficients=()):
+        """The displacement ``d`` of a shape as a function of world points (N, D) -> (N, D) mm
+        (:meth:`displacement` read trilinearly)."""
+        field_ = self.displacement(coefficients)
+        return lambda points: sample_field(field_, self.template.grid, points)
+
+    def labels_at(self, points: np.ndarray, coefficients=()) -> np.ndarray:
+        """The template's labels in a shape at world points (N, D) mm (a slice, say), without the whole grid."""
+        return labels_at(self.template, self.displacement_function(coefficients), points)
 
     def mesh_vertices(self, coefficients=(), displacement: np.ndarray | None = None) -> np.ndarray:
         """The template meshes' vertices in a shape: (V, D) mm (``displacement`` reused where given)."""

@@ -13,7 +13,7 @@ For ``M = 1 .. K`` modes of a :class:`~volreg.pipeline.shape_model.ShapeModel`:
   (standard error likewise).
 
 Distances are Euclidean per point, averaged over the points; where the shapes have more than
-``points`` points, over a seeded random subset of that many (an unbiased estimate of the mean;
+``points`` points (default 5,000), over a seeded random subset of that many (an unbiased estimate of the mean;
 the fits use every point).  The leave-one-out models are read off the ``N x N`` Gram matrix of
 the whole set (double-centred on the ``N - 1``), so the ``N`` refits cost ``N`` small
 eigenproblems, not ``N`` passes over the data.
@@ -65,7 +65,7 @@ def _loo_errors(data: np.ndarray, sub: np.ndarray, modes: int) -> np.ndarray:
     return out
 
 
-def model_quality(model: ShapeModel, shapes: np.ndarray, *, samples: int = 100, points: int = 20000,
+def model_quality(model: ShapeModel, shapes: np.ndarray, *, samples: int = 100, points: int = 5000,
                   seed: int = 0) -> dict:
     """Compactness, generalization and specificity of ``model`` for 1 .. K modes (module notes).
 

@@ -118,20 +118,27 @@ def _edges(labels: np.ndarray) -> np.ndarray:
 
 
 def _write_gif(lsm: LabelShapeModel, k: int, path: Path, force: bool) -> None:
-    """Mode ``k`` (0-based) as a looping GIF of a template slice along -2 .. +2 standard deviations."""
+    """Mode ``k`` (0-based) as a looping GIF of a template slice along -2 .. +2 standard deviations
+    (the labels drawn at the slice's voxel centres only)."""
     from PIL import Image
 
-    axis, index = _slice(lsm)
-    mean_slice = np.take(lsm.label_map(()).array, index, axis=axis) if lsm.template.ndim == 3 else lsm.label_map(()).array
-    outline = _edges(mean_slice)
-    scale = max(1, 256 // max(mean_slice.shape))
+    template = lsm.template
+    if template.ndim == 3:
+        axis, index = _slice(lsm)
+        cut = [slice(None)] * 3
+        cut[axis] = index
+        shape = tuple(n for d, n in enumerate(template.shape) if d != axis)
+        points = template.grid_points()[tuple(cut)].reshape(-1, 3)
+    else:
+        shape = template.shape
+        points = template.grid_points().reshape(-1, 2)
+    outline = _edges(lsm.labels_at(points).reshape(shape))
+    scale = max(1, 256 // max(shape))
     frames = []
     for t in range(GIF_FRAMES):
         b = np.zeros(k + 1)
         b[k] = 2.0 * np.sin(2 * np.pi * t / GIF_FRAMES)
-        moved = lsm.label_map(b).array
-        cut = np.take(moved, index, axis=axis) if moved.ndim == 3 else moved
-        frames.append(Image.fromarray(_render(cut, outline, scale)))
+        frames.append(Image.fromarray(_render(lsm.labels_at(points, b).reshape(shape), outline, scale)))
     with atomic_output(path, force=force) as tmp:
         frames[0].save(tmp, format="GIF", save_all=True, append_images=frames[1:], duration=120, loop=0)
 

@@ -25,8 +25,8 @@ from volreg.grid import Grid, LabelVolume
 from volreg.pipeline.template_shape import _sample_field, invert_displacement
 from volreg.warp.resample import resample_labels
 
-__all__ = ["REGION_MARGIN", "fill_field", "interpolate_displacement", "labelled_region", "labels_of_displacement",
-           "nearest_region_index", "sample_field"]
+__all__ = ["REGION_MARGIN", "fill_field", "interpolate_displacement", "labelled_region", "labels_at",
+           "labels_of_displacement", "nearest_region_index", "sample_field", "vertex_spline"]
 
 
 def sample_field(field: np.ndarray, grid: Grid, points: np.ndarray) -> np.ndarray:
@@ -67,36 +67,70 @@ def fill_field(values: np.ndarray, nearest: np.ndarray) -> np.ndarray:
     return np.asarray(values, float)[nearest]
 
 
-def interpolate_displacement(vertices: np.ndarray, displacement: np.ndarray, points: np.ndarray, *,
-                             centres: int = 1500, seed: int = 0) -> np.ndarray:
-    """Vertex displacements spread to other points by a thin plate spline.
+def vertex_spline(vertices: np.ndarray, displacement: np.ndarray, *, centres: int = 1500, seed: int = 0):
+    """A thin plate spline through vertex displacements: a function of points (N, D) -> (N, D) mm.
 
     Parameters
     ----------
     vertices : (V, D) float array, mm
-    displacement : (V, D) float array, mm
-        At ``vertices``.
-    points : (N, D) float array, mm
-        Where the displacement is wanted.
+    displacement : (V, C) float array, mm
+        At ``vertices`` (``C = D``, or several displacements side by side: the spline is linear
+        in them, so one evaluation serves them all).
     centres : int
         At most this many vertices carry the spline (a seeded random subset beyond): its cost is
-        ``O(N * centres)``.
+        ``O(N * centres)`` per evaluation.
     seed : int
+    """
+    v = np.asarray(vertices, float)
+    displacement = np.asarray(displacement, float)
+    if len(v) > centres:
+        pick = np.sort(np.random.default_rng(seed).choice(len(v), centres, replace=False))
+        v, displacement = v[pick], displacement[pick]
+    spline = RBFInterpolator(v, displacement, kernel="thin_plate_spline", smoothing=1e-3)
+
+    def evaluate(points: np.ndarray) -> np.ndarray:
+        points = np.asarray(points, float)
+        out = np.empty((len(points), displacement.shape[1]))
+        for s in range(0, len(points), 4096):
+            out[s:s + 4096] = spline(points[s:s + 4096])
+        return out
+
+    return evaluate
+
+
+def interpolate_displacement(vertices: np.ndarray, displacement: np.ndarray, points: np.ndarray, *,
+                             centres: int = 1500, seed: int = 0) -> np.ndarray:
+    """Vertex displacements spread to ``points`` (N, D) by :func:`vertex_spline`: (N, D) mm."""
+    return vertex_spline(vertices, displacement, centres=centres, seed=seed)(points)
+
+
+def labels_at(template: LabelVolume, displacement, points: np.ndarray, *, iterations: int = 30,
+              tol: float = 1e-3) -> np.ndarray:
+    """The template's labels moved by ``phi(x) = x + d(x)``, at ``points``: ``template(phi^-1(y))``.
+
+    Parameters
+    ----------
+    template : LabelVolume
+    displacement : callable
+        ``d``: points (N, D) mm -> (N, D) mm.
+    points : (N, D) float array, mm
+    iterations, tol
+        The fixed-point iteration ``v <- -d(y + v)`` (mm), as
+        :func:`~volreg.pipeline.template_shape.invert_displacement`.
 
     Returns
     -------
-    (N, D) float array, mm
+    (N,) array of the template's dtype
     """
-    v = np.asarray(vertices, float)
-    if len(v) > centres:
-        pick = np.sort(np.random.default_rng(seed).choice(len(v), centres, replace=False))
-        v, displacement = v[pick], np.asarray(displacement, float)[pick]
-    spline = RBFInterpolator(v, displacement, kernel="thin_plate_spline", smoothing=1e-3)
-    points = np.asarray(points, float)
-    out = np.empty((len(points), v.shape[1]))
-    for s in range(0, len(points), 1 << 15):
-        out[s:s + (1 << 15)] = spline(points[s:s + (1 << 15)])
-    return out
+    y = np.asarray(points, float)
+    v = -displacement(y)
+    for _ in range(iterations):
+        new = -displacement(y + v)
+        step = np.abs(new - v).max(initial=0.0)
+        v = new
+        if step < tol:
+            break
+    return resample_labels(template, y + v, method="nearest").astype(template.array.dtype, copy=False)
 
 
 def labels_of_displacement(template: LabelVolume, field: np.ndarray) -> LabelVolume:

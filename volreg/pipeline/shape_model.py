@@ -233,7 +233,8 @@ class ShapeModel:
         """``K``, the number of modes kept."""
         return len(self.variances)
 
-    def _coefficients(self, coefficients) -> np.ndarray:
+    def check_coefficients(self, coefficients) -> np.ndarray:
+        """``coefficients`` as an (M,) float array, M <= K; a bad one refused (``UsageError`` naming --coefficients)."""
         b = np.atleast_1d(np.asarray(coefficients, float))
         if b.ndim != 1 or len(b) > self.n_modes or not np.isfinite(b).all():
             raise UsageError(f"--coefficients {np.asarray(coefficients).tolist()!r}: expected at most {self.n_modes} "
@@ -252,7 +253,7 @@ class ShapeModel:
         -------
         (P, D) float array, mm
         """
-        b = self._coefficients(coefficients)
+        b = self.check_coefficients(coefficients)
         m = len(b)
         return self.mean + np.tensordot(b * np.sqrt(self.variances[:m]), self.modes[:m], axes=1)
 
