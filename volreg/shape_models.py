@@ -177,13 +177,9 @@ class LabelShapeModel:
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Every array of the model, for :func:`volreg.io.archives.write_arrays`."""
-        m = self.model
         t = self.template
         out = {
-            "kind": np.array(self.kind), "align": np.array(m.align), "volreg_version": np.array(__version__),
-            "mean": m.mean, "modes": m.modes.astype(np.float32), "variances": m.variances, "scores": m.scores,
-            "ids": np.array(m.ids, dtype=str), "total_variance": np.array(m.total_variance),
-            "transforms": m.transforms,
+            **self.model.to_arrays(), "kind": np.array(self.kind), "volreg_version": np.array(__version__),
             "template_labels": t.array, "template_origin": t.origin, "template_spacing": t.spacing,
             "template_direction": t.direction,
             "labels": np.array(self.labels, np.int64), "vertices": self.vertices, "offsets": self.offsets,
@@ -210,10 +206,7 @@ class LabelShapeModel:
         a = read_arrays(path, "Shape model", SHAPE_MODEL_FORMAT, option=option)
         label = f"{option} `{os.fspath(path)}`" if option else f"Shape model `{os.fspath(path)}`"
         try:
-            model = ShapeModel(np.asarray(a["mean"], float), np.asarray(a["modes"], float),
-                               np.asarray(a["variances"], float), np.asarray(a["scores"], float),
-                               [str(i) for i in a["ids"]], float(a["total_variance"]), str(a["align"]),
-                               np.asarray(a["transforms"], float))
+            model = ShapeModel.from_arrays(a)
             template = LabelVolume(a["template_labels"], a["template_origin"], a["template_spacing"],
                                    a["template_direction"])
             fo = np.asarray(a["face_offsets"], np.int64)

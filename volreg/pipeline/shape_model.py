@@ -24,10 +24,12 @@ import numpy as np
 
 from volreg.errors import UsageError
 
-__all__ = ["ALIGNMENTS", "ShapeModel", "fit_similarity", "procrustes", "gram_matrix"]
+__all__ = ["ALIGNMENTS", "POINT_MODEL_FORMAT", "ShapeModel", "fit_similarity", "procrustes", "gram_matrix"]
 
 #: The alignments :func:`procrustes` knows: none, rotation and translation, and with a scale.
 ALIGNMENTS = ("none", "rigid", "similarity")
+#: The ``format`` member of a saved :class:`ShapeModel`.
+POINT_MODEL_FORMAT = "volreg-point-shape-model-1"
 #: Columns of the data matrix processed at a time (bounds the float64 working copy).
 _CHUNK = 1 << 18
 
@@ -273,6 +275,47 @@ class ShapeModel:
     def reconstruct(self, shape: np.ndarray, modes: int | None = None) -> np.ndarray:
         """``shape`` (in the model's frame) projected onto the leading ``modes``: (P, D) mm."""
         return self.sample(self.project(shape, modes))
+
+    # ----------------------------------------------------------------------------- files
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The model's arrays (ids as a fixed-width string array, the unit-length modes in float32):
+        what :meth:`save` writes."""
+        return {"mean": self.mean, "modes": self.modes.astype(np.float32), "variances": self.variances, "scores": self.scores,
+                "ids": np.array(self.ids, dtype=str), "total_variance": np.array(self.total_variance),
+                "align": np.array(self.align), "transforms": self.transforms}
+
+    @classmethod
+    def from_arrays(cls, arrays) -> "ShapeModel":
+        """The model of :meth:`to_arrays`' arrays; ``ValueError`` where they do not agree in size."""
+        mean = np.asarray(arrays["mean"], float)
+        modes = np.asarray(arrays["modes"], float)
+        variances = np.asarray(arrays["variances"], float)
+        scores = np.asarray(arrays["scores"], float)
+        ids = [str(i) for i in np.asarray(arrays["ids"]).reshape(-1)]
+        if mean.ndim != 2 or modes.shape[1:] != mean.shape or variances.shape != (len(modes),) \
+                or scores.shape != (len(ids), len(modes)):
+            raise ValueError("the mean, modes, variances, scores and ids do not agree in size")
+        return cls(mean, modes, variances, scores, ids, float(arrays["total_variance"]), str(arrays["align"]),
+                   np.asarray(arrays["transforms"], float))
+
+    def save(self, path, *, force: bool = False) -> None:
+        """Write the model to ``path`` (``.npz`` with format ``volreg-point-shape-model-1``, no pickle), atomically."""
+        from volreg.io.archives import write_arrays
+
+        write_arrays(self.to_arrays(), path, format=POINT_MODEL_FORMAT, force=force)
+
+    @classmethod
+    def load(cls, path) -> "ShapeModel":
+        """Read a model :meth:`save` wrote (``VolregIOError`` in one line if it is not one)."""
+        from volreg.errors import VolregIOError
+        from volreg.io.archives import read_arrays
+
+        arrays = read_arrays(path, "Shape model", POINT_MODEL_FORMAT)
+        try:
+            return cls.from_arrays(arrays)
+        except (KeyError, ValueError, TypeError) as exc:
+            raise VolregIOError(f"Shape model `{path}` is not a complete shape model: {str(exc)[:80]}.") from None
 
     def fractions(self) -> np.ndarray:
         """Each mode's share of the training shapes' whole variance: (K,)."""
