@@ -163,7 +163,7 @@ def test_a_subject_whose_registration_fails_is_left_out_with_a_warning(cohort, t
     (tmp_path / "m.csv").write_text("id,path\ns0p,s0p.nii.gz\ns0m,s0m.nii.gz\ns1p,s1p.nii.gz\nbad,bad.nii.gz\n")
 
     def progress(stage, done, total):
-        if stage == "template first vote" and done == total:  # read by the start; unreadable for the registrations
+        if stage == "template first template" and done == total:  # read by the start; unreadable for the registrations
             (tmp_path / "bad.nii.gz").write_bytes(b"not an image")
 
     warnings = []

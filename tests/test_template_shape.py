@@ -1,5 +1,5 @@
-"""The template's numerics: mean pose, vote, inverse of a mean displacement, moving the counts,
-outliers among the subjects."""
+"""The template's numerics: mean pose, vote, medoid, inverse of a mean displacement, the points
+where a subject is read for the moved template, outliers among the subjects."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import pytest
 from volreg.grid import Grid
 from volreg.linear_map import LinearMap
 from volreg.pipeline.template_shape import (
-    invert_displacement, mean_linear_map, move_counts, rank_subjects, sharpness, template_grid, vote,
+    invert_displacement, mean_linear_map, medoid, pull_back_points, rank_subjects, sharpness, template_grid,
+    vote,
 )
 
 
@@ -85,15 +86,37 @@ def test_inverse_of_a_smooth_displacement():
     assert err[inner].max() < 0.02  # mm: the trilinear reading of u on a 1 mm grid
 
 
-def test_counts_move_by_the_mean_displacement():
+def test_a_subject_is_read_through_its_registration_composed_with_the_inverse_update():
     g = _grid()
     x = g.grid_points()
-    counts = (np.linalg.norm(x - [-3.0, 0, 0], axis=-1) < 5)[None].astype(np.uint16) * 4
     shift = np.zeros((*g.shape, 3))
-    shift[..., 0] = 3.0  # phi(x) = x + 3 e_x: the blob centred at -3 moves to 0
-    moved = move_counts(counts, g, invert_displacement(shift, g))
-    centre = (x * moved[0][..., None]).reshape(-1, 3).sum(0) / moved[0].sum()
-    np.testing.assert_allclose(centre, [0.0, 0.0, 0.0], atol=0.05)
+    shift[..., 0] = 3.0  # phi(x) = x + 3 e_x, so phi^-1(y) = y - 3 e_x
+    u = 0.1 * x[..., [1, 2, 0]]  # the subject's pull-back field, linear: read exactly between voxels
+    points = pull_back_points(g, invert_displacement(shift, g), u)
+    y = x.reshape(-1, 3)
+    back = y - [3.0, 0, 0]
+    expected = back + 0.1 * back[:, [1, 2, 0]]
+    inner = np.all(np.abs(y) < 8, axis=1)  # phi^-1(y) on the grid, u not clipped at its edge
+    np.testing.assert_allclose(points[inner], expected[inner], atol=1e-6)
+    np.testing.assert_allclose(pull_back_points(g, np.zeros_like(u), u), (x + u).reshape(-1, 3), atol=1e-9)
+
+
+def _ball(n, centre, radius):
+    x = np.indices((n, n, n)).transpose(1, 2, 3, 0)
+    return (np.linalg.norm(x - centre, axis=-1) <= radius).astype(np.uint8)
+
+
+def test_the_medoid_is_the_map_nearest_the_others():
+    maps = [_ball(20, [10 + dx, 10, 10], 5) for dx in (-3, 0, 1, 4)]
+    best, mean = medoid(maps, np.array([1]))
+    assert best == 1  # centred among shifts -3, 1, 4: the nearest on average
+    assert mean.shape == (4,) and np.all((mean > 0) & (mean < 1)) and mean[1] == mean.max()
+    # Dice over the labels either holds: a label only one map has counts as 0 for that pair
+    a, b = _ball(12, [6, 6, 6], 3), _ball(12, [6, 6, 6], 3)
+    b[0, 0, 0] = 2
+    _, pair = medoid([a, b], np.array([1, 2]))
+    np.testing.assert_allclose(pair, [0.5, 0.5])
+    assert medoid([a], np.array([1])) == (0, pytest.approx(np.ones(1)))
 
 
 def test_outliers_are_far_from_the_rest():

@@ -8,10 +8,11 @@ A template is built by :func:`volreg.template.build_template`; this module holds
 - the template grid that holds every aligned subject (:func:`template_grid`);
 - per-label vote counts, the template labels as their arg max with the background
   (:func:`vote`), and each label's probability sharpness (:func:`sharpness`);
+- the first template's subject: the medoid of the linearly aligned label maps (:func:`medoid`);
 - the shape update: the mean of the subjects' pull-back displacements ``u_bar`` over the
   template grid says where, on average, the subjects' points lie relative to the template's; the
-  template is moved by ``phi(x) = x + u_bar(x)``, its probabilities resampled at ``phi^-1(y)``
-  (:func:`invert_displacement`, :func:`move_counts`);
+  template is moved by ``phi(x) = x + u_bar(x)``: each subject is read once, from its own labels,
+  at ``phi^-1(y) + u_i(phi^-1(y))`` (:func:`invert_displacement`, :func:`pull_back_points`);
 - the subjects' distances to the template and the outliers among them (:func:`rank_subjects`).
 """
 
@@ -26,7 +27,8 @@ from volreg.linear_map import LinearMap
 __all__ = [
     "invert_displacement",
     "mean_linear_map",
-    "move_counts",
+    "medoid",
+    "pull_back_points",
     "rank_subjects",
     "sharpness",
     "template_grid",
@@ -187,28 +189,65 @@ def invert_displacement(u: np.ndarray, grid: Grid, *, iterations: int = 30, tol:
     return v.reshape(u.shape)
 
 
-def move_counts(counts: np.ndarray, grid: Grid, inverse: np.ndarray) -> np.ndarray:
-    """The vote counts moved by ``phi``: at each voxel ``y`` the counts read (linearly) at
-    ``phi^-1(y) = y + inverse(y)``.
+def pull_back_points(grid: Grid, inverse: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Where a subject is read for the moved template: ``phi^-1(y) + u(phi^-1(y))`` at each voxel
+    centre ``y`` of ``grid``, the subject's registration composed with the inverse shape update.
 
     Parameters
     ----------
-    counts : (L, *shape) array
     grid : Grid
+        The template grid.
     inverse : (*shape, D) float array, mm
-        :func:`invert_displacement` of the mean displacement.
+        :func:`invert_displacement` of the mean displacement: ``phi^-1(y) = y + inverse(y)``.
+    u : (*shape, D) float array, mm
+        The subject's pull-back field on ``grid`` (template point ``x`` is subject point
+        ``x + u(x)``), read trilinearly between the voxel centres (the edge value beyond them).
 
     Returns
     -------
-    (L, *shape) float32 array
+    (N, D) float array, mm
+        Subject points, one per voxel of ``grid`` in C order.
     """
     points = grid.grid_points().reshape(-1, grid.ndim) + inverse.reshape(-1, grid.ndim)
-    index = grid.world_to_index(points).T
-    out = np.empty(counts.shape, np.float32)
-    for k in range(len(counts)):
-        out[k] = ndimage.map_coordinates(np.asarray(counts[k], np.float32), index, order=1,
-                                         mode="constant", cval=0.0).reshape(grid.shape)
-    return out
+    return points + _sample_field(u, grid, points)
+
+
+def medoid(arrays: list[np.ndarray], labels: np.ndarray) -> tuple[int, np.ndarray]:
+    """The label map closest to the others: the largest mean Dice to them.
+
+    The Dice of two maps is the mean, over the labels either holds, of ``2 |A & B| / (|A| + |B|)``.
+
+    Parameters
+    ----------
+    arrays : list of (*shape) int arrays
+        Label maps on one grid (e.g. the subjects read through their linear maps), at least one.
+    labels : (L,) int array
+        The label values (sorted, without 0); other values count as background.
+
+    Returns
+    -------
+    index : int
+        Of the medoid in ``arrays`` (the first on a tie).
+    mean_dice : (S,) float array
+        Each map's mean Dice to the others (1.0 for a single map).
+    """
+    labels = np.asarray(labels)
+    n = len(labels) + 1
+    codes = []
+    for a in arrays:
+        k = np.searchsorted(labels, a).clip(0, max(len(labels) - 1, 0))
+        known = (a != 0) & (labels[k] == a) if len(labels) else np.zeros(a.shape, bool)
+        codes.append(np.where(known, k + 1, 0).astype(np.intp).ravel())
+    total = np.zeros((len(arrays), len(arrays)))
+    for i in range(len(arrays)):
+        for j in range(i + 1, len(arrays)):
+            table = np.bincount(codes[i] * n + codes[j], minlength=n * n).reshape(n, n)
+            sizes = (table.sum(1) + table.sum(0))[1:]
+            held = sizes > 0
+            d = float(np.mean(2.0 * np.diag(table)[1:][held] / sizes[held])) if held.any() else 1.0
+            total[i, j] = total[j, i] = d
+    mean = total.sum(1) / (len(arrays) - 1) if len(arrays) > 1 else np.ones(1)
+    return int(np.argmax(mean)), mean
 
 
 def rank_subjects(distances: dict[str, float], *, spread: float = 3.0) -> tuple[list[str], list[str]]:
