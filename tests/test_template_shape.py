@@ -1,4 +1,4 @@
-"""The template's numerics: mean pose, vote, medoid, inverse of a mean displacement, the points
+"""The template's numerics: mean pose, votes, medoid, inverse of a mean displacement, the points
 where a subject is read for the moved template, outliers among the subjects."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from volreg.grid import Grid
 from volreg.linear_map import LinearMap
 from volreg.pipeline.template_shape import (
     invert_displacement, mean_linear_map, medoid, pull_back_points, rank_subjects, sharpness, template_grid,
-    vote,
+    vote, vote_volumes,
 )
 
 
@@ -58,6 +58,39 @@ def test_vote_takes_the_majority_and_the_background_wins_ties():
     # tie -> the lower label; voxel 3: background 3
     assert out[0, :, 0].tolist() == [4, 7, 4, 0]
     assert vote(np.array([[[[2]]]]), 4, np.array([1]))[0, 0, 0] == 0  # 2 of 4 against 2: background
+
+
+def test_the_volume_vote_keeps_a_thin_layer_that_the_majority_loses():
+    # four subjects, each with a one-voxel layer (label 2) on a block (label 1) at rows 3, 4, 5, 6
+    counts = np.zeros((2, 10, 6, 6), np.uint16)
+    for top in (3, 4, 5, 6):
+        counts[0, :top] += 1
+        counts[1, top] += 1
+    labels = np.array([1, 2])
+    assert not (vote(counts, 4, labels) == 2).any()  # one vote of four: the block's or the background's
+    out = vote_volumes(counts, 4, labels)
+    # each label's mean volume: the layer's one row, where it has most votes around it (rows 4, 5)
+    assert (out == 2).sum() == 36 and not (out[:4] == 2).any()
+    assert (out == 1).sum() == 4.5 * 36 and (out[:4] == 1).all()  # 4.5 rows: the mean of 3, 4, 5, 6
+    assert not out[6:].any()
+
+
+def test_the_volume_vote_is_the_majority_where_the_subjects_agree():
+    counts = np.zeros((3, 8, 8, 8), np.uint16)
+    counts[0, :3] = 5
+    counts[1, 3:5] = 5
+    counts[2, 5:7, 2:6] = 5
+    labels = np.array([1, 4, 9])
+    np.testing.assert_array_equal(vote_volumes(counts, 5, labels), vote(counts, 5, labels))
+    assert vote_volumes(counts, 5, labels).dtype == np.uint8
+
+
+def test_the_volume_vote_gives_a_voxel_two_labels_want_to_the_one_with_more_votes():
+    counts = np.zeros((2, 1, 1, 4), np.uint16)  # labels 1 and 2, 3 subjects, 4 voxels
+    counts[0, 0, 0] = [3, 2, 0, 0]  # label 1: 5 votes, mean volume 2 (rounded from 5/3)
+    counts[1, 0, 0] = [0, 1, 2, 0]  # label 2: 3 votes, mean volume 1
+    out = vote_volumes(counts, 3, np.array([1, 2]))
+    assert out[0, 0].tolist() == [1, 1, 2, 0]
 
 
 def test_sharpness_is_one_where_every_subject_agrees():

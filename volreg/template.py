@@ -8,7 +8,8 @@
    the template average to the identity and no subject's position or size is privileged.  (A
    medoid pose would need every pair registered; the mean needs one map per subject.)  The grid
    has the finest input spacing (or ``spacing``) and holds every aligned subject.  The first
-   template is the labels of the *medoid* subject read through its map into that mean pose: the
+   template is the labels of the *medoid* subject read through its map into that mean pose (nearest
+   neighbour, which keeps a thin structure's volume where interpolating labels thins it): the
    subject with the largest mean Dice to the others once all are read through their maps
    (:func:`~volreg.pipeline.template_shape.medoid`).  Not their vote: where the subjects differ by
    more than a structure's thickness after the linear stage (a thin shell, a thin gap), no label
@@ -24,9 +25,13 @@
    corresponds to subject point ``x + u_i(x)``) and the subject in template space.  Their mean
    ``u_bar`` is the template's offset from the cohort's mean shape: the next template is moved by
    ``phi(x) = x + u_bar(x)`` (its inverse by fixed-point iteration on the grid), as the vote of
-   the subjects each read once from its own labels at ``phi^-1(y) + u_i(phi^-1(y))`` (its
-   registration composed with the inverse update; not the warped subjects resampled again, which
-   would blur the labels twice).  The iterations stop when the mean of ``|u_bar|`` over the template's
+   the subjects each read once from its own labels, by nearest neighbour, at
+   ``phi^-1(y) + u_i(phi^-1(y))`` (its registration composed with the inverse update; not the
+   warped subjects resampled again, which would blur the labels twice).  The vote keeps each
+   label's mean volume over the subjects (:func:`~volreg.pipeline.template_shape.vote_volumes`):
+   the majority would thin a structure at its edges, wherever the registrations' residual
+   disagreement is a fair part of its thickness, and the next round would register to the thinner
+   one.  The iterations stop when the mean of ``|u_bar|`` over the template's
    labels is at most ``tolerance`` (the template is then the cohort's mean: the subjects'
    displacements average to about zero over it), when it no longer falls (the registrations'
    own error and the labels' voxels set a floor to it), or after ``iterations``.
@@ -64,7 +69,8 @@ from volreg.io.frames import write_frames
 from volreg.io.protocol import load_protocol
 from volreg.linear_map import LinearMap
 from volreg.pipeline.template_shape import (
-    invert_displacement, mean_linear_map, medoid, pull_back_points, rank_subjects, sharpness, template_grid, vote,
+    invert_displacement, mean_linear_map, medoid, pull_back_points, rank_subjects, sharpness, template_grid,
+    vote_volumes,
 )
 from volreg.warp.linear import fit_linear
 from volreg.warp.resample import resample_labels
@@ -200,7 +206,7 @@ def _first_template(rows, to_subject: dict[str, LinearMap], spacing: float | Non
     y = grid.grid_points().reshape(-1, grid.ndim)
     aligned = []
     for i, (sid, v) in enumerate(volumes.items()):
-        aligned.append(resample_labels(v, to_subject[sid](y)).reshape(grid.shape))
+        aligned.append(resample_labels(v, to_subject[sid](y), method="nearest").reshape(grid.shape))
         if progress is not None:
             progress("template first template", i + 1, len(volumes))
     best, mean_dice = medoid(aligned, np.array(labels))
@@ -286,10 +292,10 @@ def _moved_template(work: Path, rows, grid: Grid, labels: list[int], inverse: np
         u, _ = read_displacement(work / "pairs" / _PAIR.format(sid) / "warp.nii.gz")
         points = pull_back_points(grid, inverse, u)
         del u
-        _add_votes(counts, labels, resample_labels(read_labels(path), points).reshape(grid.shape))
+        _add_votes(counts, labels, resample_labels(read_labels(path), points, method="nearest").reshape(grid.shape))
         if progress is not None:
             progress("template update", i + 1, len(rows))
-    return vote(counts, len(rows), np.array(labels))
+    return vote_volumes(counts, len(rows), np.array(labels))
 
 
 def _report_figure(report: dict, path: Path) -> None:

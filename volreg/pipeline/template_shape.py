@@ -7,7 +7,8 @@ A template is built by :func:`volreg.template.build_template`; this module holds
   own, not the reference's;
 - the template grid that holds every aligned subject (:func:`template_grid`);
 - per-label vote counts, the template labels as their arg max with the background
-  (:func:`vote`), and each label's probability sharpness (:func:`sharpness`);
+  (:func:`vote`) or with each label's mean volume kept (:func:`vote_volumes`), and each label's
+  probability sharpness (:func:`sharpness`);
 - the first template's subject: the medoid of the linearly aligned label maps (:func:`medoid`);
 - the shape update: the mean of the subjects' pull-back displacements ``u_bar`` over the
   template grid says where, on average, the subjects' points lie relative to the template's; the
@@ -33,6 +34,7 @@ __all__ = [
     "sharpness",
     "template_grid",
     "vote",
+    "vote_volumes",
 ]
 
 
@@ -122,6 +124,70 @@ def vote(counts: np.ndarray, subjects: int, labels: np.ndarray) -> np.ndarray:
     dtype = np.result_type(np.min_scalar_type(int(np.max(labels, initial=0))), np.uint8)
     out = np.asarray(labels, dtype)[best]
     out[top <= background] = 0
+    return out
+
+
+def _tie_break(counts: np.ndarray, subjects: int) -> np.ndarray:
+    """A label's votes plus, below one, their mean over the voxel's 3^D neighbourhood: the order of
+    the voxels by their votes, ties broken towards the voxels among more votes."""
+    c = np.asarray(counts, np.float32)
+    return c + 0.99 * ndimage.uniform_filter(c, size=3, mode="nearest") / max(subjects, 1)
+
+
+def _largest(score: np.ndarray, allowed: np.ndarray, n: int) -> np.ndarray:
+    """The mask of the ``n`` largest ``score`` values among the ``allowed`` voxels (equal scores
+    in C order of the voxels)."""
+    where = np.flatnonzero(allowed)
+    out = np.zeros(score.shape, bool)
+    if n > 0 and where.size:
+        order = np.argsort(-score.ravel()[where], kind="stable")[:n]
+        out.ravel()[where[order]] = True
+    return out
+
+
+def vote_volumes(counts: np.ndarray, subjects: int, labels: np.ndarray) -> np.ndarray:
+    """Template labels that keep each label's mean volume: a vote with a threshold per label.
+
+    Label ``l`` takes the ``V_l = round(sum(counts_l) / subjects)`` voxels where it has most votes
+    (the subjects' mean volume of it; ties broken towards the voxels among more votes, then in
+    C order); a voxel
+    that two labels take goes to the one with more votes there (then the lower label), and a label
+    that lost voxels so takes as many more among those no label took.  The majority vote
+    (:func:`vote`) thins a structure thinner than the subjects' disagreement on its place: at its
+    edges no label has the majority, and the background wins; here its volume is kept.
+
+    Parameters
+    ----------
+    counts : (L, *shape) int array
+        Votes per label of ``labels`` (subjects with the label at the voxel).
+    subjects : int
+        The number of subjects.
+    labels : (L,) int array
+        The label values.
+
+    Returns
+    -------
+    (*shape) array of the labels' dtype (at least uint8)
+        Only voxels with at least one vote hold a label.
+    """
+    dtype = np.result_type(np.min_scalar_type(int(np.max(labels, initial=0))), np.uint8)
+    shape = counts.shape[1:]
+    out = np.zeros(shape, dtype)
+    held = np.zeros(shape, np.int64)  # the votes of the label each voxel holds
+    wanted = []
+    for k, v in enumerate(labels):
+        c = np.asarray(counts[k])
+        n = round(float(c.sum(dtype=np.int64)) / max(subjects, 1))
+        wanted.append(n)
+        take = _largest(_tie_break(c, subjects), c > 0, n) & (c > held)
+        out[take] = v
+        held[take] = c[take]
+    for k, v in enumerate(labels):  # the voxels lost to other labels, from those no label took
+        c = np.asarray(counts[k])
+        missing = wanted[k] - int(np.count_nonzero(out == v))
+        if missing > 0:
+            take = _largest(_tie_break(c, subjects), (c > 0) & (out == 0), missing)
+            out[take] = v
     return out
 
 
