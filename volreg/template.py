@@ -204,17 +204,18 @@ def _first_template(rows, to_subject: dict[str, LinearMap], spacing: float | Non
                          f"{2 * cells / 1e9:.1f} GB of vote counts; expected at most {2 * MAX_COUNT_CELLS / 1e9:.0f} GB "
                          "(choose a coarser --spacing).")
     y = grid.grid_points().reshape(-1, grid.ndim)
-    aligned = []
+    dtype = np.result_type(np.min_scalar_type(int(max(labels, default=0))), np.uint8)
+    aligned = []  # each subject in the mean pose (one byte a voxel for label values up to 255)
     for i, (sid, v) in enumerate(volumes.items()):
-        aligned.append(resample_labels(v, to_subject[sid](y), method="nearest").reshape(grid.shape))
+        aligned.append(resample_labels(v, to_subject[sid](y), method="nearest").reshape(grid.shape).astype(dtype))
         if progress is not None:
             progress("template first template", i + 1, len(volumes))
+    del y
     best, mean_dice = medoid(aligned, np.array(labels))
     ids = list(volumes)
-    dtype = np.result_type(np.min_scalar_type(int(max(labels, default=0))), np.uint8)
     start = {"first_template": "medoid", "medoid": ids[best],
              "medoid_mean_dice": {sid: float(d) for sid, d in zip(ids, mean_dice)}}
-    return grid, labels, aligned[best].astype(dtype, copy=False), start
+    return grid, labels, aligned[best], start
 
 
 def _add_votes(counts: np.ndarray, labels: list[int], array: np.ndarray) -> None:

@@ -299,15 +299,18 @@ def medoid(arrays: list[np.ndarray], labels: np.ndarray) -> tuple[int, np.ndarra
     """
     labels = np.asarray(labels)
     n = len(labels) + 1
-    codes = []
+    small = np.min_scalar_type(n)
+    codes = []  # 0 for the background, k + 1 for labels[k]
     for a in arrays:
+        a = np.asarray(a).ravel()
         k = np.searchsorted(labels, a).clip(0, max(len(labels) - 1, 0))
         known = (a != 0) & (labels[k] == a) if len(labels) else np.zeros(a.shape, bool)
-        codes.append(np.where(known, k + 1, 0).astype(np.intp).ravel())
+        codes.append(np.where(known, k + 1, 0).astype(small))
+        del k, known
     total = np.zeros((len(arrays), len(arrays)))
     for i in range(len(arrays)):
         for j in range(i + 1, len(arrays)):
-            table = np.bincount(codes[i] * n + codes[j], minlength=n * n).reshape(n, n)
+            table = np.bincount(codes[i].astype(np.intp) * n + codes[j], minlength=n * n).reshape(n, n)
             sizes = (table.sum(1) + table.sum(0))[1:]
             held = sizes > 0
             d = float(np.mean(2.0 * np.diag(table)[1:][held] / sizes[held])) if held.any() else 1.0
