@@ -286,8 +286,9 @@ def _iteration(k: int, work: Path, manifest: Path, rows, grid: Grid, labels, tem
 
 
 def _moved_template(work: Path, rows, grid: Grid, labels: list[int], inverse: np.ndarray, progress) -> np.ndarray:
-    """The next template: the vote of the subjects, each read once from its own file through its
-    registration composed with the inverse shape update (``inverse``: ``phi^-1(y) = y + inverse(y)``)."""
+    """The next template: the subjects' vote keeping each label's mean volume, each subject read once
+    from its own file (nearest neighbour) through its registration composed with the inverse shape
+    update (``inverse``: ``phi^-1(y) = y + inverse(y)``)."""
     counts = np.zeros((len(labels), *grid.shape), np.uint16)
     for i, (sid, path) in enumerate(rows):
         u, _ = read_displacement(work / "pairs" / _PAIR.format(sid) / "warp.nii.gz")

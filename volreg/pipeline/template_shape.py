@@ -149,12 +149,11 @@ def vote_volumes(counts: np.ndarray, subjects: int, labels: np.ndarray) -> np.nd
     """Template labels that keep each label's mean volume: a vote with a threshold per label.
 
     Label ``l`` takes the ``V_l = round(sum(counts_l) / subjects)`` voxels where it has most votes
-    (the subjects' mean volume of it; ties broken towards the voxels among more votes, then in
-    C order); a voxel
-    that two labels take goes to the one with more votes there (then the lower label), and a label
-    that lost voxels so takes as many more among those no label took.  The majority vote
-    (:func:`vote`) thins a structure thinner than the subjects' disagreement on its place: at its
-    edges no label has the majority, and the background wins; here its volume is kept.
+    (the subjects' mean volume of it; ties broken towards the voxels among more votes, then in C
+    order); a voxel that two labels take goes to the one with more votes there (then the lower
+    label), and a label that lost voxels so takes as many more among those no label took.  The
+    majority vote (:func:`vote`) thins a structure thinner than the subjects' disagreement on its
+    place: at its edges no label has the majority, and the background wins; here its volume is kept.
 
     Parameters
     ----------
