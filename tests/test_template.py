@@ -1,8 +1,10 @@
-"""``volreg template`` and :func:`volreg.template.build_template` on a cohort with a known mean shape.
+"""``volreg template`` and :func:`volreg.template.build_template` on cohorts with a known mean shape.
 
 Four subjects are one base shape deformed by a local bump and by its opposite, at two places:
 their mean shape is the base (to first order), which none of them is.  An unbiased template
-must come closer to the base than any subject.
+must come closer to the base than any subject.  A second cohort has a thin shell (two voxels)
+that the subjects' bumps move by more than its thickness, in opposite directions: the template
+must keep it.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import numpy as np
 import pytest
 
 from volreg.cli import main
-from volreg.errors import UsageError
+from volreg.errors import CohortInterrupted, UsageError
 from volreg.evaluation.metrics import dice
 from volreg.grid import LabelVolume
 from volreg.io import read_labels, write_labels
@@ -21,6 +23,7 @@ from volreg.io.fields import read_displacement
 from volreg.io.frames import read_frames
 from volreg.synthetic import GaussianBumps, deform_labels
 from volreg.template import build_template
+from volreg.warp.linear import fit_linear
 from volreg.warp.resample import resample_labels
 
 from helpers import TEST_PROTOCOL
@@ -163,7 +166,7 @@ def test_a_subject_whose_registration_fails_is_left_out_with_a_warning(cohort, t
     (tmp_path / "m.csv").write_text("id,path\ns0p,s0p.nii.gz\ns0m,s0m.nii.gz\ns1p,s1p.nii.gz\nbad,bad.nii.gz\n")
 
     def progress(stage, done, total):
-        if stage == "template first vote" and done == total:  # read by the start; unreadable for the registrations
+        if stage == "template first template" and done == total:  # read by the start; unreadable for the registrations
             (tmp_path / "bad.nii.gz").write_bytes(b"not an image")
 
     warnings = []
@@ -172,6 +175,102 @@ def test_a_subject_whose_registration_fails_is_left_out_with_a_warning(cohort, t
     assert len(warnings) == 1 and "subject bad left out of iteration 1" in warnings[0]
     assert result.report["left_out"] == ["bad"] and set(result.subjects) == {"s0p", "s0m", "s1p"}
     assert not (tmp_path / "out" / "subjects" / "bad").exists()
+
+
+# ----------------------------------------------------------------------------- a thin shell
+
+
+def _shelled(n=32, spacing=2.0, thickness=4.0) -> LabelVolume:
+    """An ellipsoidal core (label 1) in a shell ``thickness`` mm thick (label 2), with an inner
+    structure off the centre (label 3)."""
+    x = np.indices((n, n, n)).reshape(3, -1).T * spacing - (n - 1) * spacing / 2
+    axes = np.array([24.0, 18.0, 15.0])
+    a = np.zeros(len(x), np.uint8)
+    a[((x / axes) ** 2).sum(1) <= 1] = 2
+    a[((x / (axes - thickness)) ** 2).sum(1) <= 1] = 1
+    a[(((x - [-8, 4, 2]) / [6, 5, 5]) ** 2).sum(1) <= 1] = 3
+    return LabelVolume(a.reshape(n, n, n), np.full(3, -(n - 1) * spacing / 2), np.full(3, spacing), np.eye(3))
+
+
+def _aligned_dice(known: LabelVolume, built: LabelVolume, label: int) -> float:
+    """Dice of ``label`` between the known shape and the built template read through the affine
+    map that aligns them (the template's global pose is free)."""
+    to_built = fit_linear(known, built, kind="affine").map
+    read = resample_labels(built, to_built(known.grid_points().reshape(-1, 3))).reshape(known.shape)
+    return float(dice(known.array == label, read == label))
+
+
+@pytest.fixture(scope="module")
+def shell_cohort(tmp_path_factory):
+    """Bumps normal to the shell at the eight octants, signs alternating so that they hold no
+    linear part; pairs of opposite bumps (5 mm and 2.5 mm) average to the base."""
+    root = tmp_path_factory.mktemp("shell")
+    base = _shelled()
+    axes = np.array([24.0, 18.0, 15.0])
+    octants = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
+    centres = octants / np.sqrt(3) * axes
+    normals = centres / axes ** 2
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    signs = np.prod(octants, axis=1)[:, None]
+    rows = ["id,path"]
+    subjects = {}
+    for j, size in enumerate((5.0, 2.5)):
+        for sign, tag in ((1, "p"), (-1, "m")):
+            sid = f"s{j}{tag}"
+            subjects[sid] = deform_labels(base, GaussianBumps(centres, sign * size * signs * normals, 11.0))
+            write_labels(subjects[sid], root / f"{sid}.nii.gz")
+            rows.append(f"{sid},{sid}.nii.gz")
+    (root / "manifest.csv").write_text("\n".join(rows) + "\n")
+    (root / "test.toml").write_text(TEST_PROTOCOL)
+    out = root / "out"
+    result = build_template(root / "manifest.csv", out, iterations=2, workers=1, protocol=str(root / "test.toml"))
+    return root, base, subjects, out, result
+
+
+def test_a_thin_shell_moved_further_than_its_thickness_is_kept(shell_cohort):
+    _, base, subjects, out, result = shell_cohort
+    nearest_subject = max(_aligned_dice(base, s, 2) for s in subjects.values())
+    assert nearest_subject < 0.85  # the subjects' shells overlap the base's little
+    shell = _aligned_dice(base, read_labels(out / "template.nii.gz"), 2)
+    assert shell > 0.85 and shell > nearest_subject + 0.03
+    start = result.report["linear_start"]
+    assert start["first_template"] == "medoid" and start["medoid"] in subjects
+    assert start["medoid"] == max(start["medoid_mean_dice"], key=start["medoid_mean_dice"].get)
+
+
+class _Killed(Exception):
+    """Stands for the process's end."""
+
+
+def test_a_killed_run_continues_to_the_same_bytes(shell_cohort, tmp_path):
+    root, _, _, reference, _ = shell_cohort
+    options = {"iterations": 2, "workers": 1, "protocol": str(root / "test.toml")}
+    out = tmp_path / "out"
+
+    def notify(line):  # once the first round's registrations are done, before the next template
+        if line.startswith("template iteration 1"):
+            raise _Killed
+
+    with pytest.raises(_Killed):
+        build_template(root / "manifest.csv", out, notify=notify, **options)
+    assert not (out / "iterations" / "02").exists()
+
+    def progress(stage, done, total):  # the second round: killed after its first registration
+        if stage == "registrations" and done == 1 and (out / "iterations" / "02" / "template.nii.gz").is_file():
+            raise KeyboardInterrupt
+
+    with pytest.raises(CohortInterrupted):
+        build_template(root / "manifest.csv", out, progress=progress, **options)
+    assert not (out / "report.json").exists()
+    done = list((out / "iterations" / "02" / "pairs").glob("*/batch_row.json"))
+    assert 1 <= len(done) < 4
+
+    build_template(root / "manifest.csv", out, **options)
+    for name in ("template.nii.gz", "probabilities.nii.gz", "labels.csv"):
+        assert (out / name).read_bytes() == (reference / name).read_bytes(), name
+    for sid in ("s0p", "s1m"):
+        assert (out / "subjects" / sid / "warp.nii.gz").read_bytes() == \
+            (reference / "subjects" / sid / "warp.nii.gz").read_bytes()
 
 
 def test_the_shape_model_of_the_template_finds_the_cohorts_two_bumps(cohort, tmp_path, capsys):

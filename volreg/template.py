@@ -5,17 +5,33 @@
 1. **Linear start.**  Every subject is aligned to a provisional reference (the first subject)
    by the affine stage of ``register``; the template's pose is the log-Euclidean mean of those
    maps (:func:`~volreg.pipeline.template_shape.mean_linear_map`), so that the subjects' maps from
-   the template average to the identity and no subject's position or size is privileged.  (The
-   medoid would need every pair registered; the mean needs one map per subject.)  The first
-   template is the vote of the subjects' labels read through those maps, on a grid of the finest
-   input spacing (or ``spacing``) holding every aligned subject.
+   the template average to the identity and no subject's position or size is privileged.  (A
+   medoid pose would need every pair registered; the mean needs one map per subject.)  The grid
+   has the finest input spacing (or ``spacing``) and holds every aligned subject.  The first
+   template is the labels of the *medoid* subject read through its map into that mean pose (nearest
+   neighbour, which keeps a thin structure's volume where interpolating labels thins it): the
+   subject with the largest mean Dice to the others once all are read through their maps
+   (:func:`~volreg.pipeline.template_shape.medoid`).  Not their vote: where the subjects differ by
+   more than a structure's thickness after the linear stage (a thin shell, a thin gap), no label
+   has the majority there and the vote loses the structure; the registrations to a template
+   without it cannot align it, so no later round brings it back.  One subject's labels hold every
+   structure.  Starting from one subject's shape does not bias the result: the pose is the mean's,
+   and every round moves the template by the subjects' mean displacement, so that it ends at the
+   cohort's mean shape wherever it starts (the fixed point of step 2); the medoid starts nearest
+   that mean, with the fewest rounds to go.
 2. **Iterations.**  Every subject is registered to the current template (``volreg register
    TEMPLATE SUBJECT``, as Dask tasks by :func:`volreg.cohort.register_cohort`, resumable).  Each
    registration gives the pull-back field ``u_i`` on the template grid (template point ``x``
    corresponds to subject point ``x + u_i(x)``) and the subject in template space.  Their mean
-   ``u_bar`` is the template's offset from the cohort's mean shape: the next template is the
-   vote of the warped subjects moved by ``phi(x) = x + u_bar(x)`` (its inverse by fixed-point
-   iteration on the grid).  The iterations stop when the mean of ``|u_bar|`` over the template's
+   ``u_bar`` is the template's offset from the cohort's mean shape: the next template is moved by
+   ``phi(x) = x + u_bar(x)`` (its inverse by fixed-point iteration on the grid), as the vote of
+   the subjects each read once from its own labels, by nearest neighbour, at
+   ``phi^-1(y) + u_i(phi^-1(y))`` (its registration composed with the inverse update; not the
+   warped subjects resampled again, which would blur the labels twice).  The vote keeps each
+   label's mean volume over the subjects (:func:`~volreg.pipeline.template_shape.vote_volumes`):
+   the majority would thin a structure at its edges, wherever the registrations' residual
+   disagreement is a fair part of its thickness, and the next round would register to the thinner
+   one.  The iterations stop when the mean of ``|u_bar|`` over the template's
    labels is at most ``tolerance`` (the template is then the cohort's mean: the subjects'
    displacements average to about zero over it), when it no longer falls (the registrations'
    own error and the labels' voxels set a floor to it), or after ``iterations``.
@@ -53,7 +69,8 @@ from volreg.io.frames import write_frames
 from volreg.io.protocol import load_protocol
 from volreg.linear_map import LinearMap
 from volreg.pipeline.template_shape import (
-    invert_displacement, mean_linear_map, move_counts, rank_subjects, sharpness, template_grid, vote,
+    invert_displacement, mean_linear_map, medoid, pull_back_points, rank_subjects, sharpness, template_grid,
+    vote_volumes,
 )
 from volreg.warp.linear import fit_linear
 from volreg.warp.resample import resample_labels
@@ -162,8 +179,9 @@ def _corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def _first_template(rows, to_subject: dict[str, LinearMap], spacing: float | None, progress):
-    """The template grid, its labels and the first vote counts: the subjects read through their
-    linear maps."""
+    """The template grid, its labels, the first template (the medoid subject read through its
+    linear map, the module notes) and the start's record (the medoid, each subject's mean Dice to
+    the others)."""
     volumes = {}
     boxes = []
     finest = np.inf
@@ -185,13 +203,19 @@ def _first_template(rows, to_subject: dict[str, LinearMap], spacing: float | Non
         raise UsageError(f"The template grid {grid.shape} at {step:g} mm with {len(labels)} labels needs "
                          f"{2 * cells / 1e9:.1f} GB of vote counts; expected at most {2 * MAX_COUNT_CELLS / 1e9:.0f} GB "
                          "(choose a coarser --spacing).")
-    counts = np.zeros((len(labels), *grid.shape), np.uint16)
     y = grid.grid_points().reshape(-1, grid.ndim)
+    dtype = np.result_type(np.min_scalar_type(int(max(labels, default=0))), np.uint8)
+    aligned = []  # each subject in the mean pose (one byte a voxel for label values up to 255)
     for i, (sid, v) in enumerate(volumes.items()):
-        _add_votes(counts, labels, resample_labels(v, to_subject[sid](y)).reshape(grid.shape))
+        aligned.append(resample_labels(v, to_subject[sid](y), method="nearest").reshape(grid.shape).astype(dtype))
         if progress is not None:
-            progress("template first vote", i + 1, len(volumes))
-    return grid, labels, counts
+            progress("template first template", i + 1, len(volumes))
+    del y
+    best, mean_dice = medoid(aligned, np.array(labels))
+    ids = list(volumes)
+    start = {"first_template": "medoid", "medoid": ids[best],
+             "medoid_mean_dice": {sid: float(d) for sid, d in zip(ids, mean_dice)}}
+    return grid, labels, aligned[best], start
 
 
 def _add_votes(counts: np.ndarray, labels: list[int], array: np.ndarray) -> None:
@@ -257,9 +281,23 @@ def _iteration(k: int, work: Path, manifest: Path, rows, grid: Grid, labels, tem
              "left_out": sorted(failed), "seconds": time.perf_counter() - t0}
     following = None
     if stats["update_mean_mm"] > tolerance and not (previous is not None and stats["update_mean_mm"] >= previous):
-        moved = move_counts(counts, grid, invert_displacement(mean, grid))
-        following = vote(moved, len(rows), np.array(labels))
+        following = _moved_template(folder, rows, grid, labels, invert_displacement(mean, grid), options["progress"])
     return stats, counts, following
+
+
+def _moved_template(work: Path, rows, grid: Grid, labels: list[int], inverse: np.ndarray, progress) -> np.ndarray:
+    """The next template: the subjects' vote keeping each label's mean volume, each subject read once
+    from its own file (nearest neighbour) through its registration composed with the inverse shape
+    update (``inverse``: ``phi^-1(y) = y + inverse(y)``)."""
+    counts = np.zeros((len(labels), *grid.shape), np.uint16)
+    for i, (sid, path) in enumerate(rows):
+        u, _ = read_displacement(work / "pairs" / _PAIR.format(sid) / "warp.nii.gz")
+        points = pull_back_points(grid, inverse, u)
+        del u
+        _add_votes(counts, labels, resample_labels(read_labels(path), points, method="nearest").reshape(grid.shape))
+        if progress is not None:
+            progress("template update", i + 1, len(rows))
+    return vote_volumes(counts, len(rows), np.array(labels))
 
 
 def _report_figure(report: dict, path: Path) -> None:
@@ -381,10 +419,9 @@ def build_template(
 
     t0 = time.perf_counter()
     to_subject = _linear_start(rows, linear, work, progress)
-    grid, labels, counts = _first_template(rows, to_subject, spacing, progress)
-    template = vote(counts, len(rows), np.array(labels))
+    grid, labels, template, medoid_info = _first_template(rows, to_subject, spacing, progress)
     start_info = {"kind": linear, "reference": rows[0][0],
-                  "mean_of": "log-Euclidean mean of the affine maps from the reference",
+                  "mean_of": "log-Euclidean mean of the affine maps from the reference", **medoid_info,
                   "seconds": time.perf_counter() - t0}
     tolerance = 0.25 * float(grid.spacing[0]) if tolerance is None else float(tolerance)
     options = {"protocol": protocol, "workers": workers, "scheduler": scheduler, "progress": progress,
