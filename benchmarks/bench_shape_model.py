@@ -7,9 +7,10 @@ The Python that runs the script needs volreg and, for the baseline, pycpd (the b
 volreg runs as `--volreg-command` (default: the repository's `.venv/bin/volreg`).
 
 A cohort: a KNOWN template T (an ellipsoidal organ holding three inner structures, one small,
-at 2 mm) and subjects warped by x + sum_m b_im e_m(x), with three known modes e_m (Gaussian bumps of
-scale 10 mm, in opposite pairs that neither move nor turn the organ, pushing along x, y and z, peak
-4, 2.5 and 1.5 mm at 1 sd) and whitened known
+at 2 mm) and subjects warped by x + sum_m b_im e_m(x), with three known modes e_m (Gaussian bumps in
+opposite pairs that neither move nor turn the organ, pushing along x, y and z; `--modes`: `large`,
+peaks 6, 4 and 3 mm at 1 sd, scale 15 mm; `small`, peaks 4, 2.5 and 1.5 mm, scale 10 mm, a shape
+variation of about a third of a voxel's RMS, near the registrations' own error) and whitened known
 coefficients b (`volreg.synthetic.KnownModes`: the cohort's variance along each mode is
 exactly its own), label-preservingly resampled on T's grid. The cohort's mean shape is T.
 
@@ -27,7 +28,8 @@ Methods, each timed as a user runs it:
 - `known`: the models of the known warps on T itself (the best any correspondence can do).
 
 Scores, the same code for every model: the largest principal angle between the span of the
-leading three modes and the known modes' span at the model's points (degrees); the leading
+leading three modes and the known modes' span at the model's points (degrees; all three principal
+angles, smallest first); the leading
 three variances over the known ones (the eigenvalues of the known modes' covariance at those
 points); compactness, generalization and specificity with 3 modes (mm, with their standard
 errors); correspondence both ways (the model's points in each subject against its own label
@@ -55,7 +57,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from common import last_line, print_header, run_env, timed  # noqa: E402
 
-KEYS = ("cohort", "method", "model", "subjects", "angle_deg", "variance_ratio", "compactness_3", "generalization_3_mm",
+KEYS = ("cohort", "method", "model", "subjects", "angle_deg", "angles_deg", "variance_ratio", "compactness_3", "generalization_3_mm",
         "generalization_3_se_mm", "specificity_3_mm", "to_boundary_mm", "from_boundary_mm", "seconds",
         "template_seconds", "failed")
 CPD_POINTS = 1000
@@ -73,18 +75,23 @@ def known_template(n: int = 44, spacing: float = 2.0):
     return LabelVolume(a.reshape(n, n, n), np.full(3, -(n - 1) * spacing / 2), np.full(3, spacing), np.eye(3))
 
 
-def known_modes():
+#: The known modes' peak displacements at 1 sd (mm) and bump scale (mm), by name (``--modes``).
+MODE_SETS = {"large": ((6.0, 4.0, 3.0), 15.0), "small": ((4.0, 2.5, 1.5), 10.0)}
+
+
+def known_modes(name: str = "large"):
     from volreg.synthetic import KnownModes
 
-    return KnownModes(np.array([[16.0, 0, 0], [-8.0, 12, 0], [6.0, 0, 10]]), np.eye(3), np.array([4.0, 2.5, 1.5]), 10.0)
+    sd, scale = MODE_SETS[name]
+    return KnownModes(np.array([[16.0, 0, 0], [-8.0, 12, 0], [6.0, 0, 10]]), np.eye(3), np.array(sd), scale)
 
 
-def build_cohort(subjects: int, seed: int, folder: Path) -> dict:
+def build_cohort(subjects: int, seed: int, folder: Path, modes_name: str) -> dict:
     """The subjects' label maps, manifest and known coefficients in ``folder``."""
     from volreg.io import write_labels
     from volreg.synthetic import deform_labels
 
-    template, modes = known_template(), known_modes()
+    template, modes = known_template(), known_modes(modes_name)
     b = modes.coefficients(subjects, seed=seed)
     folder.mkdir(parents=True, exist_ok=True)
     ids = [f"s{i:02d}" for i in range(subjects)]
@@ -96,18 +103,20 @@ def build_cohort(subjects: int, seed: int, folder: Path) -> dict:
     return {"template": template, "modes": modes, "b": b, "ids": ids, "folder": folder}
 
 
+
 # ----------------------------------------------------------------------------- scores
 
 
-def mode_scores(model, points: np.ndarray, to_known) -> dict:
-    """Principal angle (degrees) and variance ratio of the leading three modes against the known ones at ``points``."""
+def mode_scores(model, points: np.ndarray, to_known, modes) -> dict:
+    """Principal angles (degrees) and variance ratios of the leading three modes against the known ``modes`` at ``points``."""
     from scipy.linalg import subspace_angles
 
-    known = known_modes().fields(to_known(points)).reshape(3, -1)
+    known = modes.fields(to_known(points)).reshape(3, -1)
     k = min(3, model.n_modes)
-    angle = float(np.degrees(subspace_angles(model.modes[:k].reshape(k, -1).T, known.T)).max())
+    angles = np.sort(np.degrees(subspace_angles(model.modes[:k].reshape(k, -1).T, known.T)))
     expected = np.sort(np.linalg.eigvalsh(known @ known.T))[::-1][:k]
-    return {"angle_deg": angle, "variance_ratio": "/".join(f"{r:.2f}" for r in model.variances[:k] / expected)}
+    return {"angle_deg": float(angles[-1]), "angles_deg": "/".join(f"{a:.1f}" for a in angles),
+            "variance_ratio": "/".join(f"{r:.2f}" for r in model.variances[:k] / expected)}
 
 
 def quality_row(q: dict) -> dict:
@@ -133,7 +142,7 @@ def score_volreg(cohort: dict, template_dir: Path, model_dir: Path) -> list[dict
         lsm = LabelShapeModel.load(model_dir / kind / "model.npz")
         q = json.loads((model_dir / kind / "quality.json").read_text())
         points = lsm.vertices if kind == "surface" else lsm.template.grid_points()[lsm.region]
-        rows.append({"model": kind, **mode_scores(lsm.model, points, to_known), **quality_row(q),
+        rows.append({"model": kind, **mode_scores(lsm.model, points, to_known, cohort["modes"]), **quality_row(q),
                      "to_boundary_mm": q["correspondence"]["to_boundary_mm"],
                      "from_boundary_mm": q["correspondence"]["from_boundary_mm"]})
     return rows
@@ -181,7 +190,7 @@ def cpd_model(cohort: dict, template_dir: Path, seed: int) -> tuple[dict, float]
             to_b.append(cKDTree(boundaries[i][v]).query(mine)[0].mean())
             from_b.append(cKDTree(mine).query(boundaries[i][v])[0].mean())
     to_known = to_known_map(template_dir / "template.nii.gz", cohort["template"])
-    row = {"model": "surface", **mode_scores(model, reference, to_known), **quality_row(q),
+    row = {"model": "surface", **mode_scores(model, reference, to_known, cohort["modes"]), **quality_row(q),
            "to_boundary_mm": float(np.mean(to_b)), "from_boundary_mm": float(np.mean(from_b))}
     return row, seconds
 
@@ -205,17 +214,42 @@ def known_rows(cohort: dict, work: Path) -> list[dict]:
     for kind, lsm in result.models.items():
         q = result.quality[kind]
         points = lsm.vertices if kind == "surface" else template.grid_points()[lsm.region]
-        rows.append({"model": kind, **mode_scores(lsm.model, points, lambda p: p), **quality_row(q),
+        rows.append({"model": kind, **mode_scores(lsm.model, points, lambda p: p, modes), **quality_row(q),
                      "to_boundary_mm": q["correspondence"]["to_boundary_mm"],
                      "from_boundary_mm": q["correspondence"]["from_boundary_mm"]})
+    return rows
+
+
+def scaling_rows(sizes, points: int) -> list[dict]:
+    """Large cohorts without registration: ``ShapeModel.fit`` (rigid Procrustes, 10 modes) and
+    ``model_quality`` on N float32 shapes of ``points`` points (5 true modes plus noise), timed, and
+    the data's and modes' bytes."""
+    from volreg import ShapeModel, model_quality
+
+    rows = []
+    rng = np.random.default_rng(0)
+    mean = rng.normal(size=(points, 3)) * 30
+    basis = rng.normal(size=(5, points, 3))
+    for n in sizes:
+        b = rng.normal(size=(n, 5)) * [5, 4, 3, 2, 1]
+        shapes = (mean + np.tensordot(b, basis, axes=1) + rng.normal(size=(n, points, 3)) * 0.1).astype(np.float32)
+        t0 = time.perf_counter()
+        model = ShapeModel.fit(shapes, align="rigid", modes=10)
+        fit = time.perf_counter() - t0
+        aligned = np.stack([s @ t[:3, :3].T + t[:3, 3] for s, t in zip(shapes, model.transforms)]).astype(np.float32)
+        t0 = time.perf_counter()
+        q = model_quality(model, aligned, samples=100)
+        rows.append({"subjects": n, "points": points, "fit_seconds": fit, "quality_seconds": time.perf_counter() - t0,
+                     "data_mb": shapes.nbytes / 1e6, "modes_mb": model.modes.nbytes / 1e6,
+                     "compactness_5": q["compactness"][4], "generalization_5_mm": q["generalization_mm"][4]})
     return rows
 
 
 # ----------------------------------------------------------------------------- running
 
 
-def run_cohort(name: str, subjects: int, seed: int, work: Path, args) -> list[dict]:
-    cohort = build_cohort(subjects, seed, work / name)
+def run_cohort(name: str, subjects: int, seed: int, modes_name: str, work: Path, args) -> list[dict]:
+    cohort = build_cohort(subjects, seed, work / name, modes_name)
     base = {"cohort": name, "subjects": subjects}
     rows = [{**base, "method": "known", **r} for r in known_rows(cohort, work / f"{name}-known")]
     volreg = shlex.split(args.volreg_command)
@@ -250,7 +284,7 @@ def fmt(v) -> str:
 
 
 def markdown(rows: list[dict]) -> str:
-    cols = ("cohort", "method", "model", "angle_deg", "variance_ratio", "compactness_3", "generalization_3_mm",
+    cols = ("cohort", "method", "model", "angles_deg", "variance_ratio", "compactness_3", "generalization_3_mm",
             "specificity_3_mm", "to_boundary_mm", "from_boundary_mm", "seconds", "template_seconds")
     out = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
@@ -266,20 +300,31 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="one cohort of 8 subjects")
     parser.add_argument("--subjects", type=int, default=16, help="subjects per cohort (default 16)")
     parser.add_argument("--seeds", default="0,1", help="one cohort per seed (default 0,1)")
+    parser.add_argument("--modes", default="large,small",
+                        help="known mode sets: large (6, 4, 3 mm at 1 sd, scale 15 mm), small (4, 2.5, 1.5 mm, scale 10)")
     parser.add_argument("--no-cpd", action="store_true", help="leave the CPD baseline out")
+    parser.add_argument("--scaling", default="", help="also time the PCA alone on cohorts of these sizes (e.g. 100,400)")
     parser.add_argument("--volreg-command", default=str(REPO / ".venv" / "bin" / "volreg"))
     parser.add_argument("--timeout", type=float, default=3600.0)
     parser.add_argument("--workdir", type=Path, default=None, help="keep the volumes and outputs in this new folder")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "shape_model")
     args = parser.parse_args()
     subjects, seeds = (8, [0]) if args.quick else (args.subjects, [int(s) for s in args.seeds.split(",")])
+    mode_sets = ["large"] if args.quick else args.modes.split(",")
     print_header("bench_shape_model.py")
     work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_shape_model_"))
     rows = []
-    for seed in seeds:
-        rows += run_cohort(f"organs-{subjects}-seed{seed}", subjects, seed, work, args)
-        print(markdown(rows[-5:]), flush=True)
+    for name in mode_sets:
+        for seed in seeds:
+            rows += run_cohort(f"{name}-{subjects}-seed{seed}", subjects, seed, name, work, args)
+            print(markdown(rows[-5:]), flush=True)
     print("\n" + markdown(rows))
+    if args.scaling:
+        big = scaling_rows([int(v) for v in args.scaling.split(",")], 30000)
+        keys = list(big[0])
+        print("\n| " + " | ".join(keys) + " |\n|" + "---|" * len(keys))
+        for r in big:
+            print("| " + " | ".join(fmt(r[k]) for k in keys) + " |")
     args.out.mkdir(parents=True, exist_ok=True)
     with open(args.out / "shape_models.csv", "w", newline="") as f:
         w = csv.DictWriter(f, KEYS, extrasaction="ignore")
