@@ -29,7 +29,8 @@ Methods, each timed as a user runs it:
 
 Scores, the same code for every model: the largest principal angle between the span of the
 leading three modes and the known modes' span at the model's points (degrees; all three principal
-angles, smallest first); the leading
+angles, smallest first), and for surface models the same of the modes' normal components alone
+(motion along a smooth boundary is not seen in label maps, by any method); the leading
 three variances over the known ones (the eigenvalues of the known modes' covariance at those
 points); compactness, generalization and specificity with 3 modes (mm, with their standard
 errors); correspondence both ways (the model's points in each subject against its own label
@@ -57,7 +58,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from common import last_line, print_header, run_env, timed  # noqa: E402
 
-KEYS = ("cohort", "method", "model", "subjects", "angle_deg", "angles_deg", "variance_ratio", "compactness_3", "generalization_3_mm",
+KEYS = ("cohort", "method", "model", "subjects", "angle_deg", "angles_deg", "normal_angles_deg", "variance_ratio", "compactness_3", "generalization_3_mm",
         "generalization_3_se_mm", "specificity_3_mm", "to_boundary_mm", "from_boundary_mm", "seconds",
         "template_seconds", "failed")
 CPD_POINTS = 1000
@@ -107,16 +108,34 @@ def build_cohort(subjects: int, seed: int, folder: Path, modes_name: str) -> dic
 # ----------------------------------------------------------------------------- scores
 
 
-def mode_scores(model, points: np.ndarray, to_known, modes) -> dict:
-    """Principal angles (degrees) and variance ratios of the leading three modes against the known ``modes`` at ``points``."""
+def mode_scores(model, points: np.ndarray, to_known, modes, normals: np.ndarray | None = None) -> dict:
+    """Principal angles (degrees) and variance ratios of the leading three modes against the known
+    ``modes`` at ``points``; with the points' unit ``normals`` (surfaces), also the angles of the
+    modes' normal components alone (what a boundary determines: motion along a smooth boundary
+    is not seen in a label map)."""
     from scipy.linalg import subspace_angles
 
-    known = modes.fields(to_known(points)).reshape(3, -1)
+    fields = modes.fields(to_known(points))  # (3, P, D)
+    known = fields.reshape(3, -1)
     k = min(3, model.n_modes)
     angles = np.sort(np.degrees(subspace_angles(model.modes[:k].reshape(k, -1).T, known.T)))
     expected = np.sort(np.linalg.eigvalsh(known @ known.T))[::-1][:k]
-    return {"angle_deg": float(angles[-1]), "angles_deg": "/".join(f"{a:.1f}" for a in angles),
-            "variance_ratio": "/".join(f"{r:.2f}" for r in model.variances[:k] / expected)}
+    out = {"angle_deg": float(angles[-1]), "angles_deg": "/".join(f"{a:.1f}" for a in angles),
+           "variance_ratio": "/".join(f"{r:.2f}" for r in model.variances[:k] / expected)}
+    if normals is not None:
+        along = (fields * normals).sum(-1)  # (3, P)
+        mine = (model.modes[:k] * normals).sum(-1)
+        normal = np.sort(np.degrees(subspace_angles(mine.T, along.T)))
+        out["normal_angles_deg"] = "/".join(f"{a:.1f}" for a in normal)
+    return out
+
+
+def mesh_normals(lsm) -> np.ndarray:
+    """Unit vertex normals of a LabelShapeModel's template meshes, label after label."""
+    from volreg.features.label_surfaces import vertex_normals
+
+    return np.concatenate([vertex_normals(lsm.vertices[lsm.offsets[j]:lsm.offsets[j + 1]], lsm.faces[j])
+                           for j in range(len(lsm.labels))])
 
 
 def quality_row(q: dict) -> dict:
@@ -142,7 +161,8 @@ def score_volreg(cohort: dict, template_dir: Path, model_dir: Path) -> list[dict
         lsm = LabelShapeModel.load(model_dir / kind / "model.npz")
         q = json.loads((model_dir / kind / "quality.json").read_text())
         points = lsm.vertices if kind == "surface" else lsm.template.grid_points()[lsm.region]
-        rows.append({"model": kind, **mode_scores(lsm.model, points, to_known, cohort["modes"]), **quality_row(q),
+        normals = mesh_normals(lsm) if kind == "surface" else None
+        rows.append({"model": kind, **mode_scores(lsm.model, points, to_known, cohort["modes"], normals), **quality_row(q),
                      "to_boundary_mm": q["correspondence"]["to_boundary_mm"],
                      "from_boundary_mm": q["correspondence"]["from_boundary_mm"]})
     return rows
@@ -164,6 +184,7 @@ def cpd_model(cohort: dict, template_dir: Path, seed: int) -> tuple[dict, float]
     picks = {v: np.sort(rng.choice(len(m.vertices), min(CPD_POINTS, len(m.vertices)), replace=False))
              for v, m in meshes.items()}
     source = {v: meshes[v].vertices[picks[v]] for v in meshes}
+    normals = np.concatenate([meshes[v].normals[picks[v]] for v in meshes])
     shapes, boundaries = [], []
     for sid in cohort["ids"]:
         own = label_surfaces(read_labels(cohort["folder"] / f"{sid}.nii.gz"), list(meshes))
@@ -190,7 +211,7 @@ def cpd_model(cohort: dict, template_dir: Path, seed: int) -> tuple[dict, float]
             to_b.append(cKDTree(boundaries[i][v]).query(mine)[0].mean())
             from_b.append(cKDTree(mine).query(boundaries[i][v])[0].mean())
     to_known = to_known_map(template_dir / "template.nii.gz", cohort["template"])
-    row = {"model": "surface", **mode_scores(model, reference, to_known, cohort["modes"]), **quality_row(q),
+    row = {"model": "surface", **mode_scores(model, reference, to_known, cohort["modes"], normals), **quality_row(q),
            "to_boundary_mm": float(np.mean(to_b)), "from_boundary_mm": float(np.mean(from_b))}
     return row, seconds
 
@@ -214,7 +235,8 @@ def known_rows(cohort: dict, work: Path) -> list[dict]:
     for kind, lsm in result.models.items():
         q = result.quality[kind]
         points = lsm.vertices if kind == "surface" else template.grid_points()[lsm.region]
-        rows.append({"model": kind, **mode_scores(lsm.model, points, lambda p: p, modes), **quality_row(q),
+        normals = mesh_normals(lsm) if kind == "surface" else None
+        rows.append({"model": kind, **mode_scores(lsm.model, points, lambda p: p, modes, normals), **quality_row(q),
                      "to_boundary_mm": q["correspondence"]["to_boundary_mm"],
                      "from_boundary_mm": q["correspondence"]["from_boundary_mm"]})
     return rows
@@ -284,7 +306,7 @@ def fmt(v) -> str:
 
 
 def markdown(rows: list[dict]) -> str:
-    cols = ("cohort", "method", "model", "angles_deg", "variance_ratio", "compactness_3", "generalization_3_mm",
+    cols = ("cohort", "method", "model", "angles_deg", "normal_angles_deg", "variance_ratio", "compactness_3", "generalization_3_mm",
             "specificity_3_mm", "to_boundary_mm", "from_boundary_mm", "seconds", "template_seconds")
     out = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
