@@ -304,3 +304,10 @@ def test_write_functions_refuse_an_existing_result(cohort, tmp_path):
     write_shape_sample(result.models["surface"], [-0.5], tmp_path / "s", force=True)
     report = write_shape_models(result, tmp_path / "m")
     assert report["models"]["deformation"]["modes"] == 3
+
+
+def test_a_cohort_too_large_for_memory_is_refused_before_reading_warps(cohort, monkeypatch):
+    *_, folder, _ = cohort
+    monkeypatch.setenv("VOLREG_MAX_MEMORY_GB", "0.001")
+    with pytest.raises(UsageError, match="would need about .* GB of memory"):
+        build_shape_models(folder)

@@ -38,6 +38,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from volreg import __version__
+from volreg._memory import MAX_MEMORY, memory_limit
 from volreg.errors import UsageError, VolregIOError
 from volreg.evaluation.shape_quality import model_quality
 from volreg.features.label_surfaces import surfaces_of_volumes
@@ -354,6 +355,20 @@ def _correspondence(lsm: LabelShapeModel, aligned: np.ndarray, boundaries: dict[
             "worst": max(per, key=lambda p: max(p["to_boundary_mm"], p["from_boundary_mm"]))["id"]}
 
 
+def _check_memory(folder: TemplateFolder, n: int, points: int, vertices: int, grid, modes) -> None:
+    """Refuse a cohort whose models would not fit in memory, before any warp is read: the data
+    (float32 region, float64 vertices), their aligned copies and the quality's, the modes, and two
+    fields of the template grid."""
+    k = min(n - 1, modes or n - 1)
+    need = 3 * (12 * n * points + 24 * n * vertices) + 24 * k * (points + vertices) + 48 * int(np.prod(grid.shape))
+    available, known_as = memory_limit()
+    if available is not None and need > available:
+        raise UsageError(f"TEMPLATE_OUT `{folder.path}`: the models of {n} subjects over {points} region voxels would "
+                         f"need about {need / 1024**3:.1f} GB of memory and {available / 1024**3:.1f} GB is {known_as}; "
+                         f"expected a template of a coarser spacing, fewer subjects or more free memory (set "
+                         f"{MAX_MEMORY} to change the limit).")
+
+
 def _check_options(align: str, modes, samples, seed) -> None:
     if align not in ALIGNMENTS:
         raise UsageError(f"--align {align!r}: expected one of {', '.join(ALIGNMENTS)}.")
@@ -414,6 +429,7 @@ def build_shape_models(
     region = labelled_region(template.array)
     points = grid.grid_points()[region]
     n = len(folder.ids)
+    _check_memory(folder, n, len(points), len(vertices), grid, modes)
     surface = np.empty((n, len(vertices), grid.ndim), np.float64)
     deformation = np.empty((n, len(points), grid.ndim), np.float32)
     t0 = time.perf_counter()

@@ -95,6 +95,7 @@ def procrustes(shapes: np.ndarray, kind: str, reference: np.ndarray | None = Non
     Returns
     -------
     aligned : (N, P, D) float array, mm
+        In the dtype of ``shapes`` (float32 stays float32).
     transforms : (N, D + 1, D + 1) float array
         ``aligned[i] = shapes[i] @ T[:D, :D].T + T[:D, D]`` with ``T = transforms[i]``.
     """
@@ -118,7 +119,7 @@ def procrustes(shapes: np.ndarray, kind: str, reference: np.ndarray | None = Non
         if moved < tol:
             break
     transforms = np.stack([fit_similarity(s, mean, kind) for s in shapes])
-    aligned = np.stack([_apply(t, s) for t, s in zip(transforms, shapes)])
+    aligned = np.stack([_apply(t, s).astype(shapes.dtype, copy=False) for t, s in zip(transforms, shapes)])
     return aligned, transforms
 
 
