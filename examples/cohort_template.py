@@ -1,11 +1,15 @@
 """A cohort's template of label maps from Python: four subjects made from one shape by opposite
-local bumps, so that their mean shape is that shape, which none of them is.
+local bumps, so that their mean shape is that shape, which none of them is; then the cohort's
+shape and deformation models from the template's correspondences.
 
 Usage: python examples/cohort_template.py [OUTDIR]   (needs Dask: pip install 'volreg[batch]')
 
 Builds the template (volreg.build_template, as `volreg template`), then prints each round's shape
 update, the subjects ranked by their distance to the template, and how close the template and
-each subject come to the shape they were made from (mean Dice over its labels).
+each subject come to the shape they were made from (mean Dice over its labels); then builds the
+shape models (volreg.build_shape_models, as `volreg shape-model`), prints the share of the
+variance in each leading mode (two bumps: two modes hold most of it) and writes the label map at
++2 standard deviations of the leading deformation mode.
 """
 
 import sys
@@ -55,6 +59,11 @@ def main() -> None:
           ", ".join(f"{r['id']} {r['distance_mm']:.2f} mm" for r in result.report["ranking"]))
     print(f"mean Dice to the shape they were made from: template {mean_dice(base, result.template):.3f}; subjects "
           + ", ".join(f"{mean_dice(base, s):.3f}" for s in subjects.values()))
+    models = volreg.build_shape_models(outdir, align="rigid", samples=20)
+    for kind, model in models.models.items():
+        print(f"{kind} model: share of the variance in the leading modes "
+              + ", ".join(f"{f:.2f}" for f in model.model.fractions()[:3]))
+    volreg.write_labels(models.models["deformation"].label_map([2.0]), f"{outdir}/mode1_plus2sd.nii.gz", force=True)
     print(f"outputs in {outdir}")
 
 
