@@ -46,6 +46,9 @@ def add_parser(commands) -> None:
     p = commands.add_parser(
         "shape-model",
         help="statistical shape and deformation models of a template's cohort; shapes drawn from a model",
+        usage="volreg shape-model TEMPLATE_OUT -o OUTDIR [--align none|rigid|similarity] [--modes N] [--samples N]\n"
+              "                          [--seed N] [--force] [--quiet]\n"
+              "       volreg shape-model sample MODEL --coefficients B1,B2,... -o OUTDIR [--force]",
         description="`volreg shape-model TEMPLATE_OUT -o OUTDIR`: from the folder `volreg template` wrote, a surface "
         "model (the template's label meshes carried into every subject by its warp) and a deformation model (the "
         "subjects' displacements over the template's labelled region), each aligned by generalised Procrustes "
@@ -55,7 +58,7 @@ def add_parser(commands) -> None:
         "OUTDIR/report.json. `volreg shape-model sample MODEL --coefficients 2,-1,0.5 -o OUTDIR`: the label map "
         "(shape.nii.gz) and meshes (shape_label<L>.vtk) of that shape of a saved model.npz.",
     )
-    p.add_argument("inputs", nargs="+", metavar="TEMPLATE_OUT | sample MODEL",
+    p.add_argument("inputs", nargs="+", metavar="TEMPLATE_OUT",
                    help="the template folder, or `sample` and a saved model.npz")
     p.add_argument("-o", "--output", metavar="OUTDIR", type=output_path, required=True, help="output directory")
     p.add_argument("--align", choices=("none", "rigid", "similarity"), default="rigid",
