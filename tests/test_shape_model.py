@@ -311,3 +311,11 @@ def test_a_cohort_too_large_for_memory_is_refused_before_reading_warps(cohort, m
     monkeypatch.setenv("VOLREG_MAX_MEMORY_GB", "0.001")
     with pytest.raises(UsageError, match="would need about .* GB of memory"):
         build_shape_models(folder)
+
+
+def test_a_rerun_gives_the_same_models_and_quality(cohort):
+    *_, folder, result = cohort
+    again = build_shape_models(folder, align="none", modes=6, samples=40)
+    assert again.quality == result.quality
+    for kind in ("surface", "deformation"):
+        np.testing.assert_array_equal(again.models[kind].model.modes, result.models[kind].model.modes)
