@@ -272,6 +272,10 @@ def test_the_command_writes_both_models(cohort, tmp_path, capsys):
     lsm = LabelShapeModel.load(out / "deformation" / "model.npz")
     assert np.array_equal(shape.array, lsm.label_map([1.5, -1]).array)
     assert (sample / "shape_label3.vtk").is_file()
+    # a first coefficient below zero, as users type it
+    assert main(["shape-model", "sample", str(out / "deformation" / "model.npz"), "--coefficients", "-2,0.5",
+                 "-o", str(tmp_path / "negative")]) == 0
+    assert np.array_equal(read_labels(tmp_path / "negative" / "shape.nii.gz").array, lsm.label_map([-2, 0.5]).array)
 
 
 @pytest.mark.parametrize("args, message", [
@@ -284,12 +288,29 @@ def test_the_command_writes_both_models(cohort, tmp_path, capsys):
     (["shape-model", "sample", "{model}", "--coefficients", "1,1,1,1,1,1,1,1,1,1,1,1", "-o", "{tmp}/o"],
      "--coefficients"),
     (["shape-model", "sample", "{model}", "-o", "{tmp}/o"], "--coefficients"),
+    (["shape-model", "{dup}", "-o", "{tmp}/o"], "twice or as a name"),
+    (["shape-model", "{model}", "-o", "{tmp}/o"], "is not a folder"),
+    (["shape-model", "sample", "{tampered}", "--coefficients", "1", "-o", "{tmp}/o"], "not a consistent shape model"),
 ])
 def test_bad_command_lines_are_refused_in_one_line(cohort, tmp_path, capsys, args, message):
     *_, folder, result = cohort
     model = tmp_path / "m.npz"
-    result.models["surface"].save(model)
-    filled = [a.format(tmp=tmp_path, folder=folder, model=model) for a in args]
+    result.models["deformation"].save(model)
+    dup = tmp_path / "dup"
+    dup.mkdir()
+    (dup / "template.nii.gz").write_bytes((folder / "template.nii.gz").read_bytes())
+    (dup / "subjects").symlink_to(folder / "subjects", target_is_directory=True)
+    report = json.loads((folder / "report.json").read_text())
+    report["subjects"] = report["subjects"][:2] + report["subjects"][:1]
+    (dup / "report.json").write_text(json.dumps(report))
+    tampered = tmp_path / "t" / "m.npz"
+    tampered.parent.mkdir()
+    with np.load(model, allow_pickle=False) as data:
+        arrays = {k: data[k] for k in data.files}
+    region = arrays["region"]
+    arrays["region"] = np.concatenate([region, np.zeros((3,) + region.shape[1:], bool)])  # same count, other shape
+    np.savez(tampered, **arrays)
+    filled = [a.format(tmp=tmp_path, folder=folder, model=model, dup=dup, tampered=tampered) for a in args]
     assert main(filled) == 2
     err = capsys.readouterr().err.strip().splitlines()  # (argparse's usage lines, then) one error line
     assert err[-1].startswith("volreg shape-model: error:") and message in err[-1], err
@@ -319,3 +340,22 @@ def test_a_rerun_gives_the_same_models_and_quality(cohort):
     assert again.quality == result.quality
     for kind in ("surface", "deformation"):
         np.testing.assert_array_equal(again.models[kind].model.modes, result.models[kind].model.modes)
+
+
+def test_modes_as_a_numpy_integer_and_subjects_listed_by_relative_paths(cohort, tmp_path, monkeypatch):
+    root, _, _, _, ids, folder, _ = cohort
+    # the template's report naming each subject relative to the folder above the template folder
+    moved = tmp_path / "template"
+    moved.mkdir()
+    for name in ("template.nii.gz",):
+        (moved / name).write_bytes((folder / name).read_bytes())
+    (moved / "subjects").symlink_to(folder / "subjects", target_is_directory=True)
+    for sid in ids:
+        (tmp_path / f"{sid}.nii.gz").write_bytes((root / f"{sid}.nii.gz").read_bytes())
+    report = json.loads((folder / "report.json").read_text())
+    report["subjects"] = [{"id": r["id"], "path": f"{r['id']}.nii.gz"} for r in report["subjects"]]
+    (moved / "report.json").write_text(json.dumps(report))
+    monkeypatch.chdir(root.parent)  # not where the subjects are
+    result = build_shape_models(moved, align="none", modes=np.int64(2), samples=5)
+    assert result.models["surface"].model.n_modes == 2
+    assert len(result.quality["surface"]["correspondence"]["subjects"]) == len(ids)

@@ -219,7 +219,12 @@ class LabelShapeModel:
         p, d = model.mean.shape
         expected = len(out.vertices) if out.kind == "surface" else int(out.region.sum()) if out.region is not None else -1
         if out.kind not in KINDS or p != expected or model.modes.shape[1:] != (p, d) \
-                or len(model.variances) != len(model.modes) or len(out.labels) + 1 != len(out.offsets):
+                or len(model.variances) != len(model.modes) or len(out.labels) + 1 != len(out.offsets) \
+                or len(out.faces) != len(out.labels) or out.vertices.ndim != 2 or out.vertices.shape[1] != d \
+                or d != template.ndim or (out.region is not None and out.region.shape != template.shape) \
+                or int(out.offsets[-1]) != len(out.vertices) \
+                or any(len(f) and (f.min() < 0 or f.max() >= out.offsets[j + 1] - out.offsets[j])
+                       for j, f in enumerate(out.faces)):
             raise VolregIOError(f"{label} is not a consistent shape model: its arrays do not agree in size.")
         return out
 
@@ -281,13 +286,20 @@ def read_template_folder(folder: str | os.PathLike[str]) -> TemplateFolder:
         if not isinstance(row, dict) or not isinstance(row.get("id"), str):
             raise UsageError(f"TEMPLATE_OUT report `{report}` lists a subject without an id.")
         sid = row["id"]
+        if sid in warps or not sid or sid in (".", "..") or sid.startswith(".") or any(c in sid for c in "/\\") \
+                or any(c < " " or c == "\x7f" for c in sid):
+            raise UsageError(f"TEMPLATE_OUT report `{report}` lists the subject id {sid[:100]!r} twice or as a name "
+                             "that is no folder of its own; expected the unique ids of the manifest.")
         warp = path / "subjects" / sid / "warp.nii.gz"
         if not warp.is_file():
             raise VolregIOError(f"TEMPLATE_OUT `{path}`: subject `{sid[:100]}` has no `subjects/{sid[:100]}/warp.nii.gz`; "
                                 "expected every subject's registration to the template.")
         ids.append(sid)
         warps[sid] = warp
-        sources[sid] = Path(str(row.get("path", "")))
+        source = Path(str(row.get("path", "")))
+        if not source.is_absolute() and not source.exists() and (path.parent / source).exists():
+            source = path.parent / source  # a relative path, read from beside the template folder
+        sources[sid] = source
     if len(ids) < 2:
         raise UsageError(f"TEMPLATE_OUT `{path}` lists {len(ids)} subject; expected at least two for a shape model.")
     return TemplateFolder(path, read_labels(path / "template.nii.gz"), ids, sources, warps)
@@ -357,10 +369,12 @@ def _correspondence(lsm: LabelShapeModel, aligned: np.ndarray, boundaries: dict[
 
 def _check_memory(folder: TemplateFolder, n: int, points: int, vertices: int, grid, modes) -> None:
     """Refuse a cohort whose models would not fit in memory, before any warp is read: the data
-    (float32 region, float64 vertices), their aligned copies and the quality's, the modes, and two
+    (float32 region, float64 vertices) and their aligned copies, a float64 block of the Gram
+    matrix's columns per subject, the modes (float64, and their float32 copy when saved), and four
     fields of the template grid."""
     k = min(n - 1, modes or n - 1)
-    need = 3 * (12 * n * points + 24 * n * vertices) + 24 * k * (points + vertices) + 48 * int(np.prod(grid.shape))
+    need = 2 * (12 * n * points + 24 * n * vertices) + 8 * n * (1 << 18) + 36 * k * (points + vertices) \
+        + 96 * int(np.prod(grid.shape))
     available, known_as = memory_limit()
     if available is not None and need > available:
         raise UsageError(f"TEMPLATE_OUT `{folder.path}`: the models of {n} subjects over {points} region voxels would "
@@ -435,7 +449,7 @@ def build_shape_models(
     t0 = time.perf_counter()
     for i, sid in enumerate(folder.ids):
         u, ugrid = read_displacement(folder.warps[sid])
-        if not ugrid.same_geometry(grid):
+        if not ugrid.same_geometry(grid, atol=1e-3):  # (NIfTI keeps the geometry in float32)
             raise VolregIOError(f"Warp `{folder.warps[sid]}` is not on the template's grid; expected the field "
                                 "`volreg template` wrote for that subject.")
         surface[i] = vertices + sample_field(u, grid, vertices)
@@ -450,8 +464,7 @@ def build_shape_models(
         model = ShapeModel.fit(shapes, ids=folder.ids, align=align, modes=modes, reference=reference)
         lsm = LabelShapeModel(kind, model, template, labels, vertices, offsets, faces,
                               region if kind == "deformation" else None)
-        aligned = np.stack([s @ t[:-1, :-1].T + t[:-1, -1] for s, t in zip(shapes, model.transforms)]) \
-            if align != "none" else shapes
+        aligned = model.aligned
         fitted = time.perf_counter() - t0
         q = model_quality(model, aligned, samples=samples, seed=seed)
         q["correspondence"] = _correspondence(lsm, aligned, boundaries, folder.ids)

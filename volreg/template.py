@@ -517,7 +517,7 @@ def _write_outputs(outdir: Path, work: Path, rows, grid: Grid, labels, history: 
         w.writerow([i, v, int((template.array == v).sum()), last["sharpness"].get(str(v), "")])
     write_text(table.getvalue(), outdir / "labels.csv", force=True)
     report |= {
-        "subjects": [{"id": sid, "path": str(p)} for sid, p in rows],
+        "subjects": [{"id": sid, "path": str(Path(p).resolve())} for sid, p in rows],
         "left_out": last.get("left_out", []),
         "template": {"shape": list(grid.shape), "spacing_mm": grid.spacing.tolist(), "origin_mm": grid.origin.tolist(),
                      "labels": labels},

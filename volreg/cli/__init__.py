@@ -203,12 +203,32 @@ def _open_closed_streams() -> None:
             setattr(sys, name, open(fd, mode, encoding="utf-8", closefd=False))  # noqa: SIM115 (lives with the process)
 
 
+#: Options whose value may start with a minus sign (``--coefficients -2,1``), which argparse would
+#: take for an option of its own.
+NEGATIVE_VALUE_OPTIONS = ("--coefficients",)
+
+
+def _joined_negative_values(words: list[str]) -> list[str]:
+    """``--coefficients -2,1`` as ``--coefficients=-2,1`` (for :data:`NEGATIVE_VALUE_OPTIONS`)."""
+    out, i = [], 0
+    while i < len(words):
+        value = words[i + 1] if i + 1 < len(words) else ""
+        if words[i] in NEGATIVE_VALUE_OPTIONS and value[:1] == "-" and (value[1:2].isdigit() or value[1:2] == "."):
+            out.append(f"{words[i]}={value}")
+            i += 2
+        else:
+            out.append(words[i])
+            i += 1
+    return out
+
+
 def _parse(argv: Sequence[str] | None) -> argparse.Namespace | int:
     """The parsed arguments, or the exit status where argparse ended the run (``--help`` and
     ``--version``: 0; a usage error: 2, its message printed)."""
     parser = build_parser()
+    words = _joined_negative_values(sys.argv[1:] if argv is None else list(argv))
     try:
-        return parser.parse_args(None if argv is None else list(argv))
+        return parser.parse_args(words)
     except SystemExit as exc:  # argparse exits for --help, --version and usage errors
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
 

@@ -56,7 +56,8 @@ def add_parser(commands) -> None:
         "scores.csv, quality.json and quality.png: compactness, generalization, specificity, correspondence both "
         "ways; mean meshes; the leading modes' -2/+2 sd label maps and meshes; one GIF per leading mode) and "
         "OUTDIR/report.json. `volreg shape-model sample MODEL --coefficients 2,-1,0.5 -o OUTDIR`: the label map "
-        "(shape.nii.gz) and meshes (shape_label<L>.vtk) of that shape of a saved model.npz.",
+        "(shape.nii.gz) and meshes (shape_label<L>.vtk) of that shape of a saved model.npz (a first value below zero "
+        "may follow --coefficients as it is: --coefficients -2,1).",
     )
     p.add_argument("inputs", nargs="+", metavar="TEMPLATE_OUT",
                    help="the template folder, or `sample` and a saved model.npz")
@@ -111,8 +112,8 @@ def run(args: argparse.Namespace) -> int:
             samples=args.samples, seed=args.seed, warn=lambda line: _warn("shape-model", line))
     parts = []
     for kind, m in report["models"].items():
-        parts.append(f"{kind}: {m['modes']} modes, 3 modes hold {100 * (m['compactness_3'] or 0):.0f} %, "
-                     f"generalization {m['generalization_3_mm'] or 0:.2f} mm")
+        parts.append(f"{kind}: {m['modes']} modes, the leading {m['leading']} hold {100 * (m['compactness_leading'] or 0):.0f} %, "
+                     f"generalization {m['generalization_leading_mm'] or 0:.2f} mm")
     print(f"{PROG} shape-model: {len(report['subjects'])} subjects; {'; '.join(parts)}; {outdir} "
           f"({time.perf_counter() - start:.0f} s)", file=sys.stdout)
     return 0

@@ -191,11 +191,11 @@ def _summary(result: ShapeModelResult) -> dict:
         lsm, q = result.models[kind], result.quality[kind]
         m = min(3, lsm.model.n_modes)
         out["models"][kind] = {
-            "modes": lsm.model.n_modes, "points": int(lsm.model.mean.shape[0]),
+            "modes": lsm.model.n_modes, "points": int(lsm.model.mean.shape[0]), "leading": m,
             "leading_variances_mm2": lsm.model.variances[:m].tolist(),
-            "compactness_3": q["compactness"][m - 1] if m else None,
-            "generalization_3_mm": q["generalization_mm"][m - 1] if m else None,
-            "specificity_3_mm": q["specificity_mm"][m - 1] if m else None,
+            "compactness_leading": q["compactness"][m - 1] if m else None,
+            "generalization_leading_mm": q["generalization_mm"][m - 1] if m else None,
+            "specificity_leading_mm": q["specificity_mm"][m - 1] if m else None,
             "correspondence_mm": {"to_boundary": q["correspondence"]["to_boundary_mm"],
                                   "from_boundary": q["correspondence"]["from_boundary_mm"]},
         }

@@ -18,6 +18,7 @@ of hundreds of subjects never forms the ``PD x PD`` covariance.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -101,17 +102,18 @@ def procrustes(shapes: np.ndarray, kind: str, reference: np.ndarray | None = Non
     """
     if kind not in ALIGNMENTS:
         raise UsageError(f"--align {kind!r}: expected one of {', '.join(ALIGNMENTS)}.")
+    shapes = np.asarray(shapes)
     n, _, d = shapes.shape
     transforms = np.repeat(np.eye(d + 1)[None], n, axis=0)
     if kind == "none":
-        return np.asarray(shapes), transforms
+        return shapes, transforms
     frame = np.asarray(shapes.mean(0), float) if reference is None else np.asarray(reference, float)
     mean = frame
-    aligned = np.asarray(shapes, float)
-    for _ in range(iterations):
-        transforms = np.stack([fit_similarity(s, mean, kind) for s in shapes])
-        aligned = np.stack([_apply(t, s) for t, s in zip(transforms, shapes)])
-        average = aligned.mean(0)
+    for _ in range(iterations):  # a running sum: no aligned copy of the cohort until the end
+        average = np.zeros_like(frame)
+        for s in shapes:
+            average += _apply(fit_similarity(s, mean, kind), s)
+        average /= n
         back = fit_similarity(average, frame, kind)  # the average in the frame of the reference
         new = _apply(back, average)
         moved = float(np.sqrt(((new - mean) ** 2).sum(1).mean()))
@@ -119,7 +121,9 @@ def procrustes(shapes: np.ndarray, kind: str, reference: np.ndarray | None = Non
         if moved < tol:
             break
     transforms = np.stack([fit_similarity(s, mean, kind) for s in shapes])
-    aligned = np.stack([_apply(t, s).astype(shapes.dtype, copy=False) for t, s in zip(transforms, shapes)])
+    aligned = np.empty_like(shapes)
+    for i, (t, s) in enumerate(zip(transforms, shapes)):
+        aligned[i] = _apply(t, s)
     return aligned, transforms
 
 
@@ -169,6 +173,8 @@ class ShapeModel:
         The Procrustes alignment the shapes had before the PCA.
     transforms : (N, D + 1, D + 1) float array
         Each training shape's alignment onto the model's frame (identity for ``"none"``).
+    aligned : (N, P, D) array, optional
+        After :meth:`fit`, the training shapes in the model's frame, in their dtype (not saved).
     """
 
     mean: np.ndarray
@@ -179,6 +185,7 @@ class ShapeModel:
     total_variance: float
     align: str = "none"
     transforms: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
+    aligned: np.ndarray | None = field(default=None, repr=False)
 
     @classmethod
     def fit(cls, shapes: np.ndarray, *, ids=None, align: str = "none", modes: int | None = None,
@@ -205,8 +212,9 @@ class ShapeModel:
         shapes = np.asarray(shapes)
         if shapes.ndim != 3 or shapes.shape[0] < 2 or shapes.shape[1] < 1:
             raise UsageError(f"Expected `shapes` as an (N, P, D) array of N >= 2 shapes, got shape {shapes.shape}.")
-        if modes is not None and (not isinstance(modes, int) or isinstance(modes, bool) or modes < 1):
+        if modes is not None and (not isinstance(modes, numbers.Integral) or isinstance(modes, bool) or modes < 1):
             raise UsageError(f"--modes {modes!r}: expected a positive integer.")
+        modes = None if modes is None else int(modes)
         n, p, d = shapes.shape
         ids = [str(i) for i in range(n)] if ids is None else [str(i) for i in ids]
         if len(ids) != n:
@@ -226,8 +234,10 @@ class ShapeModel:
         sign[sign == 0] = 1.0
         vectors *= sign[:, None]
         scores = scores * sign
-        return cls(mean.reshape(p, d), vectors.reshape(len(w), p, d), w / (n - 1), scores, ids,
-                   float(np.trace(gram)) / (n - 1), align, transforms)
+        model = cls(mean.reshape(p, d), vectors.reshape(len(w), p, d), w / (n - 1), scores, ids,
+                    float(np.trace(gram)) / (n - 1), align, transforms)
+        model.aligned = aligned
+        return model
 
     # ----------------------------------------------------------------------------- using it
 
