@@ -54,14 +54,14 @@ def _loo_errors(data: np.ndarray, sub: np.ndarray, modes: int) -> np.ndarray:
         order = np.argsort(w)[::-1][:modes]
         w, v = w[order], v[:, order]
         good = w > max(float(w[0]), 0.0) * 1e-10
+        w, v = w[good], v[:, good]
         base = at[rest].mean(0)
-        offsets = at[rest] - base  # (N-1, S, D)
-        recon = base.copy()
-        for m in range(modes):
-            if m < len(w) and good[m]:
-                direction = np.tensordot(v[:, m], offsets, axes=1) / np.sqrt(w[m])
-                recon = recon + (v[:, m] @ q) / np.sqrt(w[m]) * direction
-            out[i, m] = point_distance(recon, at[i])
+        offsets = (at[rest] - base).reshape(n - 1, -1)  # (N-1, S D)
+        steps = ((v.T @ q) / w)[:, None] * (v.T @ offsets)  # each mode's part of the reconstruction, (k, S D)
+        recon = base.reshape(-1) + np.cumsum(steps, axis=0)  # with 1 .. k modes
+        errors = point_distance(recon.reshape(len(w), -1, d), at[i])
+        out[i, :len(w)] = errors
+        out[i, len(w):] = errors[-1] if len(w) else point_distance(base, at[i])
     return out
 
 
