@@ -289,6 +289,7 @@ def test_the_command_writes_both_models(cohort, tmp_path, capsys):
      "--coefficients"),
     (["shape-model", "sample", "{model}", "-o", "{tmp}/o"], "--coefficients"),
     (["shape-model", "{dup}", "-o", "{tmp}/o"], "twice or as a name"),
+    (["shape-model", "{secret}", "-o", "{tmp}/o"], "is not JSON"),
     (["shape-model", "{model}", "-o", "{tmp}/o"], "is not a folder"),
     (["shape-model", "sample", "{tampered}", "--coefficients", "1", "-o", "{tmp}/o"], "not a consistent shape model"),
 ])
@@ -310,10 +311,17 @@ def test_bad_command_lines_are_refused_in_one_line(cohort, tmp_path, capsys, arg
     region = arrays["region"]
     arrays["region"] = np.concatenate([region, np.zeros((3,) + region.shape[1:], bool)])  # same count, other shape
     np.savez(tampered, **arrays)
-    filled = [a.format(tmp=tmp_path, folder=folder, model=model, dup=dup, tampered=tampered) for a in args]
+    secret = tmp_path / "secret"
+    secret.mkdir()
+    (secret / "template.nii.gz").write_bytes((folder / "template.nii.gz").read_bytes())
+    (tmp_path / "secret.txt").write_text("SECRET-TOKEN-123\n")
+    (secret / "report.json").symlink_to(tmp_path / "secret.txt")  # a report linked to another file
+    filled = [a.format(tmp=tmp_path, folder=folder, model=model, dup=dup, tampered=tampered, secret=secret)
+              for a in args]
     assert main(filled) == 2
     err = capsys.readouterr().err.strip().splitlines()  # (argparse's usage lines, then) one error line
     assert err[-1].startswith("volreg shape-model: error:") and message in err[-1], err
+    assert "SECRET" not in "\n".join(err)
     assert not (tmp_path / "o").exists()
 
 

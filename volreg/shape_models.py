@@ -59,6 +59,8 @@ __all__ = ["KINDS", "SHAPE_MODEL_FORMAT", "LabelShapeModel", "ShapeModelResult",
 
 #: The two models of a cohort, in the order they are built.
 KINDS = ("surface", "deformation")
+#: The largest template report read (a template's report is a few kB per subject).
+MAX_REPORT_BYTES = 256 * 10**6
 #: The ``format`` member of a saved :class:`LabelShapeModel`.
 SHAPE_MODEL_FORMAT = "volreg-shape-model-1"
 
@@ -272,11 +274,18 @@ def read_template_folder(folder: str | os.PathLike[str]) -> TemplateFolder:
     if not report.is_file() or not (path / "template.nii.gz").is_file():
         raise UsageError(f"TEMPLATE_OUT `{path}` holds no finished template (report.json and template.nii.gz); "
                          "expected the folder `volreg template` wrote.")
+    if report.stat().st_size > MAX_REPORT_BYTES:
+        raise UsageError(f"TEMPLATE_OUT report `{report}` is {report.stat().st_size / 1e6:.0f} MB; expected the report "
+                         f"`volreg template` wrote (at most {MAX_REPORT_BYTES // 10**6} MB).")
     try:
         text = report.read_text()
     except (OSError, UnicodeDecodeError) as exc:
         raise VolregIOError(f"TEMPLATE_OUT report `{report}` cannot be read: {exc}.") from None
-    data = parse_json(text, f"TEMPLATE_OUT report `{report}`")
+    try:
+        data = parse_json(text, f"TEMPLATE_OUT report `{report}`")
+    except ValueError:  # not JSON: its content is not echoed
+        raise UsageError(f"TEMPLATE_OUT report `{report}` is not JSON; expected the report `volreg template` "
+                         "wrote.") from None
     subjects = data.get("subjects") if isinstance(data, dict) else None
     if not isinstance(data, dict) or data.get("command") != "template" or not isinstance(subjects, list):
         raise UsageError(f"TEMPLATE_OUT report `{report}` is not a `volreg template` report; expected the folder "
