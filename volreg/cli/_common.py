@@ -43,6 +43,22 @@ def _label_list(text: str) -> list[int]:
     return labels
 
 
+def _integer_at_least(least: int):
+    """An argparse type: an integer of at least ``least`` ("a positive integer" for 1)."""
+    wanted = "a positive integer" if least == 1 else f"an integer of at least {least}"
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {text[:40]!r}") from None
+        if value < least:
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {text[:40]!r}")
+        return value
+
+    return parse
+
+
 def _float_at_least(lower: float, *, strict: bool, upper: float = math.inf):
     """An argparse type for a finite float ``> lower`` (``strict``) or ``>= lower``, and ``<= upper``."""
     relation = ">" if strict else ">="

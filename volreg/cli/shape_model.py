@@ -12,22 +12,10 @@ import sys
 import time
 from pathlib import Path
 
-from volreg.cli._common import PROG, _warn, output_path
+from volreg.cli._common import PROG, _integer_at_least, _warn, output_path
 from volreg.errors import UsageError
 
 __all__ = ["add_parser", "run"]
-
-
-def _count(least: int):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer of at least {least}, got {text[:40]!r}") from None
-        if value < least:
-            raise argparse.ArgumentTypeError(f"expected an integer of at least {least}, got {text[:40]!r}")
-        return value
-    return parse
 
 
 def _coefficients(text: str) -> list[float]:
@@ -64,10 +52,10 @@ def add_parser(commands) -> None:
     p.add_argument("-o", "--output", metavar="OUTDIR", type=output_path, required=True, help="output directory")
     p.add_argument("--align", choices=("none", "rigid", "similarity"), default="rigid",
                    help="generalised Procrustes alignment of the subjects before the PCA (default rigid)")
-    p.add_argument("--modes", type=_count(1), default=10, help="at most this many modes per model (default 10)")
-    p.add_argument("--samples", type=_count(1), default=100,
+    p.add_argument("--modes", type=_integer_at_least(1), default=10, help="at most this many modes per model (default 10)")
+    p.add_argument("--samples", type=_integer_at_least(1), default=100,
                    help="shapes drawn to measure the specificity (default 100)")
-    p.add_argument("--seed", type=_count(0), default=0, help="seed of the specificity's draws (default 0)")
+    p.add_argument("--seed", type=_integer_at_least(0), default=0, help="seed of the specificity's draws (default 0)")
     p.add_argument("--coefficients", type=_coefficients, default=None, metavar="B1,B2,...",
                    help="with `sample`: the shape's coefficients, standard deviations of the leading modes")
     p.add_argument("--force", action="store_true", help="replace the outputs in OUTDIR")

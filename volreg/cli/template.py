@@ -12,19 +12,9 @@ import sys
 import time
 from pathlib import Path
 
-from volreg.cli._common import PROG, _float_at_least, _warn, output_path
+from volreg.cli._common import PROG, _float_at_least, _integer_at_least, _warn, output_path
 
 __all__ = ["add_parser", "run"]
-
-
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
 
 
 def add_parser(commands) -> None:
@@ -42,7 +32,7 @@ def add_parser(commands) -> None:
     )
     p.add_argument("manifest", metavar="MANIFEST", type=Path, help="CSV with columns id,path")
     p.add_argument("-o", "--output", metavar="OUTDIR", type=output_path, required=True, help="output directory")
-    p.add_argument("--iterations", type=_count, default=5, help="at most this many rounds of registration (default 5)")
+    p.add_argument("--iterations", type=_integer_at_least(1), default=5, help="at most this many rounds of registration (default 5)")
     p.add_argument("--tolerance", type=_float_at_least(0.0, strict=True), default=None, metavar="MM",
                    help="stop once the mean shape update is at most this (default: a quarter of the spacing)")
     p.add_argument("--spacing", type=_float_at_least(0.0, strict=True), default=None, metavar="MM",
